@@ -1,0 +1,99 @@
+"""The adaptive traversal as a numpy frontier, the design DESIGN.md starts from, measured
+against the compiled kernel that replaced it.
+
+Each step classifies every (object node, frustum node) pair of the frontier against its
+frustum node's split planes at once; pairs on one side move down the frustum hierarchy, cut
+pairs unfold the object into its children, pairs at a frustum leaf are emitted. The answers are
+checked equal to the kernel's; the times are printed.
+
+    python benchmarks/numpy_frontier.py [SCENE] [WALL.json] [FRAMES]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+
+from wallcull.cull import Culler, _primary, _shared_planes
+from wallcull.paths import camera_path
+from wallcull.scene import SceneState, load
+from wallcull.wall import Frusta, Wall
+
+OUT, CUT, FULL = 0, 1, 2
+
+
+def states(s, r):
+    return np.where(s < -r, OUT, np.where(s >= r, FULL, CUT))
+
+
+def adaptive_frontier(scene, b, planes, fh, roots, shared):
+    c, axes, half, rad = b.center, b.axes, b.half, b.radius
+    o = roots
+    f = np.zeros(len(roots), dtype=np.int64)
+    nodes, tiles = [], []
+    while len(o):
+        tile = fh.tile[f]
+        done = tile >= 0
+        nodes.append(o[done])
+        tiles.append(tile[done])
+        o, f = o[~done], f[~done]
+        if not len(o):
+            break
+
+        def test(plane_ids):
+            p = planes[plane_ids]
+            s = np.einsum("kj,kj->k", c[o], p[:, :3]) + p[:, 3]
+            r = (np.abs(np.einsum("kij,kj->ki", axes[o], p[:, :3])) * half[o]).sum(1) + rad[o]
+            return s, r
+
+        s, r = test(fh.plane_a[f])
+        sa = states(s, r)
+        sb = states(-s, r) if shared else states(*test(fh.plane_b[f]))
+        cut = (sa == CUT) | (sb == CUT)
+        leaf = scene.is_leaf[o]
+        to_second = (~cut & (sb == FULL)) | (cut & leaf & (sb != OUT))
+        to_first = (~cut & (sa == FULL)) | (cut & leaf & (sa != OUT))
+        unfold = cut & ~leaf
+        parents, pf = o[unfold], f[unfold]
+        counts = scene.child_count[parents]
+        offsets = np.repeat(scene.child_start[parents] - np.cumsum(counts) + counts, counts)
+        kids = scene.children[np.arange(counts.sum()) + offsets]
+        o = np.concatenate([o[to_first], o[to_second], kids])
+        f = np.concatenate([fh.first[f[to_first]], fh.second[f[to_second]],
+                            np.repeat(pf, counts)])
+    return np.concatenate(nodes), np.concatenate(tiles)
+
+
+def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100):
+    scene = load(scene_name)
+    wall = Wall.from_dict(json.load(open(wall_path)))
+    state = SceneState(scene, "obb")
+    culler = Culler(state, wall, "adaptive")
+    pts = scene.leaf_points[0]
+    path = camera_path("orbit", pts.min(0), pts.max(0), wall, frames)
+    shared = wall.gap == (0.0, 0.0)
+    b = state.bounds
+    geo = (b.center, b.axes, b.half, b.radius)
+    numpy_ms, kernel_ms = [], []
+    for frame in path:
+        t0 = time.perf_counter()
+        frusta = Frusta.build(wall, frame)
+        planes = _shared_planes(frusta.planes, wall) if shared else frusta.planes
+        roots, _, _ = _primary(*culler._tree, *geo, planes, culler._primary_planes)
+        nodes, tiles = adaptive_frontier(scene, b, planes, wall.hierarchy, roots, shared)
+        numpy_ms.append((time.perf_counter() - t0) * 1e3)
+        t0 = time.perf_counter()
+        vis = culler.cull(Frusta.build(wall, frame))
+        kernel_ms.append((time.perf_counter() - t0) * 1e3)
+        for t in range(wall.tiles):
+            assert sorted(nodes[tiles == t]) == sorted(vis.tile_nodes(t)), "answers differ"
+    print(f"{scene_name}, {wall.cols} x {wall.rows}, {frames} frames of the orbit path: "
+          f"numpy frontier median {np.median(numpy_ms[3:]):.3f} ms, "
+          f"numba kernel median {np.median(kernel_ms[3:]):.3f} ms (same node lists)")
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:3], *(int(a) for a in sys.argv[3:4]))

@@ -1,0 +1,135 @@
+"""The command line of SPEC section 6: outputs, and one-line errors with exit status 2."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from wallcull.cli import main
+from wallcull.paths import camera_path
+from wallcull.scene import load
+from wallcull.wall import Frusta, Wall
+
+WALL = json.dumps({"cols": 3, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.01, 0.01],
+                   "distance": 2.0})
+FRAME = json.dumps({"position": [0, 20, 300], "orientation": [1, 0, 0, 0]})
+
+
+@pytest.fixture(scope="module")
+def glb(tmp_path_factory):
+    """A small scene file: two boxes, one left and one right of the view axis."""
+    s = trimesh.Scene()
+    for name, x in (("left", -3.0), ("right", 3.0)):
+        m = np.eye(4)
+        m[:3, 3] = [x, 0, -10]
+        s.add_geometry(trimesh.creation.box(extents=[1, 1, 1]), node_name=name, geom_name=name,
+                       transform=m)
+    path = tmp_path_factory.mktemp("scenes") / "two.glb"
+    s.export(path)
+    return str(path)
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_cull_json_follows_the_spec(capsys, glb):
+    frame = json.dumps({"position": [0, 0, 0], "orientation": [1, 0, 0, 0]})
+    code, out, err = run(capsys, "cull", glb, "--wall", WALL, "--frame", frame, "--json")
+    assert code == 0, err
+    doc = json.loads(out)
+    assert [(t["id"], t["row"], t["col"]) for t in doc["tiles"]] == \
+        [(0, 0, 0), (1, 0, 1), (2, 0, 2), (3, 1, 0), (4, 1, 1), (5, 1, 2)]
+    seen = {name for t in doc["tiles"] for name in t["visible"]}
+    assert seen == {"left", "right"}
+    # left box in the left column only, right box in the right column only
+    assert all(("left" in t["visible"]) == (t["col"] == 0) for t in doc["tiles"])
+    assert all(("right" in t["visible"]) == (t["col"] == 2) for t in doc["tiles"])
+    assert doc["stats"]["method"] == "adaptive" and doc["stats"]["cull_ms"] > 0
+
+
+def test_cull_files_and_text_output(capsys, glb, tmp_path):
+    (tmp_path / "wall.json").write_text(WALL)
+    (tmp_path / "frame.json").write_text(json.dumps({"position": [0, 0, 0],
+                                                     "orientation": [1, 0, 0, 0]}))
+    code, out, _ = run(capsys, "cull", glb, "--wall", str(tmp_path / "wall.json"), "--frame",
+                       str(tmp_path / "frame.json"), "--method", "naive", "--bounds", "sphere",
+                       "--leaves")
+    assert code == 0
+    assert "tile   0 (row 0, col 0): 1 leaves: left" in out
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["cull", "nowhere.glb", "--wall", WALL, "--frame", FRAME], "not found"),
+    (["cull", "powerplant", "--wall", "{not json", "--frame", FRAME], "malformed JSON"),
+    (["cull", "powerplant", "--wall", WALL, "--frame",
+      '{"position": [0,0,0], "orientation": [1,0,0,0.5]}'], "unit quaternion"),
+    (["cull", "powerplant", "--wall", WALL, "--frame",
+      '{"position": [0,0,0], "orientation": [1,0,0,0], "eye": [0,0,-5]}'], "in front"),
+    (["cull", "powerplant", "--wall", WALL.replace('"cols": 3', '"cols": 0'), "--frame", FRAME],
+     "at least 1"),
+    (["cull", "powerplant", "--wall", "missing.json", "--frame", FRAME], "not found"),
+    (["cull", "powerplant", "--wall", WALL, "--frame", FRAME, "--method", "fast"], "invalid choice"),
+    (["cull", "no_such_bundled_scene", "--wall", WALL, "--frame", FRAME], "unknown scene"),
+    (["bench", "powerplant", "--wall", WALL, "--methods", "oh,magic"], "unknown method"),
+    (["frobnicate"], "invalid choice"),
+])
+def test_bad_input_exits_2_with_one_line(capsys, argv, message):
+    code, out, err = run(capsys, *argv)
+    assert code == 2
+    assert err.count("\n") == 1 and err.startswith("wallcull: error:") and message in err
+
+
+def test_real_process_exit_status_and_no_traceback(glb):
+    bad = subprocess.run([sys.executable, "-m", "wallcull.cli", "cull", glb, "--wall", WALL,
+                          "--frame", '{"position": [0,0,0], "orientation": [0,0,0,0]}'],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    good = subprocess.run([sys.executable, "-m", "wallcull.cli", "scenes"], capture_output=True,
+                          text=True)
+    assert good.returncode == 0 and "fatehpur" in good.stdout and "powerplant" in good.stdout
+
+
+def test_bench_json_follows_the_spec(capsys, glb):
+    code, out, err = run(capsys, "bench", glb, "--wall", WALL, "--frames", "6", "--json",
+                         "--bounds", "obb,aabb", "--accuracy", "1")
+    assert code == 0, err
+    doc = json.loads(out)
+    assert set(doc["methods"]) == {"naive", "oh", "fh", "adaptive"}
+    for m in doc["methods"].values():
+        assert 0 < m["median_ms"] <= m["p99_ms"]
+    assert set(doc["by_bounds"]) == {"obb", "aabb"}
+    acc = doc["accuracy"]
+    assert all(0 <= v["rate"] <= 1 for k in ("obb", "aabb") for v in acc[k].values())
+
+
+def test_bench_dynamic_reports_refit_times(capsys, glb):
+    code, out, _ = run(capsys, "bench", glb, "--wall", WALL, "--frames", "4", "--json",
+                       "--methods", "adaptive", "--moving", "1.0", "--refit", "aabb")
+    assert code == 0
+    m = json.loads(out)["methods"]["adaptive"]
+    assert m["refit_median_ms"] > 0
+
+
+@pytest.mark.parametrize("name", ["fatehpur", "powerplant"])
+def test_orbit_keeps_the_whole_scene_in_view(name):
+    scene = load(name)
+    wall = Wall.from_dict({**json.loads(WALL), "far": 5000.0})
+    pts = scene.leaf_points[0]
+    for frame in camera_path("orbit", pts.min(0), pts.max(0), wall, 12):
+        primary = Frusta.build(wall, frame).primary
+        assert (pts @ primary[:, :3].T + primary[:, 3] >= 0).all()
+
+
+def test_fly_path_is_inside_the_scene_box():
+    scene = load("fatehpur")
+    wall = Wall.from_dict(json.loads(WALL))
+    pts = scene.leaf_points[0]
+    lo, hi = pts.min(0), pts.max(0)
+    for frame in camera_path("fly", lo, hi, wall, 16):
+        assert (frame.position >= lo).all() and (frame.position <= hi).all()

@@ -1,0 +1,214 @@
+"""The object hierarchy: loading real files, the flat-array invariants, the automatic spatial
+hierarchy, and dynamic moves that refit only what moved."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from wallcull.errors import InputError
+from wallcull.oracle import visible_leaves
+from wallcull.cull import METHODS, cull
+from wallcull.scene import Scene, SceneState, load, load_trimesh, spatial_groups
+from wallcull.wall import Frame, Frusta, Wall
+
+from .randscene import look_at_frame, random_scene, random_wall
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "scenes"
+needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"{SHARED} not present")
+
+
+def check_invariants(scene: Scene):
+    n = len(scene)
+    assert scene.parent[0] == -1 and (scene.parent[1:] < np.arange(1, n)).all()  # preorder
+    for i in range(n):
+        kids = scene.children[scene.child_start[i]:scene.child_start[i] + scene.child_count[i]]
+        assert (scene.parent[kids] == i).all()
+        assert set(range(i + 1, i + scene.size[i])) == \
+            {j for j in range(n) if _ancestor(scene, i, j)}
+    assert (scene.child_count[scene.is_leaf] == 0).all()
+    assert all(scene.geometry[i] is not None for i in scene.leaves)
+    start, count = scene.leaf_range
+    for i in range(n):
+        under = scene.leaves[start[i]:start[i] + count[i]]
+        assert all(_ancestor(scene, i, j) or i == j for j in under)
+        assert len(under) == sum(1 for j in scene.leaves if _ancestor(scene, i, j) or i == j)
+
+
+def _ancestor(scene, a, b):
+    p = scene.parent[b]
+    while p >= 0:
+        if p == a:
+            return True
+        p = scene.parent[p]
+    return False
+
+
+@needs_shared
+@pytest.mark.parametrize("name,leaves", [("CesiumMilkTruck.glb", 5), ("TestScene.gltf", 9),
+                                         ("FM1_satellite.3DXML", 62)])
+def test_real_scenes_load_and_follow_the_file_tree(name, leaves):
+    scene = load(str(SHARED / name))
+    check_invariants(scene)
+    assert len(scene.leaves) == leaves
+    tm = load_trimesh(SHARED / name)
+    assert len(tm.graph.nodes_geometry) == leaves
+
+
+@needs_shared
+def test_names_are_stable_across_loads():
+    """trimesh names the extra primitives of a glTF mesh at random; ours do not change."""
+    a = load(str(SHARED / "CesiumMilkTruck.glb")).names
+    b = load(str(SHARED / "CesiumMilkTruck.glb")).names
+    assert a == b
+    assert "0:Cesium_Milk_Truck_1" in a
+
+
+@needs_shared
+def test_flat_obj_gets_a_spatial_hierarchy_that_can_be_switched_off():
+    flat = load(str(SHARED / "sportsCar.zip"), hierarchy="file")
+    assert flat.stats["internal"] == 0 and len(flat.leaves) == 1075
+    auto = load(str(SHARED / "sportsCar.zip"), hierarchy="auto", branching=8)
+    check_invariants(auto)
+    assert auto.synthetic.sum() > 50 and (auto.child_count <= 8).all()
+    assert sorted(auto.names[i] for i in auto.leaves) == sorted(flat.names[i] for i in flat.leaves)
+
+
+def test_node_with_geometry_and_children_is_a_leaf_for_its_own_geometry():
+    scene = Scene.from_trimesh(random_scene(5, leaves=10))
+    node = scene.index["g_self"]
+    assert not scene.is_leaf[node]
+    first = scene.children[scene.child_start[node]]
+    assert scene.is_leaf[first] and scene.names[first] == "g_self"
+    assert scene.geometry[first] == "selfmesh"
+
+
+def test_empty_subtrees_are_dropped():
+    s = trimesh.Scene()
+    s.graph.update(frame_from="world", frame_to="empty_group", matrix=np.eye(4))
+    s.add_geometry(trimesh.creation.box(), node_name="box", geom_name="box")
+    scene = Scene.from_trimesh(s)
+    assert "empty_group" not in scene.index and "box" in scene.index
+
+
+def test_spatial_groups_are_compact_and_bounded():
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.normal(size=(100, 3)) + c for c in ([0, 0, 0], [50, 0, 0])])
+    groups = spatial_groups(pts, 4)
+    assert len(groups) <= 4
+
+    def flat(g):
+        return [g] if isinstance(g, np.ndarray) else [x for h in g for x in flat(h)]
+
+    leaves = flat(groups)
+    assert all(len(g) <= 4 for g in leaves)
+    assert sorted(np.concatenate(leaves).tolist()) == list(range(200))
+    # the two clusters are never mixed at the top
+    assert all(len({int(i >= 100) for i in np.concatenate(flat(g))}) == 1 for g in groups)
+
+
+@pytest.mark.parametrize("bad", ["nonexistent_scene_name", "/no/such/file.glb"])
+def test_unknown_scenes_are_clear_errors(bad):
+    with pytest.raises(InputError):
+        load(bad)
+
+
+def test_unreadable_file_is_a_clear_error(tmp_path):
+    f = tmp_path / "broken.glb"
+    f.write_bytes(b"glTF not really")
+    with pytest.raises(InputError, match="cannot read scene"):
+        load(str(f))
+
+
+# ------------------------------------------------------------------ dynamic scenes
+
+
+def random_moves(scene, rng, count):
+    nodes = rng.choice(np.arange(1, len(scene)), size=count, replace=False)
+    updates = {}
+    for n in nodes:
+        if scene.synthetic[n] or scene.names[n] in updates:
+            continue
+        m = scene.local[scene.index[scene.names[n]]].copy()
+        from scipy.spatial.transform import Rotation
+
+        r = Rotation.from_rotvec(rng.normal(size=3) * 0.5).as_matrix()
+        m[:3, :3] = r @ m[:3, :3]
+        m[:3, 3] += rng.normal(size=3)
+        updates[scene.names[n]] = m
+    return updates
+
+
+@pytest.mark.parametrize("refit", ["obb", "aabb"])
+@pytest.mark.parametrize("seed", range(6))
+def test_moved_scene_stays_conservative(seed, refit):
+    rng = np.random.default_rng(seed)
+    scene = Scene.from_trimesh(random_scene(seed, leaves=25))
+    state = SceneState(scene, "obb")
+    wall_spec = random_wall(rng)
+    wall = Wall.from_dict(wall_spec)
+    for step in range(3):
+        updates = random_moves(scene, rng, 4)
+        # rigid local transforms under possibly scaled parents: the world motion may not be
+        # rigid; move() must handle both
+        state.move({k: v for k, v in updates.items()}, refit)
+        frame = look_at_frame(rng, state.bounds.center[0], 15.0, wall_spec)
+        truth = visible_leaves(scene, wall_spec, frame, 1e-7 * 50, world=state.world)
+        for method in METHODS:
+            vis = cull(state, Frusta.build(wall, Frame.from_dict(frame, wall)), method)
+            for t in range(wall.tiles):
+                assert truth[t] <= set(vis.tile_leaves(t).tolist()), (method, step, t)
+
+
+def test_only_moved_nodes_and_their_ancestors_change():
+    scene = load("fatehpur")
+    state = SceneState(scene, "obb")
+    before = state.bounds.copy()
+    leaf = scene.leaves[100]
+    m = scene.local[leaf].copy()
+    m[:3, 3] += [1.0, 0, 0]
+    up = state.move_nodes(np.array([leaf]), m[None])
+    ancestors = []
+    p = scene.parent[leaf]
+    while p >= 0:
+        ancestors.append(p)
+        p = scene.parent[p]
+    assert sorted(up.tolist()) == sorted(ancestors)
+    changed = np.flatnonzero((state.bounds.center != before.center).any(1)
+                             | (state.bounds.half != before.half).any(1))
+    assert set(changed.tolist()) <= set(ancestors) | {leaf}
+    assert leaf in changed
+    np.testing.assert_allclose(state.bounds.center[leaf], before.center[leaf]
+                               + scene.world[scene.parent[leaf]][:3, :3] @ [1.0, 0, 0])
+
+
+def test_aabb_refit_makes_moved_nodes_axis_aligned_and_is_looser():
+    scene = load("fatehpur")
+    leaves = scene.leaves[::5]
+    local = scene.local[leaves].copy()
+    local[:, :3, 3] += 0.5
+    vols = {}
+    for refit in ("obb", "aabb"):
+        state = SceneState(scene, "obb")
+        state.move_nodes(leaves, local, refit)
+        if refit == "aabb":
+            assert np.allclose(state.bounds.axes[leaves], np.eye(3))
+        vols[refit] = np.prod(state.bounds.half[leaves], axis=1).sum()
+    assert vols["aabb"] > vols["obb"]
+
+
+def test_bad_updates_are_rejected():
+    scene = Scene.from_trimesh(random_scene(1, leaves=5))
+    state = SceneState(scene)
+    with pytest.raises(InputError, match="unknown node"):
+        state.move({"nope": np.eye(4)})
+    with pytest.raises(InputError, match="singular"):
+        state.move({"leaf0": np.diag([0.0, 1, 1, 1])})
+    with pytest.raises(InputError, match="affine"):
+        state.move({"leaf0": np.ones((4, 4))})
+    state.move({"leaf0": np.diag([2.0, 1, 1, 1])})  # scaling is a legitimate update
+    with pytest.raises(InputError, match="unit quaternion"):
+        state.move({"leaf0": {"position": [0, 0, 0], "orientation": [2, 0, 0, 0]}})
+    state.move({"leaf0": {"position": [1, 2, 3], "orientation": [1, 0, 0, 0]}})
+    assert np.allclose(state.local[scene.index["leaf0"]][:3, 3], [1, 2, 3])

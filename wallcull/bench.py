@@ -1,0 +1,196 @@
+"""``wallcull bench``: culling time per method over a camera path, and what it costs in accuracy.
+
+Times are for the culling step alone (the frame's frusta, the first-level cull and the
+traversal, down to per-tile lists), measured in this process with ``perf_counter`` over every
+frame of the path, after a few warm-up frames that compile the kernels.
+"""
+
+from __future__ import annotations
+
+import platform
+import resource
+import time
+from contextlib import nullcontext
+
+import numpy as np
+
+from . import oracle
+from .cull import METHODS
+from .errors import InputError
+from .paths import camera_path
+from .pipeline import Session
+from .scene import Scene
+from .wall import Wall
+
+WARMUP_FRAMES = 3
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MB (Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def machine() -> dict:
+    import os
+
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "system": platform.system()}
+
+
+def summarize(times_ms: list[float]) -> dict:
+    t = np.asarray(times_ms)
+    return {"median_ms": float(np.median(t)), "p99_ms": float(np.percentile(t, 99)),
+            "mean_ms": float(t.mean()), "min_ms": float(t.min())}
+
+
+class Motion:
+    """A dynamic scene (paper Fig. 6): a fixed, seeded ``fraction`` of the leaves sway about
+    their rest pose, each frame a different rigid offset (a turn of up to ~11 degrees about a
+    random axis, a shift of up to 2% of the scene's size)."""
+
+    def __init__(self, scene: Scene, fraction: float, seed: int = 0):
+        if not 0 <= fraction <= 1:
+            raise InputError(f"moving fraction must be in [0, 1], got {fraction}")
+        rng = np.random.default_rng(seed)
+        count = int(round(fraction * len(scene.leaves)))
+        self.nodes = np.sort(rng.choice(scene.leaves, count, replace=False))
+        self.base = scene.local[self.nodes]
+        axis = rng.normal(size=(count, 3))
+        self.axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
+        self.shift = rng.normal(size=(count, 3)) * 0.02 * float(np.ptp(scene.leaf_points[0], axis=0).max())
+        self.phase = rng.uniform(0, 2 * np.pi, count)
+
+    def at(self, k: int) -> np.ndarray:
+        """``(count, 4, 4)`` local transforms at frame ``k``: each part turned about its own
+        origin and shifted, in its parent's frame (so the motion is rigid in the world even
+        when the part's own transform scales)."""
+        wave = np.sin(2 * np.pi * k / 60 + self.phase)
+        angle = 0.2 * wave
+        x, y, z = self.axis.T
+        K = np.zeros((len(angle), 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -z, y, -x
+        K -= np.swapaxes(K, 1, 2)
+        s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+        turn = np.eye(3) + s * K + (1 - c) * K @ K  # Rodrigues
+        out = self.base.copy()
+        out[:, :3, :3] = turn @ self.base[:, :3, :3]
+        out[:, :3, 3] += self.shift * wave[:, None]
+        return out
+
+
+def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
+                pseudo_groups: bool = False, progress=None, motion: Motion | None = None,
+                refit: str | None = None) -> dict:
+    """Cull every frame with one method; per-frame times and counters. With ``motion``, the
+    moving nodes are updated and refit before each frame, and that time is reported apart."""
+    session = Session(scene, wall, method, bounds, pseudo_groups)
+    for frame in frames[:WARMUP_FRAMES]:
+        session.frame(frame)
+    times, refits, tests, pairs = [], [], [], []
+    task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
+    for k, frame in enumerate(frames):
+        if motion is not None and len(motion.nodes):
+            t0 = time.perf_counter()
+            session.state.move_nodes(motion.nodes, motion.at(k), refit)
+            refits.append((time.perf_counter() - t0) * 1e3)
+        result = session.frame(frame)
+        times.append(result.timings["cull_ms"])
+        stats = result.visibility.stats
+        tests.append(stats["tests"] + stats["primary_tests"])
+        pairs.append(stats["pairs"])
+        if progress:
+            progress.advance(task)
+    # leaves reported per frame, from the last frame (the lists, not their timing)
+    last = result.visibility
+    out = {**summarize(times), "tests_per_frame": float(np.mean(tests)),
+           "nodes_per_frame": float(np.mean(pairs)),
+           "leaf_pairs_last_frame": sum(len(last.tile_leaves(t)) for t in range(wall.tiles))}
+    if refits:
+        out["refit_median_ms"] = float(np.median(refits))
+        out["refit_p99_ms"] = float(np.percentile(refits, 99))
+    return out
+
+
+def accuracy(scene: Scene, wall: Wall, frames, methods, bounds_kinds, progress=None,
+             motion: Motion | None = None, refit: str | None = None) -> dict:
+    """False positives against the exact oracle: reported (leaf, tile) pairs that the tile's
+    frustum does not meet, per bound type and method, summed over ``frames``."""
+    out: dict = {}
+    task = (progress.add_task("accuracy", total=len(frames) * len(bounds_kinds) * len(methods))
+            if progress else None)
+    for kind in bounds_kinds:
+        out[kind] = {}
+        for method in methods:
+            session = Session(scene, wall, method, kind)
+            false = total = 0
+            extent = float(np.ptp(scene.leaf_points[0], axis=0).max())
+            for k, frame in enumerate(frames):
+                if motion is not None and len(motion.nodes):
+                    session.state.move_nodes(motion.nodes, motion.at(k), refit)
+                vis = session.frame(frame).visibility
+                reported = [vis.tile_leaves(t).tolist() for t in range(wall.tiles)]
+                tol = 1e-7 * max(extent, float(np.linalg.norm(frame.position)))
+                f, n = oracle.false_positives(scene, wall.to_dict(), frame.to_dict(), reported,
+                                              tol, world=session.state.world)
+                false, total = false + f, total + n
+                if progress:
+                    progress.advance(task)
+            out[kind][method] = {"false_positives": false, "reported": total,
+                                 "rate": false / total if total else 0.0}
+    return out
+
+
+def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=("obb",),
+        path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
+        hierarchy: str = "auto", moving: float = 0.0, refit: str | None = None,
+        progress: bool = True) -> dict:
+    """The whole benchmark; returns the ``bench --json`` document."""
+    from . import scene as scene_mod
+
+    for m in methods:
+        if m not in METHODS:
+            raise InputError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    t0 = time.perf_counter()
+    scene = scene_mod.load(scene_spec, hierarchy=hierarchy)
+    t1 = time.perf_counter()
+    for kind in bounds:
+        scene.bounds(kind)
+    t2 = time.perf_counter()
+    rss = peak_rss_mb()
+    points = scene.leaf_points[0]
+    path_frames = camera_path(path, points.min(axis=0), points.max(axis=0), wall,
+                              frames, up=scene.settings.get("up", (0, 1, 0)))
+    motion = Motion(scene, moving) if moving else None
+    by_bounds: dict = {}
+    bar = _progress() if progress else nullcontext()
+    with bar as p:
+        for kind in bounds:
+            by_bounds[kind] = {m: time_method(scene, wall, path_frames, m, kind, pseudo_groups,
+                                              p, motion, refit) for m in methods}
+        acc = (accuracy(scene, wall, path_frames[:accuracy_frames], methods, bounds, p, motion,
+                        refit) if accuracy_frames else None)
+    result = {
+        "scene": {"name": scene.name, **scene.stats, "load_s": t1 - t0,
+                  "preprocess_s": t2 - t1, "peak_rss_mb_after_load": rss},
+        "wall": wall.to_dict(), "frames": frames, "path": path, "bounds": bounds[0],
+        "pseudo_groups": pseudo_groups, "methods": by_bounds[bounds[0]],
+        "moving": moving, "refit": refit,
+        "machine": machine(), "peak_rss_mb": peak_rss_mb(),
+    }
+    if len(bounds) > 1:
+        result["by_bounds"] = by_bounds
+    if "adaptive" in methods and "oh" in methods:
+        result["adaptive_speedup_vs_oh"] = (result["methods"]["oh"]["median_ms"]
+                                            / result["methods"]["adaptive"]["median_ms"])
+    if acc is not None:
+        result["accuracy"] = {"frames": accuracy_frames, **acc}
+    return result
+
+
+def _progress():
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), console=Console(stderr=True), transient=True)

@@ -1,0 +1,272 @@
+"""The command line (SPEC section 6). Exit status 0 on success, 2 on bad input, one line of error.
+
+    wallcull cull SCENE --wall WALL.json --frame FRAME.json [--method M] [--bounds B] [--leaves] [--json]
+    wallcull bench SCENE --wall WALL.json [--frames N] [--methods a,b] [--json]
+    wallcull walk SCENE [--wall WALL.json]      # the README's main job: a walkthrough, per tile
+    wallcull serve [--host 127.0.0.1] [--port 8000] [--scenes DIR]
+    wallcull scenes
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+#: The wall of SPEC section 2, used where no ``--wall`` is given.
+DEFAULT_WALL = {"cols": 4, "rows": 4, "tile_size": [0.60, 0.34], "gap": [0.012, 0.012],
+                "distance": 2.0, "near": 0.1, "far": 1000.0, "resolution": [1920, 1080]}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, status 2 (argparse prints usage too by default)
+        raise InputError(message)
+
+
+def read_json(text: str, what: str):
+    """A JSON document given inline (starting with ``{`` or ``[``) or as a file path."""
+    text = text.strip()
+    if not text.startswith(("{", "[")):
+        path = Path(text)
+        if not path.is_file():
+            raise InputError(f"{what} file not found: {text}")
+        text = path.read_text()
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"malformed JSON in {what}: {exc}") from None
+
+
+def _wall(arg):
+    from .wall import Wall
+
+    return Wall.from_dict(read_json(arg, "--wall") if arg else DEFAULT_WALL)
+
+
+def _load(args):
+    from .scene import load
+
+    return load(args.scene, hierarchy=args.hierarchy, branching=args.branching)
+
+
+def cmd_cull(args) -> int:
+    from .pipeline import Session, tile_records
+
+    wall = _wall(args.wall)
+    frame_spec = read_json(args.frame, "--frame")
+    scene = _load(args)
+    session = Session(scene, wall, args.method, args.bounds, args.pseudo_groups)
+    session.frame(frame_spec)  # the first call compiles the kernels; time the second
+    result = session.frame(frame_spec)
+    tiles = tile_records(result, leaves=args.leaves)
+    stats = {**result.visibility.stats, "cull_ms": result.timings["cull_ms"],
+             "bounds": args.bounds, "scene": scene.name}
+    if args.json:
+        print(json.dumps({"tiles": tiles, "stats": stats}))
+        return 0
+    s = scene.stats
+    print(f"scene {scene.name}: {s['nodes']} nodes ({s['internal']} internal, {s['leaves']} "
+          f"leaves), {wall.cols} x {wall.rows} wall, method {args.method}, bounds {args.bounds}")
+    for tile in tiles:
+        names = ", ".join(tile["visible"]) or "-"
+        print(f"tile {tile['id']:>3} (row {tile['row']}, col {tile['col']}): "
+              f"{len(tile['visible'])} {'leaves' if args.leaves else 'nodes'}: {names}")
+    print(f"culled in {stats['cull_ms']:.3f} ms with {stats['primary_tests'] + stats['tests']} "
+          f"box-plane tests")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from . import bench
+
+    wall = _wall(args.wall)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    bounds = [b.strip() for b in args.bounds.split(",") if b.strip()]
+    result = bench.run(args.scene, wall, frames=args.frames, methods=methods, bounds=bounds,
+                       path=args.path, pseudo_groups=args.pseudo_groups,
+                       accuracy_frames=args.accuracy, hierarchy=args.hierarchy,
+                       moving=args.moving, refit=args.refit, progress=not args.json)
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    _print_bench(result)
+    return 0
+
+
+def _print_bench(result: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    s, w = result["scene"], result["wall"]
+    console = Console()
+    console.print(f"[bold]{s['name']}[/]: {s['nodes']} nodes ({s['internal']} internal, "
+                  f"{s['leaves']} leaves, branching {s['branching']:.2f}, depth {s['depth']}), "
+                  f"{s['triangles']:,} triangles; loaded in {s['load_s']:.2f} s + preprocessed "
+                  f"in {s['preprocess_s']:.2f} s, peak {s['peak_rss_mb_after_load']:.0f} MB")
+    moving = (f"; {result['moving']:.0%} of the leaves moving, refit "
+              f"{result['refit'] or result['bounds']}" if result["moving"] else "")
+    console.print(f"{w['cols']} x {w['rows']} wall, {result['frames']} frames of the "
+                  f"{result['path']} path{moving}")
+    for kind, methods in result.get("by_bounds", {result["bounds"]: result["methods"]}).items():
+        table = Table(title=f"culling time per frame, bounds {kind}")
+        refits = any("refit_median_ms" in m for m in methods.values())
+        for col in ("method", "median ms", "p99 ms", "mean ms", "tests/frame", "nodes/frame",
+                    *(["refit median ms"] if refits else [])):
+            table.add_column(col, justify="right")
+        for name, m in methods.items():
+            table.add_row(name, f"{m['median_ms']:.3f}", f"{m['p99_ms']:.3f}",
+                          f"{m['mean_ms']:.3f}", f"{m['tests_per_frame']:.0f}",
+                          f"{m['nodes_per_frame']:.0f}",
+                          *([f"{m.get('refit_median_ms', 0):.3f}"] if refits else []))
+        console.print(table)
+    if "adaptive_speedup_vs_oh" in result:
+        console.print(f"adaptive is {result['adaptive_speedup_vs_oh']:.1f}x faster than oh")
+    if "accuracy" in result:
+        acc = result["accuracy"]
+        table = Table(title=f"false positives against the exact oracle, {acc['frames']} frames")
+        table.add_column("bounds")
+        for m in result["methods"]:
+            table.add_column(m, justify="right")
+        for kind, row in acc.items():
+            if kind != "frames":
+                table.add_row(kind, *(f"{v['rate']:.1%} of {v['reported']}" for v in row.values()))
+        console.print(table)
+
+
+def cmd_walk(args) -> int:
+    from rich.console import Console
+    from rich.progress import track
+    from rich.table import Table
+
+    from .paths import camera_path
+    from .pipeline import Session
+
+    wall = _wall(args.wall)
+    scene = _load(args)
+    session = Session(scene, wall, args.method, args.bounds)
+    points = scene.leaf_points[0]
+    frames = camera_path(args.path, points.min(axis=0), points.max(axis=0), wall, args.frames,
+                         up=scene.settings.get("up", (0, 1, 0)))
+    session.frame(frames[0])  # compile
+    counts = np.zeros((len(frames), wall.tiles), dtype=np.int64)
+    times = []
+    for k, frame in enumerate(track(frames, description="culling", transient=True,
+                                    console=Console(stderr=True))):
+        result = session.frame(frame)
+        times.append(result.timings["cull_ms"])
+        vis = result.visibility
+        counts[k] = [len(vis.tile_leaves(t)) for t in range(wall.tiles)]
+    s = scene.stats
+    console = Console()
+    console.print(f"[bold]{scene.name}[/]: {s['leaves']} leaves, {s['triangles']:,} triangles; "
+                  f"{wall.cols} x {wall.rows} wall; {len(frames)} frames of the {args.path} path; "
+                  f"method {args.method}, bounds {args.bounds}")
+    table = Table(title="leaves drawn per tile (mean, min-max over the walkthrough)")
+    table.add_column("row")
+    for c in range(wall.cols):
+        table.add_column(f"col {c}", justify="right")
+    mean, lo, hi = counts.mean(0), counts.min(0), counts.max(0)
+    for r in range(wall.rows):
+        cells = [f"{mean[t]:.0f} ({lo[t]}-{hi[t]})"
+                 for t in range(r * wall.cols, (r + 1) * wall.cols)]
+        table.add_row(str(r), *cells)
+    console.print(table)
+    t = np.asarray(times)
+    console.print(f"culling time per frame: median {np.median(t):.3f} ms, p99 "
+                  f"{np.percentile(t, 99):.3f} ms, max {t.max():.3f} ms")
+    return 0
+
+
+def cmd_scenes(args) -> int:
+    import scenes
+
+    for name, text in scenes.BUNDLED.items():
+        print(f"{name}\t{text}")
+    return 0
+
+
+def parser() -> argparse.ArgumentParser:
+    from .bounds import KINDS
+    from .cull import METHODS
+    from .paths import PATHS
+    from .scene import BRANCHING
+
+    p = _Parser(prog="wallcull", description="Culling server for tiled display walls.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    def scene_args(q):
+        q.add_argument("scene", help="scene file, or a bundled scene name (wallcull scenes)")
+        q.add_argument("--hierarchy", choices=("auto", "file"), default="auto",
+                       help="auto: spatial groups under parents with very many children")
+        q.add_argument("--branching", type=int, default=BRANCHING,
+                       help="branching factor of the automatic hierarchy")
+
+    q = sub.add_parser("cull", help="cull one frame and print each tile's list")
+    scene_args(q)
+    q.add_argument("--wall", required=True, help="WALL.json, or the JSON inline")
+    q.add_argument("--frame", required=True, help="FRAME.json, or the JSON inline")
+    q.add_argument("--method", choices=METHODS, default="adaptive")
+    q.add_argument("--bounds", choices=KINDS, default="obb")
+    q.add_argument("--pseudo-groups", action="store_true", help="adaptive: regroup children")
+    q.add_argument("--leaves", action="store_true", help="list leaf names only")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_cull)
+
+    q = sub.add_parser("bench", help="time the methods over a camera path")
+    scene_args(q)
+    q.add_argument("--wall", required=True, help="WALL.json, or the JSON inline")
+    q.add_argument("--frames", type=int, default=200)
+    q.add_argument("--methods", default=",".join(METHODS))
+    q.add_argument("--bounds", default="obb", help="comma-separated bound types")
+    q.add_argument("--path", choices=PATHS, default="orbit",
+                   help="orbit: whole scene in view (the paper's worst case); fly: through it")
+    q.add_argument("--pseudo-groups", action="store_true")
+    q.add_argument("--accuracy", type=int, default=0, metavar="FRAMES",
+                   help="count false positives against the exact oracle on this many frames")
+    q.add_argument("--moving", type=float, default=0.0, metavar="FRACTION",
+                   help="dynamic scene: this fraction of the leaves moves every frame")
+    q.add_argument("--refit", choices=("obb", "aabb"),
+                   help="how moved nodes and their ancestors are refit (default: as --bounds)")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_bench)
+
+    q = sub.add_parser("walk", help="cull a walkthrough and print per-tile results")
+    scene_args(q)
+    q.add_argument("--wall", help="WALL.json, or the JSON inline (default: SPEC's 4 x 4 wall)")
+    q.add_argument("--frames", type=int, default=240)
+    q.add_argument("--path", choices=PATHS, default="orbit")
+    q.add_argument("--method", choices=METHODS, default="adaptive")
+    q.add_argument("--bounds", choices=KINDS, default="obb")
+    q.set_defaults(func=cmd_walk)
+
+    q = sub.add_parser("scenes", help="list the bundled scenes")
+    q.set_defaults(func=cmd_scenes)
+    return p
+
+
+def main(argv=None) -> int:
+    try:
+        args = parser().parse_args(argv)
+        return args.func(args)
+    except InputError as exc:
+        print(f"wallcull: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0
+    except Exception as exc:  # noqa: BLE001 - never a traceback; WALLCULL_DEBUG=1 shows it
+        if os.environ.get("WALLCULL_DEBUG"):
+            raise
+        print(f"wallcull: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
