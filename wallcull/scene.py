@@ -465,7 +465,8 @@ class _FileTree:
             if p >= 0:
                 lo[p] = np.minimum(lo[p], lo[i])
                 hi[p] = np.maximum(hi[p], hi[i])
-        return [(a + b) / 2 for a, b in zip(lo, hi)]
+        # nodes without geometry below them (pruned later) have no box; centre them anywhere
+        return [(a + b) / 2 if np.isfinite(a).all() else np.zeros(3) for a, b in zip(lo, hi)]
 
     def flatten(self) -> dict:
         """Depth-first preorder arrays."""
