@@ -183,6 +183,14 @@ def cmd_walk(args) -> int:
     return 0
 
 
+def cmd_serve(args) -> int:
+    from .server import serve
+
+    token = args.token or os.environ.get("WALLCULL_TOKEN") or None
+    serve(args.host, args.port, args.scenes, token, args.log_level)
+    return 0
+
+
 def cmd_scenes(args) -> int:
     import scenes
 
@@ -244,6 +252,15 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--method", choices=METHODS, default="adaptive")
     q.add_argument("--bounds", choices=KINDS, default="obb")
     q.set_defaults(func=cmd_walk)
+
+    q = sub.add_parser("serve", help="run the culling server (HTTP + WebSocket)")
+    q.add_argument("--host", default="127.0.0.1")
+    q.add_argument("--port", type=int, default=8000)
+    q.add_argument("--scenes", help="folder of scene files clients may name and upload to")
+    q.add_argument("--token", help="require this bearer token for every request that changes "
+                                   "state (default: $WALLCULL_TOKEN; none: open)")
+    q.add_argument("--log-level", default="info")
+    q.set_defaults(func=cmd_serve)
 
     q = sub.add_parser("scenes", help="list the bundled scenes")
     q.set_defaults(func=cmd_scenes)

@@ -600,6 +600,18 @@ class Visibility:
         """Sorted leaf ids the tile must draw."""
         return np.unique(self.scene.subtree_leaves(self.tile_nodes(tile)))
 
+    def leaf_lists(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every tile's sorted leaf ids at once, in CSR form ``(start (m + 1,), leaves)``."""
+        scene = self.scene
+        tiles = np.repeat(np.arange(self.tiles), np.diff(self.start))
+        leaf_start, leaf_count = scene.leaf_range
+        count = leaf_count[self.nodes]
+        offsets = np.repeat(leaf_start[self.nodes] - np.cumsum(count) + count, count)
+        leaves = scene.leaves[np.arange(int(count.sum())) + offsets]
+        key = np.unique(np.repeat(tiles, count) * len(scene) + leaves)
+        tile_of, leaves = np.divmod(key, len(scene))
+        return np.searchsorted(tile_of, np.arange(self.tiles + 1)), leaves
+
     def names(self, tile: int, leaves: bool = False) -> list[str]:
         """Node names for a tile; synthetic groups are replaced by the file nodes they hold."""
         names = self.scene.names

@@ -1,0 +1,169 @@
+"""The wire: codecs (msgpack and JSON carry the same schema) and per-tile packets with deltas.
+
+A *packet* tells one tile's render node what to draw for one frame::
+
+    {"frame": n, "tile": t, "time": <server clock when frame n was posted, s>,
+     "base": b,                      # the frame the delta is against, or null for a full list
+     "visible": [leaf ids],          # full packets only
+     "added": [ids], "removed": [ids],   # deltas only: list(n) = list(b) + added - removed
+     "count": len(list(n)),          # for the client to check itself
+     "transforms": {"ids": [...], "matrices": [[16 floats, row by row], ...]},  # moved leaves
+     ...fitted frusta ("view", "projection", ...: see wallcull.fit)}
+
+Lists hold leaf ids (``scene.leaves``), sorted. The base of a delta is the frame the tile last
+acknowledged, so a render node keeps the lists of the frames it has not yet seen acknowledged;
+it asks for a full packet (or gets one) when it is new, when it asks, or when its
+acknowledged frame has fallen out of the server's history. ``transforms`` carries the world
+transforms of the leaves in the list that moved (dynamic scenes) and that the client may not
+have: every moved leaf in a full packet; in a delta, the added ones and those that moved since
+the base.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from .errors import InputError
+
+MSGPACK = "application/msgpack"
+JSON = "application/json"
+
+
+def wants_msgpack(accept: str | None) -> bool:
+    """Whether an ``Accept`` header prefers msgpack to JSON (q-values honoured)."""
+    if not accept:
+        return False
+    best, best_q = None, -1.0
+    for part in accept.split(","):
+        media, *params = [p.strip() for p in part.split(";")]
+        q = 1.0
+        for p in params:
+            if p.startswith("q="):
+                try:
+                    q = float(p[2:])
+                except ValueError:
+                    q = 0.0
+        if media in (MSGPACK, "application/x-msgpack", JSON, "*/*", "application/*") and q > best_q:
+            best, best_q = media, q
+    return best in (MSGPACK, "application/x-msgpack")
+
+
+def encode(obj: Any, msgpack_format: bool) -> bytes:
+    if msgpack_format:
+        return msgpack.packb(obj, use_bin_type=True)
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+def decode(body: bytes, msgpack_format: bool) -> Any:
+    """Parse a request body; malformed input is an :class:`InputError`."""
+    try:
+        if msgpack_format:
+            return msgpack.unpackb(body, raw=False, strict_map_key=True)
+        return json.loads(body)
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError,
+            TypeError) as exc:
+        kind = "msgpack" if msgpack_format else "JSON"
+        raise InputError(f"malformed {kind} body: {type(exc).__name__}: {exc}".rstrip(": ")
+                         ) from None
+
+
+def rows(m: np.ndarray) -> list:
+    """A matrix as nested lists, row by row (SPEC section 1)."""
+    return np.asarray(m, dtype=np.float64).tolist()
+
+
+@dataclass
+class FrameRecord:
+    """What the server keeps of one frame: per-tile leaf lists, fits, and moved leaves."""
+
+    number: int
+    time: float
+    start: np.ndarray  # (tiles + 1,) CSR offsets into leaves
+    leaves: np.ndarray  # per-tile sorted leaf ids, concatenated
+    fits: list[dict]  # per tile, JSON-ready fitted frusta
+    changed: np.ndarray  # leaf ids whose world transform changed in this frame
+    posed: np.ndarray  # sorted ids of every leaf ever moved
+    posed_world: np.ndarray  # (len(posed), 4, 4) their world transforms at this frame
+
+    def tile(self, tile: int) -> np.ndarray:
+        return self.leaves[self.start[tile]:self.start[tile + 1]]
+
+
+@dataclass
+class History:
+    """The last ``size`` frames, by number."""
+
+    size: int = 64
+    frames: OrderedDict = field(default_factory=OrderedDict)
+
+    def add(self, record: FrameRecord) -> None:
+        self.frames[record.number] = record
+        while len(self.frames) > self.size:
+            self.frames.popitem(last=False)
+
+    def get(self, number: int) -> FrameRecord | None:
+        return self.frames.get(number)
+
+    @property
+    def latest(self) -> int:
+        return next(reversed(self.frames)) if self.frames else -1
+
+    @property
+    def oldest(self) -> int:
+        return next(iter(self.frames)) if self.frames else -1
+
+    def changed_since(self, base: int, number: int) -> np.ndarray:
+        """Leaves moved in frames ``(base, number]`` (all in the history by construction)."""
+        parts = [self.frames[k].changed for k in range(base + 1, number + 1) if k in self.frames]
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+
+def packet(history: History, number: int, tile: int, base: int | None) -> dict:
+    """Tile ``tile``'s packet of frame ``number``, a delta against frame ``base`` when given
+    and still held (else a full list)."""
+    record = history.frames[number]
+    current = record.tile(tile)
+    out: dict[str, Any] = {"frame": number, "tile": tile, "time": record.time}
+    prior = history.get(base) if base is not None and base < number else None
+    if prior is None:
+        out["base"] = None
+        out["visible"] = current.tolist()
+        send = current
+    else:
+        before = prior.tile(tile)
+        added = np.setdiff1d(current, before, assume_unique=True)
+        out["base"] = base
+        out["added"] = added.tolist()
+        out["removed"] = np.setdiff1d(before, current, assume_unique=True).tolist()
+        send = np.union1d(added, np.intersect1d(current, history.changed_since(base, number),
+                                                assume_unique=True))
+    out["count"] = len(current)
+    if len(record.posed) and len(send):
+        hit = np.isin(record.posed, send, assume_unique=True)
+        if hit.any():
+            out["transforms"] = {"ids": record.posed[hit].tolist(),
+                                 "matrices": record.posed_world[hit].reshape(-1, 16).tolist()}
+    out.update(record.fits[tile])
+    return out
+
+
+def apply(held: np.ndarray | None, pkt: dict) -> np.ndarray:
+    """A client's list after a packet: the full list, or ``held`` (the base frame's list) plus
+    the delta. Raises :class:`InputError` when the result contradicts the packet's count."""
+    if pkt.get("base") is None:
+        out = np.asarray(pkt["visible"], dtype=np.int64)
+    else:
+        if held is None:
+            raise InputError(f"delta against frame {pkt['base']}, whose list is not held")
+        keep = np.setdiff1d(held, np.asarray(pkt["removed"], dtype=np.int64), assume_unique=True)
+        out = np.union1d(keep, np.asarray(pkt["added"], dtype=np.int64))
+    if len(out) != pkt["count"]:
+        raise InputError(f"packet of frame {pkt['frame']} does not add up: {len(out)} leaves, "
+                         f"count {pkt['count']}")
+    return out
