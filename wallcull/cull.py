@@ -73,26 +73,30 @@ def _grow(a):
 
 @njit(cache=True)
 def _primary(child_start, child_count, children, is_leaf, c, a, h, rad, planes, plane_ids):
-    """First-level cull of the root's children to the primary frustum: ``(roots, masks, tests)``.
+    """Cull the root's children to one convex region: ``(roots, masks, tests)``.
 
-    ``masks`` holds, per root, the primary planes the root is not yet known to be inside.
+    The region is the intersection of the planes ``plane_ids`` (at most 63). ``roots`` are the
+    nodes wholly inside it and the leaves that meet it; ``masks`` holds, per root, the planes it
+    is not yet known to be inside (bit ``p`` for ``plane_ids[p]``). Planes a node is inside of
+    are dropped for its children (plane masking).
     """
     roots = np.empty(256, np.int64)
     masks = np.empty(256, np.int64)
     stack_n = np.empty(256, np.int64)
     stack_m = np.empty(256, np.int64)
+    count = plane_ids.shape[0]
     n = 0
     tests = 0
     for k in range(child_start[0], child_start[0] + child_count[0]):
         sp = 1
         stack_n[0] = children[k]
-        stack_m[0] = _ALL6
+        stack_m[0] = (1 << count) - 1
         while sp > 0:
             sp -= 1
             i = stack_n[sp]
             m = stack_m[sp]
             outside = False
-            for p in range(6):
+            for p in range(count):
                 if m & (1 << p):
                     s, r = _classify(c, a, h, rad, i, planes, plane_ids[p])
                     tests += 1
@@ -112,10 +116,10 @@ def _primary(child_start, child_count, children, is_leaf, c, a, h, rad, planes, 
                 n += 1
                 continue
             k0 = child_start[i]
+            while sp + child_count[i] > stack_n.shape[0]:
+                stack_n = _grow(stack_n)
+                stack_m = _grow(stack_m)
             for j in range(k0 + child_count[i] - 1, k0 - 1, -1):
-                if sp == stack_n.shape[0]:
-                    stack_n = _grow(stack_n)
-                    stack_m = _grow(stack_m)
                 stack_n[sp] = children[j]
                 stack_m[sp] = m
                 sp += 1
@@ -696,6 +700,20 @@ def _shared_planes(planes: np.ndarray, wall) -> np.ndarray:
     r = np.arange(1, wall.rows)
     planes[lay.T(r)] = -planes[lay.B(r - 1)]
     return planes
+
+
+def cull_region(state: SceneState, planes: np.ndarray) -> np.ndarray:
+    """Nodes of the scene that meet the convex region ``planes (k, 4)`` (inward unit normals,
+    ``k <= 63``): internal nodes wholly inside stand for their subtrees, as in a tile list.
+    Used for shadow casters and mirror views."""
+    planes = np.ascontiguousarray(planes, dtype=np.float64)
+    if not 0 < len(planes) <= 63:
+        raise InputError(f"a region needs 1 to 63 planes, got {len(planes)}")
+    scene, b = state.scene, state.bounds
+    roots, _, _ = _primary(scene.child_start, scene.child_count, scene.children,
+                           scene.is_leaf.astype(np.uint8), b.center, b.axes, b.half, b.radius,
+                           planes, np.arange(len(planes), dtype=np.int64))
+    return roots
 
 
 def cull(state: SceneState, frusta: Frusta, method: str = "adaptive",
