@@ -9,6 +9,8 @@ node names, tree, transforms and vertices, bit for bit, because all randomness c
 
 from __future__ import annotations
 
+import copy
+
 import hashlib
 from typing import Callable
 
@@ -39,15 +41,29 @@ def build(name: str, seed: int = 0) -> trimesh.Scene:
     return _GENERATORS[name](int(seed)).scene()
 
 
-def settings(name: str) -> dict:
-    """Scene settings (lights, mirror planes, dynamic nodes) of the bundled scene ``name``.
+#: Scene settings (wallcull.settings format) of the bundled scenes. The Fatehpur look-alike
+#: asks for a sun that casts shadows and a mirror on the Anup Talao's water (the tank spans
+#: x 35..66, z -71..-40, its water 0.3 m below the rim); the power plant asks for nothing, so
+#: it costs nothing for them.
+_SETTINGS = {
+    "fatehpur": {
+        "lights": [{"name": "sun", "position": [320.0, 420.0, 260.0],
+                    "resolution": [2048, 2048]}],
+        "mirrors": [{"name": "anup_talao", "point": [50.6, -0.3, -55.3],
+                     "normal": [0.0, 1.0, 0.0],
+                     "polygon": [[35.1, -0.3, -70.8], [66.1, -0.3, -70.8], [66.1, -0.3, -39.8],
+                                 [35.1, -0.3, -39.8]]}],
+    },
+    "powerplant": {},
+}
 
-    The settings format is defined by wallcull (see its scene-settings documentation); the
-    bundled scenes carry none yet, so this is ``{}`` for each. ``KeyError`` for an unknown name.
-    """
+
+def settings(name: str) -> dict:
+    """Scene settings (lights, mirrors; see ``wallcull.settings``) of the bundled scene
+    ``name``. ``KeyError`` for an unknown name."""
     if name not in _GENERATORS:
         raise KeyError(f"unknown bundled scene {name!r}; known: {', '.join(BUNDLED)}")
-    return {}
+    return copy.deepcopy(_SETTINGS[name])
 
 
 def tree_stats(scene: trimesh.Scene) -> dict:

@@ -91,6 +91,6 @@ def look_at_frame(rng: np.random.Generator, target: np.ndarray, distance: float,
     y = np.cross(x, forward)
     rot = np.stack([x, y, -forward], axis=1)  # columns: display axes in the world
     qx, qy, qz, qw = Rotation.from_matrix(rot).as_quat()
-    eye_z = rng.uniform(-wall["distance"] + wall["near"] + 0.05, 1.0)
+    eye_z = rng.uniform(-wall["distance"] + wall.get("near", 0.1) + 0.05, 1.0)
     eye = [float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), float(eye_z)]
     return {"position": position.tolist(), "orientation": [qw, qx, qy, qz], "eye": eye}

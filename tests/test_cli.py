@@ -51,6 +51,9 @@ def test_cull_json_follows_the_spec(capsys, glb):
     assert all(("left" in t["visible"]) == (t["col"] == 0) for t in doc["tiles"])
     assert all(("right" in t["visible"]) == (t["col"] == 2) for t in doc["tiles"])
     assert doc["stats"]["method"] == "adaptive" and doc["stats"]["cull_ms"] > 0
+    for tile in doc["tiles"]:  # fitted frusta (SPEC section 6): 4x4 row by row
+        assert np.asarray(tile["view"]).shape == (4, 4) == np.asarray(tile["projection"]).shape
+        assert 0.1 <= tile["near"] < tile["far"] <= 1000
 
 
 def test_cull_files_and_text_output(capsys, glb, tmp_path):
@@ -61,7 +64,7 @@ def test_cull_files_and_text_output(capsys, glb, tmp_path):
                        str(tmp_path / "frame.json"), "--method", "naive", "--bounds", "sphere",
                        "--leaves")
     assert code == 0
-    assert "tile   0 (row 0, col 0): 1 leaves: left" in out
+    assert "tile   0 (row 0, col 0): depth " in out and "1 leaves: left" in out.splitlines()[1]
 
 
 @pytest.mark.parametrize("argv,message", [

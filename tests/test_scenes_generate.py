@@ -54,8 +54,15 @@ def test_unknown_name_raises_key_error():
         scenes.settings("taj_mahal")
 
 
-def test_settings_are_empty_for_now():
-    assert all(scenes.settings(name) == {} for name in scenes.BUNDLED)
+def test_bundled_settings_are_valid_and_fresh_copies():
+    from wallcull.settings import parse
+
+    assert parse(scenes.settings("powerplant")).empty  # asks for nothing
+    fatehpur = parse(scenes.settings("fatehpur"))
+    assert [l.name for l in fatehpur.lights] == ["sun"]
+    assert [m.name for m in fatehpur.mirrors] == ["anup_talao"]
+    scenes.settings("fatehpur")["lights"].clear()
+    assert scenes.settings("fatehpur")["lights"]  # callers cannot change the registry
 
 
 # ---------------------------------------------------------------------------------------------

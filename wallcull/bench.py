@@ -17,6 +17,7 @@ import numpy as np
 from . import oracle
 from .cull import METHODS
 from .errors import InputError
+from .fit import FitOptions
 from .paths import camera_path
 from .pipeline import Session
 from .scene import Scene
@@ -81,13 +82,14 @@ class Motion:
 
 def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
                 pseudo_groups: bool = False, progress=None, motion: Motion | None = None,
-                refit: str | None = None) -> dict:
+                refit: str | None = None, fit: FitOptions | None = None) -> dict:
     """Cull every frame with one method; per-frame times and counters. With ``motion``, the
-    moving nodes are updated and refit before each frame, and that time is reported apart."""
-    session = Session(scene, wall, method, bounds, pseudo_groups)
+    moving nodes are updated and refit before each frame, and that time is reported apart;
+    with ``fit``, the fitted frusta are timed too, and the depth precision they buy."""
+    session = Session(scene, wall, method, bounds, pseudo_groups, fit)
     for frame in frames[:WARMUP_FRAMES]:
         session.frame(frame)
-    times, refits, tests, pairs = [], [], [], []
+    times, refits, tests, pairs, fits, ratios = [], [], [], [], [], []
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
@@ -96,6 +98,11 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             refits.append((time.perf_counter() - t0) * 1e3)
         result = session.frame(frame)
         times.append(result.timings["cull_ms"])
+        if fit is not None:
+            fits.append(result.timings["fit_ms"])
+            shown = np.diff(result.visibility.start) > 0
+            ratios.extend(np.log2(t["far"] / t["near"])
+                          for t, s in zip(result.fits, shown) if s)
         stats = result.visibility.stats
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])
@@ -109,6 +116,13 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     if refits:
         out["refit_median_ms"] = float(np.median(refits))
         out["refit_p99_ms"] = float(np.percentile(refits, 99))
+    if fits:
+        wall_bits = float(np.log2(wall.far / wall.near))
+        tight_bits = float(np.mean(ratios)) if ratios else wall_bits
+        out.update({"fit_median_ms": float(np.median(fits)),
+                    "fit_p99_ms": float(np.percentile(fits, 99)),
+                    "depth_log2_far_over_near": {"wall": wall_bits, "fitted_mean": tight_bits,
+                                                 "bits_gained": wall_bits - tight_bits}})
     return out
 
 
@@ -144,6 +158,7 @@ def accuracy(scene: Scene, wall: Wall, frames, methods, bounds_kinds, progress=N
 def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=("obb",),
         path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
         hierarchy: str = "auto", moving: float = 0.0, refit: str | None = None,
+        fit: FitOptions | None = None, settings: dict | None = None,
         progress: bool = True) -> dict:
     """The whole benchmark; returns the ``bench --json`` document."""
     from . import scene as scene_mod
@@ -152,7 +167,7 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         if m not in METHODS:
             raise InputError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
     t0 = time.perf_counter()
-    scene = scene_mod.load(scene_spec, hierarchy=hierarchy)
+    scene = scene_mod.load(scene_spec, hierarchy=hierarchy, settings=settings)
     t1 = time.perf_counter()
     for kind in bounds:
         scene.bounds(kind)
@@ -167,7 +182,7 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     with bar as p:
         for kind in bounds:
             by_bounds[kind] = {m: time_method(scene, wall, path_frames, m, kind, pseudo_groups,
-                                              p, motion, refit) for m in methods}
+                                              p, motion, refit, fit) for m in methods}
         acc = (accuracy(scene, wall, path_frames[:accuracy_frames], methods, bounds, p, motion,
                         refit) if accuracy_frames else None)
     result = {
@@ -175,7 +190,9 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
                   "preprocess_s": t2 - t1, "peak_rss_mb_after_load": rss},
         "wall": wall.to_dict(), "frames": frames, "path": path, "bounds": bounds[0],
         "pseudo_groups": pseudo_groups, "methods": by_bounds[bounds[0]],
-        "moving": moving, "refit": refit,
+        "moving": moving, "refit": refit, "fit": fit is not None,
+        "settings": {"lights": len(scene.settings.get("lights", [])),
+                     "mirrors": len(scene.settings.get("mirrors", []))},
         "machine": machine(), "peak_rss_mb": peak_rss_mb(),
     }
     if len(bounds) > 1:

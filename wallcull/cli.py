@@ -51,22 +51,27 @@ def _wall(arg):
 
 def _load(args):
     from .scene import load
+    from .settings import read
 
-    return load(args.scene, hierarchy=args.hierarchy, branching=args.branching)
+    settings = read(args.settings) if getattr(args, "settings", None) else None
+    return load(args.scene, hierarchy=args.hierarchy, branching=args.branching,
+                settings=settings)
 
 
 def cmd_cull(args) -> int:
+    from .fit import FitOptions
     from .pipeline import Session, tile_records
 
     wall = _wall(args.wall)
     frame_spec = read_json(args.frame, "--frame")
     scene = _load(args)
-    session = Session(scene, wall, args.method, args.bounds, args.pseudo_groups)
+    session = Session(scene, wall, args.method, args.bounds, args.pseudo_groups,
+                      FitOptions(depth=args.depth, reversed_z=args.reversed_z))
     session.frame(frame_spec)  # the first call compiles the kernels; time the second
     result = session.frame(frame_spec)
     tiles = tile_records(result, leaves=args.leaves)
-    stats = {**result.visibility.stats, "cull_ms": result.timings["cull_ms"],
-             "bounds": args.bounds, "scene": scene.name}
+    stats = {**result.visibility.stats, **result.timings, "bounds": args.bounds,
+             "scene": scene.name}
     if args.json:
         print(json.dumps({"tiles": tiles, "stats": stats}))
         return 0
@@ -75,10 +80,12 @@ def cmd_cull(args) -> int:
           f"leaves), {wall.cols} x {wall.rows} wall, method {args.method}, bounds {args.bounds}")
     for tile in tiles:
         names = ", ".join(tile["visible"]) or "-"
-        print(f"tile {tile['id']:>3} (row {tile['row']}, col {tile['col']}): "
-              f"{len(tile['visible'])} {'leaves' if args.leaves else 'nodes'}: {names}")
+        extras = "".join(f", {len(tile[k])} {k}" for k in ("shadows", "mirrors") if k in tile)
+        print(f"tile {tile['id']:>3} (row {tile['row']}, col {tile['col']}): depth "
+              f"{tile['near']:.4g}-{tile['far']:.4g}{extras}; {len(tile['visible'])} "
+              f"{'leaves' if args.leaves else 'nodes'}: {names}")
     print(f"culled in {stats['cull_ms']:.3f} ms with {stats['primary_tests'] + stats['tests']} "
-          f"box-plane tests")
+          f"box-plane tests; frusta fitted in {stats['fit_ms']:.3f} ms")
     return 0
 
 
@@ -88,10 +95,16 @@ def cmd_bench(args) -> int:
     wall = _wall(args.wall)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bounds = [b.strip() for b in args.bounds.split(",") if b.strip()]
+    from .fit import FitOptions
+    from .settings import read
+
     result = bench.run(args.scene, wall, frames=args.frames, methods=methods, bounds=bounds,
                        path=args.path, pseudo_groups=args.pseudo_groups,
                        accuracy_frames=args.accuracy, hierarchy=args.hierarchy,
-                       moving=args.moving, refit=args.refit, progress=not args.json)
+                       moving=args.moving, refit=args.refit,
+                       fit=FitOptions(reversed_z=args.reversed_z) if args.fit else None,
+                       settings=read(args.settings) if args.settings else None,
+                       progress=not args.json)
     if args.json:
         print(json.dumps(result))
         return 0
@@ -116,15 +129,25 @@ def _print_bench(result: dict) -> None:
     for kind, methods in result.get("by_bounds", {result["bounds"]: result["methods"]}).items():
         table = Table(title=f"culling time per frame, bounds {kind}")
         refits = any("refit_median_ms" in m for m in methods.values())
+        fits = any("fit_median_ms" in m for m in methods.values())
         for col in ("method", "median ms", "p99 ms", "mean ms", "tests/frame", "nodes/frame",
-                    *(["refit median ms"] if refits else [])):
+                    *(["refit median ms"] if refits else []),
+                    *(["fit median ms", "fit p99 ms"] if fits else [])):
             table.add_column(col, justify="right")
         for name, m in methods.items():
             table.add_row(name, f"{m['median_ms']:.3f}", f"{m['p99_ms']:.3f}",
                           f"{m['mean_ms']:.3f}", f"{m['tests_per_frame']:.0f}",
                           f"{m['nodes_per_frame']:.0f}",
-                          *([f"{m.get('refit_median_ms', 0):.3f}"] if refits else []))
+                          *([f"{m.get('refit_median_ms', 0):.3f}"] if refits else []),
+                          *([f"{m['fit_median_ms']:.3f}", f"{m['fit_p99_ms']:.3f}"]
+                            if fits else []))
         console.print(table)
+    depth = next((m["depth_log2_far_over_near"] for m in result["methods"].values()
+                  if "depth_log2_far_over_near" in m), None)
+    if depth:
+        console.print(f"depth range log2(far/near): wall {depth['wall']:.1f}, fitted "
+                      f"{depth['fitted_mean']:.1f} on average: {depth['bits_gained']:.1f} bits "
+                      f"of a 24-bit depth buffer gained")
     if "adaptive_speedup_vs_oh" in result:
         console.print(f"adaptive is {result['adaptive_speedup_vs_oh']:.1f}x faster than oh")
     if "accuracy" in result:
@@ -214,6 +237,8 @@ def parser() -> argparse.ArgumentParser:
                        help="auto: spatial groups under parents with very many children")
         q.add_argument("--branching", type=int, default=BRANCHING,
                        help="branching factor of the automatic hierarchy")
+        q.add_argument("--settings", metavar="SETTINGS.json",
+                       help="scene settings (lights, mirrors) instead of the scene's own")
 
     q = sub.add_parser("cull", help="cull one frame and print each tile's list")
     scene_args(q)
@@ -223,6 +248,10 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--bounds", choices=KINDS, default="obb")
     q.add_argument("--pseudo-groups", action="store_true", help="adaptive: regroup children")
     q.add_argument("--leaves", action="store_true", help="list leaf names only")
+    q.add_argument("--depth", choices=("tight", "wall"), default="tight",
+                   help="near/far per tile: fitted to what it shows, or the wall's")
+    q.add_argument("--reversed-z", action="store_true",
+                   help="projections with depth in [0, 1], near at 1 (glClipControl)")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_cull)
 
@@ -241,6 +270,9 @@ def parser() -> argparse.ArgumentParser:
                    help="dynamic scene: this fraction of the leaves moves every frame")
     q.add_argument("--refit", choices=("obb", "aabb"),
                    help="how moved nodes and their ancestors are refit (default: as --bounds)")
+    q.add_argument("--fit", action="store_true",
+                   help="also time the fitted frusta (depth ranges, shadows, mirrors)")
+    q.add_argument("--reversed-z", action="store_true", help="with --fit: reversed-Z projections")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_bench)
 
@@ -264,6 +296,7 @@ def parser() -> argparse.ArgumentParser:
 
     q = sub.add_parser("scenes", help="list the bundled scenes")
     q.set_defaults(func=cmd_scenes)
+    from .experiments import register; register(sub)
     return p
 
 

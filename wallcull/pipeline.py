@@ -14,7 +14,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from . import settings as cfg
 from .cull import Culler, Visibility
+from .fit import FitOptions, fit_frame
 from .scene import Scene, SceneState
 from .wall import Frame, Frusta, Wall
 
@@ -25,17 +27,21 @@ class FrameResult:
     frusta: Frusta
     visibility: Visibility
     timings: dict = field(default_factory=dict)  # ms per stage
+    fits: list[dict] | None = None  # per tile, when the session fits
 
 
 class Session:
-    """A scene culled to a wall with one method and one bound type."""
+    """A scene culled to a wall with one method and one bound type; with ``fit`` options, each
+    frame also gets its fitted frusta (:mod:`wallcull.fit`)."""
 
     def __init__(self, scene: Scene, wall: Wall, method: str = "adaptive", bounds: str = "obb",
-                 pseudo_groups: bool = False):
+                 pseudo_groups: bool = False, fit: FitOptions | None = None):
         self.scene = scene
         self.wall = wall
         self.state = SceneState(scene, bounds)
         self.culler = Culler(self.state, wall, method, pseudo_groups)
+        self.settings = cfg.parse(scene.settings)
+        self.fit_options = fit
 
     @property
     def method(self) -> str:
@@ -48,8 +54,13 @@ class Session:
         t0 = time.perf_counter()
         frusta = Frusta.build(self.wall, frame)
         visibility = self.culler.cull(frusta)
-        cull_ms = (time.perf_counter() - t0) * 1e3
-        return FrameResult(frame, frusta, visibility, {"cull_ms": cull_ms})
+        t1 = time.perf_counter()
+        result = FrameResult(frame, frusta, visibility, {"cull_ms": (t1 - t0) * 1e3})
+        if self.fit_options is not None:
+            result.fits = fit_frame(self.wall, frame, visibility, self.state, self.settings,
+                                    self.fit_options)
+            result.timings["fit_ms"] = (time.perf_counter() - t1) * 1e3
+        return result
 
     def move(self, updates: Mapping[str, Any], refit: str | None = None) -> np.ndarray:
         """Apply dynamic node updates before the next frame (see :meth:`SceneState.move`)."""
@@ -57,7 +68,20 @@ class Session:
 
 
 def tile_records(result: FrameResult, leaves: bool = False) -> list[dict]:
-    """SPEC section 6 ``tiles`` entries for one frame."""
+    """SPEC section 6 ``tiles`` entries for one frame, with the fitted frusta when there are
+    some (their lists of leaf ids given as leaf names)."""
     wall, vis = result.frusta.wall, result.visibility
-    return [{"id": t, "row": t // wall.cols, "col": t % wall.cols,
-             "visible": vis.names(t, leaves=leaves)} for t in range(wall.tiles)]
+    names = vis.scene.names
+    out = []
+    for t in range(wall.tiles):
+        record = {"id": t, "row": t // wall.cols, "col": t % wall.cols,
+                  "visible": vis.names(t, leaves=leaves)}
+        if result.fits is not None:
+            fits = dict(result.fits[t])
+            for key, field_name in (("shadows", "casters"), ("mirrors", "visible")):
+                if key in fits:
+                    fits[key] = [{**e, field_name: [names[i] for i in e[field_name]]}
+                                 for e in fits[key]]
+            record.update(fits)
+        out.append(record)
+    return out

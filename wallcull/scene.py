@@ -548,15 +548,25 @@ def load_trimesh(path: str | os.PathLike):
     return loaded
 
 
-def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING) -> Scene:
-    """A bundled scene by name (``wallcull scenes``) or a scene file by path."""
+def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
+         settings: Mapping[str, Any] | None = None) -> Scene:
+    """A bundled scene by name (``wallcull scenes``) or a scene file by path. Its settings
+    (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled scene's or the
+    file's sidecar ``<file>.wallcull.json``."""
     import scenes as bundled
 
+    from . import settings as cfg
+
     if spec in bundled.BUNDLED:
-        return Scene.from_trimesh(bundled.build(spec), name=spec, hierarchy=hierarchy,
-                                  branching=branching, settings=bundled.settings(spec))
-    if not Path(spec).exists() and os.sep not in spec and "." not in spec:
+        raw = bundled.settings(spec) if settings is None else settings
+        scene = Scene.from_trimesh(bundled.build(spec), name=spec, hierarchy=hierarchy,
+                                   branching=branching, settings=raw)
+    elif not Path(spec).exists() and os.sep not in spec and "." not in spec:
         raise InputError(f"unknown scene {spec!r}: not a file, and the bundled scenes are "
                          f"{', '.join(sorted(bundled.BUNDLED))}")
-    return Scene.from_trimesh(load_trimesh(spec), name=Path(spec).stem, hierarchy=hierarchy,
-                              branching=branching)
+    else:
+        raw = cfg.sidecar(spec) if settings is None else settings
+        scene = Scene.from_trimesh(load_trimesh(spec), name=Path(spec).stem, hierarchy=hierarchy,
+                                   branching=branching, settings=raw)
+    cfg.parse(scene.settings)  # refuse bad settings when the scene loads, not mid-frame
+    return scene

@@ -29,6 +29,7 @@ from . import protocol
 from .bounds import KINDS
 from .cull import METHODS
 from .errors import InputError
+from .fit import FitOptions
 from .service import Conflict, Gone, NotFound, SceneStore, Walls, describe, mesh_blob
 from .wall import MAX_TILES, Wall
 
@@ -91,6 +92,8 @@ class WallCreate(BaseModel):
     bounds: Literal[KINDS] = "obb"  # type: ignore[valid-type]
     pseudo_groups: bool = False
     history: int = Field(default=64, ge=2, le=4096)
+    depth: Literal["tight", "wall"] = "tight"
+    reversed_z: bool = False
 
 
 class FramePost(BaseModel):
@@ -337,7 +340,7 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
         wall = Wall.from_dict(body.wall.model_dump())
         scene = await store.get(body.scene)
         session = walls.create(scene, wall, body.method, body.bounds, body.pseudo_groups,
-                               body.history)
+                               body.history, FitOptions(body.depth, body.reversed_z))
         return reply(request, session.info(), 201)
 
     @app.get("/walls")

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import protocol
 from .errors import InputError
-from .fit import fit_frame
+from .fit import FitOptions
 from .pipeline import Session
 from .scene import Scene, load
 
@@ -248,7 +248,7 @@ class WallSession:
         result = self.session.frame(frame)
         t2 = time.perf_counter()
         start, leaves = result.visibility.leaf_lists()
-        fits = fit_frame(self.wall, result.frame)
+        fits = result.fits
         t3 = time.perf_counter()
         posed = self._ever_moved
         self.history.add(protocol.FrameRecord(
@@ -256,8 +256,9 @@ class WallSession:
             self.session.state.world[posed]))
         old, self._new_frame = self._new_frame, asyncio.Event()
         old.set()
-        return number, {"update_ms": (t1 - t0) * 1e3, "cull_ms": (t2 - t1) * 1e3,
-                        "fit_ms": (t3 - t2) * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
+        return number, {"update_ms": (t1 - t0) * 1e3, "cull_ms": result.timings["cull_ms"],
+                        "fit_ms": result.timings["fit_ms"],
+                        "lists_ms": (t3 - t2) * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
 
     async def wait_frame(self, number: int, timeout: float) -> bool:
         """Wait until frame ``number`` exists (or the timeout passes)."""
@@ -331,10 +332,10 @@ class Walls:
         self.sessions: dict[str, WallSession] = {}
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
-               history: int) -> WallSession:
+               history: int, fit: FitOptions = FitOptions()) -> WallSession:
         if len(self.sessions) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
-        session = Session(scene, wall, method, bounds, pseudo_groups)
+        session = Session(scene, wall, method, bounds, pseudo_groups, fit)
         wid = secrets.token_hex(6)
         self.sessions[wid] = WallSession(wid, session, protocol.History(history))
         return self.sessions[wid]

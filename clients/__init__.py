@@ -1,0 +1,1 @@
+"""Clients of the culling server: the OpenGL tile renderer (``clients.render``)."""

@@ -1,0 +1,257 @@
+"""Fitted frusta: round trips and properties, against independent computations."""
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import HealthCheck, given, settings as hsettings, strategies as st
+
+from wallcull import fit as fitmod
+from wallcull.fit import FitOptions, depth_ranges, fit_frame, tile_projections, view_matrix
+from wallcull.oracle import clip_triangles, frustum_planes as oracle_planes
+from wallcull.pipeline import Session
+from wallcull.projection import frustum_planes, tile_view_projection
+from wallcull.scene import Scene, SceneState
+from wallcull.settings import parse
+from wallcull.wall import Frame, Frusta, Wall
+
+from .randscene import look_at_frame, random_scene, random_wall
+
+
+def homog(m, p):
+    q = np.c_[p, np.ones(len(p))] @ np.asarray(m).T
+    return q[:, :3] / q[:, 3:]
+
+
+@hsettings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), reversed_z=st.booleans())
+def test_tight_depth_never_cuts_what_a_tile_shows(seed, reversed_z):
+    """Every vertex of a listed leaf that lies in the tile's frustum (wall near/far) also lies
+    between the fitted near and far planes, and the range is never wider than the wall's."""
+    rng = np.random.default_rng(seed)
+    scene = Scene.from_trimesh(random_scene(seed, leaves=20))
+    wall_spec = random_wall(rng)
+    wall = Wall.from_dict(wall_spec)
+    frame = Frame.from_dict(look_at_frame(rng, scene.leaf_points[0].mean(0), 10.0, wall_spec), wall)
+    session = Session(scene, wall, fit=FitOptions(reversed_z=reversed_z))
+    result = session.frame(frame)
+    eye = frame.to_world(frame.eye)
+    forward = -frame.rotation[:, 2]
+    for t, tile in enumerate(result.fits):
+        assert wall.near <= tile["near"] < tile["far"] <= wall.far
+        planes = Frusta.build(wall, frame).tile(t)
+        for leaf in result.visibility.tile_leaves(t):
+            v = scene.leaf_vertices(leaf)
+            inside = (v @ planes[:, :3].T + planes[:, 3] >= 0).all(axis=1)
+            depth = (v[inside] - eye) @ forward
+            assert (depth >= tile["near"]).all() and (depth <= tile["far"]).all()
+        # and the matrix uses them: the near and far planes round-trip
+        m = np.asarray(tile["projection"]) @ np.asarray(tile["view"])
+        planes6 = frustum_planes(m, reversed_z=reversed_z)
+        p_near = eye + forward * tile["near"]
+        p_far = eye + forward * tile["far"]
+        assert abs(planes6[4, :3] @ p_near + planes6[4, 3]) < 1e-6 * tile["far"]
+        assert abs(planes6[5, :3] @ p_far + planes6[5, 3]) < 1e-6 * tile["far"]
+
+
+def test_projections_match_the_toolkit_and_the_culler():
+    wall = Wall.from_dict({"cols": 5, "rows": 3, "tile_size": [0.6, 0.34], "gap": [0.02, -0.05],
+                           "distance": 2.0})
+    q = np.array([0.9, 0.1, 0.3, 0.2])
+    frame = Frame.make([1e3, 2, 3], q / np.linalg.norm(q), [0.2, -0.1, 0.5], wall)
+    near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
+    ours = tile_projections(wall, frame, near, far)
+    view = view_matrix(frame)
+    frusta = Frusta.build(wall, frame)
+    for t in range(wall.tiles):
+        v, p = tile_view_projection(wall, frame, t)
+        np.testing.assert_allclose(view, v, atol=1e-12)
+        np.testing.assert_allclose(ours[t], p, rtol=1e-12, atol=1e-15)
+        planes = frustum_planes(ours[t] @ view)  # left, right, bottom, top, near, far
+        np.testing.assert_allclose(planes[[0, 1, 3, 2, 4, 5]], frusta.tile(t), atol=1e-9)
+
+
+def test_reversed_z_maps_near_to_one_and_far_to_zero():
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [1, 1], "distance": 1.0,
+                           "near": 0.5, "far": 80.0})
+    frame = Frame.make([0, 0, 0], [1, 0, 0, 0], [0, 0, 0], wall)
+    p = tile_projections(wall, frame, np.full(4, 0.5), np.full(4, 80.0), reversed_z=True)[0]
+    ndc = homog(p, np.array([[-0.1, -0.1, -0.5], [-10, -10, -80.0]]))
+    np.testing.assert_allclose(ndc[:, 2], [1.0, 0.0], atol=1e-12)
+
+
+# ------------------------------------------------------------------ shadows and mirrors
+
+
+def lit_scene():
+    """A ground slab, a pillar standing on it, a box floating above, a sphere to the side."""
+    s = trimesh.Scene()
+    def add(name, mesh, at):
+        m = np.eye(4)
+        m[:3, 3] = at
+        s.add_geometry(mesh, node_name=name, geom_name=name, transform=m)
+    add("ground", trimesh.creation.box(extents=[40, 0.5, 40]), [0, -0.25, 0])
+    add("pillar", trimesh.creation.box(extents=[1, 6, 1]), [2, 3, -3])
+    add("floater", trimesh.creation.box(extents=[2, 2, 2]), [-4, 8, -2])
+    add("ball", trimesh.creation.icosphere(subdivisions=2, radius=1.5), [6, 1.5, 4])
+    # out of the camera's view, close to the light, shading ground the camera sees
+    add("cloud", trimesh.creation.box(extents=[3, 1, 3]), [8, 21, 3])
+    return Scene.from_trimesh(s, hierarchy="file")
+
+
+WALL = {"cols": 3, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.01, 0.01], "distance": 1.0}
+FRAME = {"position": [0, 12, 30], "orientation": [0.9762960, -0.2164396, 0, 0]}
+
+
+def fitted(scene, raw_settings, frame=FRAME):
+    scene.settings = raw_settings
+    wall = Wall.from_dict(WALL)
+    session = Session(scene, wall, fit=FitOptions())
+    return session, session.frame(frame)
+
+
+def test_nothing_declared_nothing_computed(monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("fitting code ran for a scene that declares nothing")
+    monkeypatch.setattr(fitmod, "shadow_frustum", boom)
+    monkeypatch.setattr(fitmod.MirrorSight, "of", boom)
+    _, result = fitted(lit_scene(), {})
+    assert all(set(t) == {"view", "projection", "near", "far"} for t in result.fits)
+
+
+def test_shadow_frustum_holds_every_receiver_and_every_occluder():
+    scene = lit_scene()
+    light = [12.0, 25.0, 8.0]
+    session, result = fitted(scene, {"lights": [{"name": "sun", "position": light}]})
+    names = scene.names
+    rng = np.random.default_rng(0)
+    checked = 0
+    for t, tile in enumerate(result.fits):
+        shown = result.visibility.tile_leaves(t)
+        if not len(shown):
+            assert "shadows" not in tile
+            continue
+        (shadow,) = tile["shadows"]
+        m = np.asarray(shadow["projection"]) @ np.asarray(shadow["view"])
+        assert np.linalg.det(np.asarray(shadow["view"])[:3, :3]) == pytest.approx(1, abs=1e-9)
+        casters = set(shadow["casters"])
+        for leaf in shown:  # no receiver is clipped by the light's frustum
+            ndc = homog(m, scene.leaf_vertices(leaf))
+            assert (np.abs(ndc) <= 1 + 1e-9).all(), names[leaf]
+        # Every leaf a light ray to a receiver point crosses must be a caster.
+        samples = np.concatenate([scene.leaf_vertices(l) for l in shown])
+        samples = samples[rng.choice(len(samples), min(200, len(samples)), replace=False)]
+        for leaf in scene.leaves:
+            tris = scene.leaf_triangles(leaf)
+            for p in samples:
+                if _segment_hits(light, p, tris):
+                    assert leaf in casters, (names[leaf], t)
+                    checked += 1
+                    break
+        # casters lie within the depth range (nothing between light and near plane is lost)
+        for leaf in casters:
+            z = homog(m, scene.leaf_vertices(leaf))[:, 2]
+            assert z.min() >= -1 - 1e-9
+    assert checked > 0  # the test saw occluders
+    cloud = scene.index["cloud"]
+    assert not any(cloud in result.visibility.tile_leaves(t) for t in range(6))
+    assert any(cloud in t["shadows"][0]["casters"] for t in result.fits if "shadows" in t)
+
+
+def _segment_hits(a, b, tris, eps=1e-9):
+    """Whether segment a-b crosses any triangle (Moller-Trumbore, vectorized), excluding the
+    endpoint b itself (a receiver does not shade its own sample point)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    d = b - a
+    v0, v1, v2 = tris[:, 0], tris[:, 1], tris[:, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(det) > eps
+    inv = np.where(ok, 1 / np.where(ok, det, 1), 0)
+    s = a - v0
+    u = np.einsum("ij,ij->i", s, h) * inv
+    q = np.cross(s, e1)
+    v = (q @ d) * inv
+    t = np.einsum("ij,ij->i", e2, q) * inv
+    return bool((ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-6) & (t < 1 - 1e-6)).any())
+
+
+def test_light_surrounded_by_what_a_tile_shows_gets_a_cube_map():
+    scene = lit_scene()
+    session, result = fitted(scene, {"lights": [{"name": "lamp", "position": [0, 0.5, 0]}]},
+                             frame={"position": [0, 30, 0.01],
+                                    "orientation": [0.7071068, -0.7071068, 0, 0]})
+    cubes = [s for t in result.fits for s in t.get("shadows", []) if s.get("cube")]
+    assert cubes, "the lamp on the ground under the camera needs a cube map"
+    for cube in cubes:
+        assert len(cube["views"]) == 6
+        dirs = [-np.asarray(v)[2, :3] for v in cube["views"]]
+        np.testing.assert_allclose(np.abs(np.sum(dirs, axis=0)), 0, atol=1e-12)
+        assert scene.index["ground"] in cube["casters"]
+
+
+def test_spot_light_behind_everything_casts_nothing():
+    scene = lit_scene()
+    _, result = fitted(scene, {"lights": [{"name": "spot", "type": "spot", "position": [0, 50, 0],
+                                           "direction": [0, 1, 0], "angle": 20}]})
+    assert not any("shadows" in t for t in result.fits)
+
+
+MIRROR = {"name": "pond", "point": [0, 0.01, 0], "normal": [0, 1, 0],
+          "polygon": [[-10, 0.01, -10], [10, 0.01, -10], [10, 0.01, 10], [-10, 0.01, 10]]}
+
+
+def test_mirror_lists_everything_seen_in_it():
+    """Oracle: reflect every leaf's triangles through the mirror, clip them against the tile
+    frustum, the far side of the mirror and the pyramid through its outline; whatever survives
+    must be in the tile's mirror list."""
+    scene = lit_scene()
+    _, result = fitted(scene, {"mirrors": [MIRROR]})
+    mirror = parse({"mirrors": [MIRROR]}).mirrors[0]
+    refl = mirror.reflection
+    eye = np.array(FRAME["position"])
+    from wallcull.fit import _pyramid
+    outline = _pyramid(np.append(eye, 1.0), mirror.polygon)  # seen from the real eye
+    beyond = -mirror.plane
+    seen_any = 0
+    for t, tile in enumerate(result.fits):
+        planes = oracle_planes(WALL, FRAME, t, 1e-7 * 50)
+        # to world, for the clipping: the oracle's planes are in display space
+        from wallcull.oracle import to_display
+        listed = set()
+        for entry in tile.get("mirrors", []):
+            assert entry["front_face"] == "cw"
+            assert np.linalg.det(np.asarray(entry["view"])[:3, :3]) == pytest.approx(-1)
+            listed |= set(entry["visible"])
+        for leaf in scene.leaves:
+            tris = scene.leaf_triangles(leaf).reshape(-1, 3)
+            mirrored = (tris @ refl[:3, :3].T + refl[:3, 3])
+            keep = np.concatenate([outline, beyond[None]])
+            world_clip = clip_triangles(mirrored.reshape(-1, 3, 3), keep)
+            disp = to_display(FRAME, mirrored).reshape(-1, 3, 3)
+            if (world_clip & clip_triangles(disp, planes)).any():
+                assert leaf in listed, (scene.names[leaf], t)
+                seen_any += 1
+    assert seen_any > 0
+
+
+def test_mirror_oblique_near_plane_is_the_mirror():
+    scene = lit_scene()
+    _, result = fitted(scene, {"mirrors": [MIRROR]})
+    entries = [e for t in result.fits for e in t.get("mirrors", [])]
+    assert entries
+    for e in entries:
+        m = np.asarray(e["projection"]) @ np.asarray(e["view"])
+        # points on the mirror plane map to the near plane (NDC z = -1) ...
+        on = np.array([[x, 0.01, z] for x in (-3.0, 0.0, 4.0) for z in (-5.0, 1.0)])
+        assert np.allclose(homog(m, on)[:, 2], -1, atol=1e-6)
+        # ... and points behind the mirror land in front of it after reflection: clipped
+        under = np.array([[0.0, -2.0, 0.0], [3.0, -0.5, -2.0]])
+        assert (homog(m, under)[:, 2] < -1).all()
+
+
+def test_eye_behind_mirror_sees_nothing_in_it():
+    scene = lit_scene()
+    below = {"position": [0, -5, 30], "orientation": [1, 0, 0, 0]}
+    _, result = fitted(scene, {"mirrors": [MIRROR]}, frame=below)
+    assert not any("mirrors" in t for t in result.fits)
