@@ -133,3 +133,14 @@ def test_min_volume_obb_is_no_larger_than_pca():
     for i, s in enumerate(sets):
         assert best.contains(i, s).all()
     assert (np.prod(best.half, 1) <= np.prod(pca.half, 1) * (1 + 1e-6)).all()
+
+
+def test_parent_of_one_square_child_is_the_childs_box():
+    """A child box with two equal sides gives its corners' covariance a repeated eigenvalue;
+    the parent must still get the child's own box, not one turned within that eigenspace."""
+    rot = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
+    for half in ([2.0, 2.0, 0.5], [1.0, 1.0, 1.0], [3.0, 1.0, 1.0]):
+        corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half
+        child = bnd.pca_boxes(corners @ rot.T + [4, 5, 6], np.array([0, 8]))
+        parent = bnd.enclose(child, np.array([0, 1]), "obb")
+        np.testing.assert_allclose(np.prod(parent.half), np.prod(child.half), rtol=1e-9)

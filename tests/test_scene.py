@@ -216,3 +216,26 @@ def test_bad_updates_are_rejected():
         state.move({"leaf0": {"position": [0, 0, 0], "orientation": [2, 0, 0, 0]}})
     state.move({"leaf0": {"position": [1, 2, 3], "orientation": [1, 0, 0, 0]}})
     assert np.allclose(state.local[scene.index["leaf0"]][:3, 3], [1, 2, 3])
+
+
+@pytest.mark.parametrize("refit", ["obb", "aabb"])
+def test_repeated_moves_do_not_grow_the_bounds(refit):
+    """Moving the same nodes frame after frame ends with the same bounds as moving them once
+    from rest to the final pose: no box of a box of a box."""
+    from wallcull.bench import Motion
+
+    scene = load("fatehpur")
+    motion = Motion(scene, 0.3, seed=1)
+    groups = scene.levels[3][~scene.is_leaf[scene.levels[3]]][:5]  # some internal nodes too
+    nodes = np.concatenate([motion.nodes, groups])
+    group_local = scene.local[groups].copy()
+    walked = SceneState(scene, "obb")
+    for k in range(40):
+        local = np.concatenate([motion.at(k), group_local])
+        group_local[:, :3, 3] += 0.01  # the groups drift a little each frame
+        walked.move_nodes(nodes, local, refit)
+    once = SceneState(scene, "obb")
+    once.move_nodes(nodes, local, refit)
+    vol = lambda b: np.prod(b.half + b.radius[:, None], axis=1)
+    np.testing.assert_allclose(vol(walked.bounds), vol(once.bounds), rtol=1e-6)
+    np.testing.assert_allclose(walked.bounds.center, once.bounds.center, atol=1e-6)

@@ -93,8 +93,9 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
+            local = motion.at(k)
             t0 = time.perf_counter()
-            session.state.move_nodes(motion.nodes, motion.at(k), refit)
+            session.state.move_nodes(motion.nodes, local, refit)
             refits.append((time.perf_counter() - t0) * 1e3)
         result = session.frame(frame)
         times.append(result.timings["cull_ms"])

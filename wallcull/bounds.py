@@ -110,14 +110,17 @@ def _pad(half: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return half + (16 * _EPS) * scale[:, None]
 
 
-def pca_boxes(points: np.ndarray, starts: np.ndarray) -> Bounds:
+def pca_boxes(points: np.ndarray, starts: np.ndarray,
+              fallback: np.ndarray | None = None) -> Bounds:
     """Eigenvector OBB of each point segment (paper section 4.1).
 
     The axes are the eigenvectors of the segment's covariance, computed about its mean (so large
     offsets do not cancel) and made right-handed; the extents are the points' projections onto
     them. Degenerate input is fine: ``eigh`` returns an orthonormal basis for any symmetric
     matrix, so a single point, repeated points, collinear or coplanar points and repeated
-    eigenvalues all give a valid (possibly flat) box that encloses the points.
+    eigenvalues all give a valid (possibly flat) box that encloses the points. With repeated
+    eigenvalues that basis is arbitrary within their eigenspace (rounding picks it); where
+    ``fallback`` axes ``(k, 3, 3)`` are given, such segments take them instead.
     """
     counts = np.diff(starts)
     seg = segment_ids(starts, len(points))
@@ -129,10 +132,14 @@ def pca_boxes(points: np.ndarray, starts: np.ndarray) -> Bounds:
     cov = np.empty((len(counts), 3, 3))
     cov[:, i, j] = sums
     cov[:, j, i] = sums
-    _, vectors = np.linalg.eigh(cov)
+    values, vectors = np.linalg.eigh(cov)
     axes = np.ascontiguousarray(np.swapaxes(vectors, 1, 2))  # rows are axes
     flip = np.linalg.det(axes) < 0
     axes[flip, 2] *= -1
+    if fallback is not None:
+        gap = np.diff(values, axis=1).min(axis=1)
+        repeated = gap <= 1e-6 * np.maximum(values[:, 2], np.finfo(float).tiny)
+        axes[repeated] = fallback[repeated]
     return _fit_axes(points, centered, starts, seg, mean, axes, kind="obb")
 
 
@@ -248,7 +255,13 @@ def enclose(children: Bounds, starts: np.ndarray, mode: str) -> Bounds:
     corner_starts = starts * 8
     if mode == "aabb":
         return aabb_boxes(corners, corner_starts)
-    box = pca_boxes(corners, corner_starts)
+    # Where the corners' covariance has a repeated eigenvalue (one child whose box has two
+    # equal sides, say), take the axes of the largest child: the eigenvectors are arbitrary
+    # there, and a box turned 45 degrees within them can be twice as large as need be.
+    volume = np.prod(children.half + children.radius[:, None], axis=1)
+    seg = segment_ids(starts, len(children))
+    largest = np.lexsort((-volume, seg))[starts[:-1]]
+    box = pca_boxes(corners, corner_starts, fallback=children.axes[largest])
     box.kind = children.kind
     return box
 

@@ -219,6 +219,9 @@ class SceneState:
         self.scene = scene
         self.kind = kind
         self.bounds = scene.bounds(kind).copy()
+        # The leaves' bounds moved rigidly and never re-boxed: what an axis-aligned refit boxes
+        # each frame, so that boxes of boxes of boxes do not grow frame after frame.
+        self.exact = self.bounds.copy()
         self.local = scene.local.copy()
         self.world = scene.world.copy()
 
@@ -266,18 +269,26 @@ class SceneState:
         delta = self.world[sub] @ np.linalg.inv(old)
         rot = delta[:, :3, :3]
         rigid = np.abs(rot @ np.swapaxes(rot, 1, 2) - np.eye(3)).max(axis=(1, 2)) < 1e-9
-        self.bounds.put(sub[rigid], bnd.transform(self.bounds.take(sub[rigid]), rot[rigid],
-                                                  delta[rigid, :3, 3]))
+        moving = sub[rigid]
+        self.bounds.put(moving, bnd.transform(self.bounds.take(moving), rot[rigid],
+                                              delta[rigid, :3, 3]))
+        leaves = scene.is_leaf[moving]
+        self.exact.put(moving[leaves], bnd.transform(self.exact.take(moving[leaves]),
+                                                     rot[rigid][leaves], delta[rigid, :3, 3][leaves]))
         if not rigid.all():
             # Under a scaled parent the motion of a subtree is not rigid in world space:
             # fit its leaves again from their points and refit the subtree above them.
             self._refit_from_points(sub[~rigid])
-        if mode == "aabb":
-            self.bounds.put(nodes, bnd.axis_aligned(self.bounds.take(nodes)))
         # Only the strict ancestors of moved nodes are refit, bottom up; that includes moved
         # nodes above other moved nodes, whose rigid motion alone no longer fits their subtree.
         above = np.zeros(len(scene), dtype=bool)
         above[parent[nodes[nodes > 0]]] = True
+        if mode == "aabb":
+            # Moved leaves: the axis-aligned box of their exact bound. Moved internal nodes:
+            # refit from their children, never a box of last frame's box.
+            moved_leaves = nodes[scene.is_leaf[nodes]]
+            self.bounds.put(moved_leaves, bnd.axis_aligned(self.exact.take(moved_leaves)))
+            above[nodes[~scene.is_leaf[nodes]]] = True
         for level in reversed(levels[1:]):
             above[parent[level[above[level]]]] = True
         up = np.flatnonzero(above)
@@ -292,6 +303,7 @@ class SceneState:
         np.cumsum([len(c) for c in chunks], out=starts[1:])
         fitted = bnd.LEAF_FITTERS[self.kind](np.concatenate(chunks), starts)
         self.bounds.put(leaves, fitted)
+        self.exact.put(leaves, fitted)
         refit(scene, self.bounds, nodes[~scene.is_leaf[nodes]], bnd.enclosing_mode(self.kind))
 
 
