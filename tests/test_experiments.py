@@ -1,0 +1,218 @@
+"""``wallcull experiment``: every experiment's quick version runs, and its output has the shape
+and the invariants the report relies on."""
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from wallcull import bench
+from wallcull import experiments as E
+from wallcull.bounds import KINDS
+from wallcull.cli import main
+from wallcull.cull import METHODS
+from wallcull.experiments import common as C
+from wallcull.experiments import fig5
+from wallcull.pipeline import Session
+
+pytest.importorskip("matplotlib")
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def check_output(out, name: str, result: dict) -> dict:
+    """The files of one run: JSON, PNGs, markdown that shows every PNG."""
+    on_disk = json.loads((out / f"{name}.json").read_text())
+    assert on_disk["experiment"] == name and on_disk["quick"] is True
+    assert set(on_disk) >= {"seed", "wall_clock_s", "command", "machine", "plots", "results"}
+    assert on_disk["wall_clock_s"] > 0
+    assert on_disk["plots"], "every experiment draws something"
+    md = (out / f"{name}.md").read_text()
+    assert md.startswith("## ")
+    for png in on_disk["plots"]:
+        data = (out / png).read_bytes()
+        assert data[:8] == PNG and len(data) > 5000, png
+        assert f"]({png})" in md, f"{name}.md does not show {png}"
+    assert f"({name}.json)" in md and "wallcull experiment" in md
+    assert result["results"].keys() == on_disk["results"].keys()
+    return on_disk["results"]
+
+
+def check_times(summary: dict) -> None:
+    assert 0 < summary["min_ms"] <= summary["median_ms"] <= summary["max_ms"]
+    assert summary["median_ms"] <= summary["p99_ms"] <= summary["max_ms"]
+    assert summary["tests_per_frame"] > 0 and summary["frames"] > 0
+
+
+def check_accuracy(by_method: dict) -> None:
+    """Same bounds: naive and oh report the same leaves, and so do fh and adaptive, and the
+    second pair's leaves are among the first's."""
+    acc = {m: r["accuracy"] for m, r in by_method.items()}
+    for a, b in (("naive", "oh"), ("fh", "adaptive")):
+        for key in ("false_positives", "reported", "geometry_bytes_per_frame"):
+            assert acc[a][key] == acc[b][key], (a, b, key)
+    assert acc["fh"]["reported"] <= acc["naive"]["reported"]
+    assert acc["fh"]["false_positives"] <= acc["naive"]["false_positives"]
+    for a in acc.values():
+        assert 0 <= a["false_positives"] <= a["reported"] and 0 <= a["rate"] <= 1
+        assert a["packet_bytes_per_frame"] == a["false_positives"] * C.ID_BYTES / a["frames"]
+        assert (a["geometry_bytes_per_frame"] > 0) == (a["false_positives"] > 0)
+
+
+@pytest.fixture(scope="module")
+def out(tmp_path_factory):
+    return tmp_path_factory.mktemp("experiments")
+
+
+def test_fig4(out):
+    # through the command line, as a user runs it
+    assert main(["experiment", "fig4", "--quick", "--out", str(out), "--seed", "3"]) == 0
+    res = check_output(out, "fig4", json.loads((out / "fig4.json").read_text()))
+    assert json.loads((out / "fig4.json").read_text())["seed"] == 3
+    assert set(res["scenes"]) == {"fatehpur", "powerplant"}
+    for entry in res["scenes"].values():
+        assert set(entry["methods"]) == set(METHODS) == set(entry["series"])
+        for m in METHODS:
+            check_times(entry["methods"][m])
+            assert len(entry["series"][m]["cull_ms"]) == res["frames"]
+            assert min(entry["series"][m]["cull_ms"]) > 0
+        assert sum(entry["fastest_share"].values()) == pytest.approx(1)
+        # the lists are the method's, the tests differ: naive tests the most
+        assert entry["methods"]["naive"]["tests_per_frame"] >= max(
+            entry["methods"][m]["tests_per_frame"] for m in METHODS)
+
+
+def test_fig5(out):
+    result = E.run("fig5", out, quick=True, progress=False)
+    res = check_output(out, "fig5", result)
+    for entry in res["scenes"].values():
+        assert set(entry["families"]) == {"fixed", "growing"}
+        for family in entry["families"].values():
+            walls = family["walls"]
+            assert [(w["cols"], w["rows"]) for w in walls] == list(fig5.QUICK_WALLS)
+            for w in walls:
+                assert w["tiles"] == w["cols"] * w["rows"]
+                for m in METHODS:
+                    check_times(w["methods"][m])
+    # the fixed family keeps the wall's size; the growing one keeps the tile's
+    fixed = res["scenes"]["powerplant"]["families"]["fixed"]["walls"]
+    growing = res["scenes"]["powerplant"]["families"]["growing"]["walls"]
+    assert np.allclose([w["wall_size"] for w in fixed], C.FIXED_SIZE)
+    assert np.allclose([w["tile_size"] for w in growing], C.SPEC_TILE)
+    # one tile: every method makes the same first-level tests
+    one = next(w for w in fixed if w["tiles"] == 1)
+    assert len({one["methods"][m]["tests_per_frame"] for m in METHODS}) == 1
+
+
+def test_fig6(out):
+    result = E.run("fig6", out, quick=True, progress=False)
+    res = check_output(out, "fig6", result)
+    rows = res["rows"]
+    assert {(r["fraction"], r["refit"]) for r in rows if r["fraction"]} == {
+        (f, refit) for f in (0.1, 1.0) for refit in ("obb", "aabb")}
+    for r in rows:
+        check_times(r)
+        a = r["accuracy"]
+        assert 0 <= a["false_positives"] <= a["reported"]
+        if r["fraction"]:
+            assert r["moving"] > 0 and r["update"]["median_ms"] > 0
+        else:
+            assert r["moving"] == 0 and "update" not in r
+    # axis-aligned refits are never tighter than the moved eigenvector OBBs, on the same poses
+    by = {(r["fraction"], r["refit"]): r for r in rows}
+    assert by[(1.0, "aabb")]["accuracy"]["reported"] >= by[(1.0, "obb")]["accuracy"]["reported"]
+    d = res["drift"]
+    assert d["obb"]["volume_ratio_mean"] == pytest.approx(1, rel=1e-6)
+
+
+def test_bounds(out):
+    result = E.run("bounds", out, quick=True, progress=False)
+    res = check_output(out, "bounds", result)
+    for entry in res["scenes"].values():
+        assert set(entry["kinds"]) == set(KINDS)
+        for kind, v in entry["kinds"].items():
+            assert v["preprocess"]["bounds_s"] > 0
+            assert set(v["methods"]) == set(METHODS)
+            for r in v["methods"].values():
+                check_times(r)
+            check_accuracy(v["methods"])
+        # the front is non-empty, and nothing off it beats a point on it in both
+        front = entry["pareto"]
+        assert front
+        points = [(r["median_ms"], r["accuracy"]["rate"]) for v in entry["kinds"].values()
+                  for r in v["methods"].values()]
+        for p in front:
+            assert not any(t < p["median_ms"] and f < p["rate"] for t, f in points)
+
+
+def test_oracle_bookkeeping_matches_bench_accuracy():
+    """The experiments' memoized oracle counts what ``wallcull.bench.accuracy`` counts."""
+    scene = C.Pristine("fatehpur").fresh()
+    wall = C.spec_wall(2, 2)
+    frames = C.path_frames(scene, wall, "orbit", 4)
+    expected = bench.accuracy(scene, wall, frames[1:2], ["naive", "adaptive"], ["sphere"])
+    oracle = C.Oracle(scene, wall)
+    for method in ("naive", "adaptive"):
+        part = oracle.false_pairs(1, frames[1], C.leaf_pairs(Session(scene, wall, method, "sphere"),
+                                                            frames[1]))
+        want = expected["sphere"][method]
+        assert (part["false_positives"], part["reported"]) == (want["false_positives"],
+                                                             want["reported"])
+
+
+def test_real(out):
+    result = E.run("real", out, quick=True, progress=False)
+    res = check_output(out, "real", result)
+    if not res["scenes"]:
+        pytest.skip(f"no third-party scenes in {res['folder']}")
+    for name, entry in res["scenes"].items():
+        for runs in entry["walls"].values():
+            for m in METHODS:
+                check_times(runs[m])
+        for v in entry["bounds"]["kinds"].values():
+            check_accuracy(v["methods"])
+    if "sportsCar.zip" in res["scenes"]:
+        h = res["scenes"]["sportsCar.zip"]["hierarchy"]
+        assert h["file"]["scene"]["synthetic"] == 0 < h["auto"]["scene"]["synthetic"]
+        assert h["file"]["scene"]["leaves"] == h["auto"]["scene"]["leaves"] == 1075
+        assert "adaptive+pseudo" in h["auto"]["walls"]["8x8"]
+
+
+def test_real_without_scenes(tmp_path):
+    result = E.run("real", tmp_path, quick=True, progress=False, scenes_dir=tmp_path / "none")
+    assert result["results"]["scenes"] == {}
+    assert "not found" in (tmp_path / "real.md").read_text()
+
+
+def test_all_assembles_the_report(tmp_path, monkeypatch):
+    """``all`` runs the registry in order and the report holds every fragment with working
+    links; a new experiment needs one registry entry."""
+
+    def tiny(ctx):
+        plt = C.pyplot()
+        fig, ax = plt.subplots()
+        ax.plot(np.arange(100) ** 2)
+        link = ctx.savefig(fig, f"{ctx.name}.png", "a plot")
+        return {"value": 1}, f"## Tiny {ctx.name}\n\n{link}\n"
+
+    monkeypatch.setattr(E, "REGISTRY", {"one": tiny, "two": tiny})
+    out = tmp_path / "docs" / "experiments"
+    report = tmp_path / "docs" / "BENCHMARKS.md"
+    summary = E.run_all(out, quick=True, report=report, progress=False)
+    assert list(summary["experiments"]) == ["one", "two"]
+    text = report.read_text()
+    assert text.startswith(E.INTRO.splitlines()[0])
+    for name in ("one", "two"):
+        assert f"## Tiny {name}" in text
+        assert f"](experiments/{name}.png)" in text and f"](experiments/{name}.json)" in text
+        assert f"wallcull experiment {name} --quick" in text
+    assert "wallcull experiment all --quick" in text
+    for link in re.findall(r"\]\((experiments/[^)#]+)\)", text):
+        assert (report.parent / link).is_file(), link
+    assert json.loads((out / "all.json").read_text())["total_s"] > 0
+
+
+def test_unknown_experiment_is_bad_input(capsys):
+    assert main(["experiment", "fig7", "--quick"]) == 2
+    assert "invalid choice" in capsys.readouterr().err
