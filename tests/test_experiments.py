@@ -146,6 +146,20 @@ def test_bounds(out):
             assert not any(t < p["median_ms"] and f < p["rate"] for t, f in points)
 
 
+def test_frusta(out):
+    result = E.run("frusta", out, quick=True, progress=False)
+    r = check_output(out, "frusta", result)
+    q = r["quads"]
+    assert 1 <= q["refined_over_best"]["max"] <= q["greedy_over_best"]["max"] + 1e-9
+    assert q["refined_over_best"]["median"] <= q["greedy_over_best"]["median"] + 1e-12
+    assert all(v["refined_over_greedy"] <= 1 + 1e-12 for v in q["large"].values())
+    f = r["frusta"]["summary"]
+    assert f["refined"]["coverage"]["min"] >= f["symmetric"]["coverage"]["min"]
+    assert 0 < f["refined"]["coverage"]["median"] <= 1 and f["refined"]["ms"]["median"] > 0
+    for v in r["depth"].values():  # a fitted range is never wider than the wall's
+        assert max(v["samples"]) <= v["wall_bits"] + 1e-9 and v["gained_mean"] >= 0
+
+
 def test_oracle_bookkeeping_matches_bench_accuracy():
     """The experiments' memoized oracle counts what ``wallcull.bench.accuracy`` counts."""
     scene = C.Pristine("fatehpur").fresh()

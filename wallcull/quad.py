@@ -743,7 +743,7 @@ def bounding_quad(points, refine: bool = True) -> tuple[np.ndarray, np.ndarray]:
 # ---------------------------------------------------------------------------------- reporting
 
 
-def _random_hull(rng: np.random.Generator, n_points: int) -> np.ndarray:
+def random_hull(rng: np.random.Generator, n_points: int) -> np.ndarray:
     kind = rng.integers(3)
     if kind == 0:  # points in a disk, stretched and rotated
         p = rng.normal(size=(n_points, 2))
@@ -767,7 +767,7 @@ def ratio_report(n_hulls: int = 300, seed: int = 0, max_vertices: int = 30) -> d
     rng = np.random.default_rng(seed)
     greedy, refined, sizes = [], [], []
     while len(greedy) < n_hulls:
-        hull = _random_hull(rng, int(rng.integers(8, 200)))
+        hull = random_hull(rng, int(rng.integers(8, 200)))
         if not 5 <= len(hull) <= max_vertices:
             continue
         g = greedy_quad(hull)

@@ -39,6 +39,7 @@ REGISTRY: dict[str, Experiment] = {
     "fig6": _module("fig6"),
     "bounds": _module("bounds"),
     "real": _module("real"),
+    "frusta": _module("frusta"),
 }
 
 DEFAULT_OUT = "docs/experiments"
