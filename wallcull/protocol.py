@@ -13,10 +13,13 @@ A *packet* tells one tile's render node what to draw for one frame::
 Lists hold leaf ids (``scene.leaves``), sorted. The base of a delta is the frame the tile last
 acknowledged, so a render node keeps the lists of the frames it has not yet seen acknowledged;
 it asks for a full packet (or gets one) when it is new, when it asks, or when its
-acknowledged frame has fallen out of the server's history. ``transforms`` carries the world
-transforms of the leaves in the list that moved (dynamic scenes) and that the client may not
-have: every moved leaf in a full packet; in a delta, the added ones and those that moved since
-the base.
+acknowledged frame has fallen out of the server's history. A stream makes deltas only
+against frames acknowledged since it opened, so a node that reconnects without its lists gets
+full ones until an acknowledgement on the new stream lands; over HTTP, such a node asks with
+``full=true`` and acknowledges that frame before asking for deltas. ``transforms`` carries the
+world transforms of the leaves in the list that moved (dynamic scenes) and that the client may
+not have: every moved leaf in a full packet; in a delta, the added ones and those that moved
+since the base.
 """
 
 from __future__ import annotations
@@ -39,8 +42,8 @@ def wants_msgpack(accept: str | None) -> bool:
     """Whether an ``Accept`` header prefers msgpack to JSON (q-values honoured)."""
     if not accept:
         return False
-    best, best_q = None, -1.0
-    for part in accept.split(","):
+    best, best_q = None, 0.0  # q=0 means "not acceptable" (RFC 9110, 12.4.2)
+    for part in accept.lower().split(","):
         media, *params = [p.strip() for p in part.split(";")]
         q = 1.0
         for p in params:
@@ -67,7 +70,7 @@ def decode(body: bytes, msgpack_format: bool) -> Any:
             return msgpack.unpackb(body, raw=False, strict_map_key=True)
         return json.loads(body)
     except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError,
-            TypeError) as exc:
+            TypeError, RecursionError) as exc:  # RecursionError: JSON nested too deep
         kind = "msgpack" if msgpack_format else "JSON"
         raise InputError(f"malformed {kind} body: {type(exc).__name__}: {exc}".rstrip(": ")
                          ) from None
@@ -119,8 +122,10 @@ class History:
         return next(iter(self.frames)) if self.frames else -1
 
     def changed_since(self, base: int, number: int) -> np.ndarray:
-        """Leaves moved in frames ``(base, number]`` (all in the history by construction)."""
-        parts = [self.frames[k].changed for k in range(base + 1, number + 1) if k in self.frames]
+        """Leaves moved in the held frames numbered ``(base, number]``. Every frame posted in
+        that range is held when ``base`` is. Numbers may skip: walk the held frames, never the
+        range (a jump to 2**40 would take forever)."""
+        parts = [r.changed for k, r in self.frames.items() if base < k <= number]
         return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
 
 

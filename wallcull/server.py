@@ -23,7 +23,7 @@ from fastapi.responses import JSONResponse, Response
 from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge,
                                Histogram, generate_latest)
 from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
-from starlette.websockets import WebSocketDisconnect
+from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from . import protocol
 from .bounds import KINDS
@@ -140,6 +140,24 @@ class Barrier(BaseModel):
     complete: bool
 
 
+class Detail(BaseModel):
+    """Every refusal: a status and one line saying what is wrong."""
+
+    detail: str
+
+
+_REFUSALS = {304: "Not modified: the ETag matches", 400: "Malformed msgpack body",
+             401: "Missing or wrong token", 404: "No such scene, wall, tile, node or frame",
+             409: "Conflicts with the server's state", 410: "The frame left the history",
+             413: "Body too large", 422: "Invalid input"}
+
+
+def refusals(*codes: int) -> dict:
+    """OpenAPI ``responses`` for the refusals a route may answer (all with a ``detail``)."""
+    return {c: {"description": _REFUSALS[c]} if c == 304 else
+            {"model": Detail, "description": _REFUSALS[c]} for c in (*codes, 422)}
+
+
 # --------------------------------------------------------------------------- plumbing
 
 
@@ -162,8 +180,14 @@ class BodyCodec:
     """ASGI middleware: caps request bodies, and turns msgpack bodies into JSON so that one
     set of typed models validates both."""
 
-    def __init__(self, app, max_body: int, max_upload: int):
+    def __init__(self, app, max_body: int, max_upload: int, metrics: "Metrics | None" = None):
         self.app, self.max_body, self.max_upload = app, max_body, max_upload
+        self.metrics = metrics
+
+    async def _refuse(self, send, status: int, detail: str):
+        if self.metrics is not None:
+            self.metrics.errors.labels(str(status)).inc()
+        await _error(send, status, detail)
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
@@ -173,7 +197,7 @@ class BodyCodec:
         headers = dict(scope["headers"])
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > limit):
-            return await _error(send, 413, f"request body over {limit} bytes")
+            return await self._refuse(send, 413, f"request body over {limit} bytes")
         chunks, size = [], 0
         while True:
             message = await receive()
@@ -182,19 +206,19 @@ class BodyCodec:
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > limit:
-                return await _error(send, 413, f"request body over {limit} bytes")
+                return await self._refuse(send, 413, f"request body over {limit} bytes")
             chunks.append(chunk)
             if not message.get("more_body"):
                 break
         body = b"".join(chunks)
-        ctype = headers.get(b"content-type", b"").split(b";")[0].strip().decode("latin-1")
+        ctype = headers.get(b"content-type", b"").split(b";")[0].strip().decode("latin-1").lower()
         if ctype in (protocol.MSGPACK, "application/x-msgpack") and not upload:
             try:
                 body = json.dumps(protocol.decode(body, True), allow_nan=True).encode()
             except InputError as exc:
-                return await _error(send, 400, str(exc))
+                return await self._refuse(send, 400, str(exc))
             except (TypeError, ValueError):
-                return await _error(send, 400, "msgpack body holds values JSON cannot carry")
+                return await self._refuse(send, 400, "msgpack body holds values JSON cannot carry")
             scope = dict(scope)
             scope["headers"] = [(k, v) for k, v in scope["headers"]
                                 if k not in (b"content-type", b"content-length")] + [
@@ -259,14 +283,16 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
                   description="Culling server for tiled display walls. Bodies are JSON or "
                               "msgpack (Content-Type / Accept: application/msgpack).")
     app.state.store, app.state.walls, app.state.metrics = store, walls, metrics
-    app.add_middleware(BodyCodec, max_body=max_body, max_upload=max_upload)
+    app.add_middleware(BodyCodec, max_body=max_body, max_upload=max_upload, metrics=metrics)
 
     def authorized(value: str | None) -> bool:
         return token is None or (value is not None and secrets.compare_digest(
             value.encode(), token.encode()))
 
     def require_token(authorization: Annotated[Optional[str], Header()] = None):
-        given = authorization[7:] if authorization and authorization.startswith("Bearer ") else None
+        # the scheme is case-insensitive (RFC 9110, 11.1); the token is not
+        given = authorization[7:] if authorization and authorization[:7].lower() == "bearer " \
+            else None
         if not authorized(given):
             raise _Refused(401, "this request needs the server's token (Authorization: Bearer)")
 
@@ -293,7 +319,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
         return {"status": "ok", "walls": len(walls.sessions),
                 "scenes_loaded": sorted(store.cache)}
 
-    @app.get("/metrics")
+    @app.get("/metrics", response_class=Response, responses={200: {
+        "description": "Prometheus text format", "content": {"text/plain": {}}}})
     async def prometheus():
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
@@ -303,7 +330,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
     async def list_scenes(request: Request):
         return reply(request, {"scenes": store.names()})
 
-    @app.post("/scenes", dependencies=Token, status_code=201, openapi_extra={
+    @app.post("/scenes", dependencies=Token, status_code=201,
+              responses=refusals(401, 409, 413), openapi_extra={
         "requestBody": {"required": True, "content": {
             "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}}}}})
     async def upload_scene(request: Request,
@@ -313,19 +341,19 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
         scene = await store.upload(name, await request.body(), replace)
         return reply(request, describe(scene, nodes=False), 201)
 
-    @app.get("/scenes/{name}")
+    @app.get("/scenes/{name}", responses=refusals(404))
     async def scene_info(request: Request, name: str, nodes: bool = False):
         """A scene's stats, bounds and settings; ``nodes=true`` adds every node: name, parent,
         leaf flag, mesh key and rest world transform (row by row, flattened)."""
         return reply(request, describe(await store.get(name), nodes))
 
-    @app.get("/scenes/{name}/meshes/{key}")
+    @app.get("/scenes/{name}/meshes/{key}", responses=refusals(304, 404))
     async def mesh(request: Request, name: str, key: str):
         """A mesh as typed arrays (little-endian float32 vertices, uint32 faces); cache it by
         its ETag."""
         return _mesh_reply(request, mesh_blob(await store.get(name), key))
 
-    @app.get("/scenes/{name}/nodes/{node}/mesh")
+    @app.get("/scenes/{name}/nodes/{node}/mesh", responses=refusals(304, 404))
     async def node_mesh(request: Request, name: str, node: int):
         """The mesh of a leaf node, in the node's local coordinates (see ``nodes=true``)."""
         scene = await store.get(name)
@@ -335,7 +363,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
 
     # -------------------------------------------------------------- walls
 
-    @app.post("/walls", dependencies=Token, status_code=201)
+    @app.post("/walls", dependencies=Token, status_code=201,
+              responses=refusals(400, 401, 404, 409, 413))
     async def create_wall(request: Request, body: WallCreate):
         wall = Wall.from_dict(body.wall.model_dump())
         scene = await store.get(body.scene)
@@ -347,17 +376,19 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
     async def list_walls(request: Request):
         return reply(request, {"walls": [w.info() for w in walls.sessions.values()]})
 
-    @app.get("/walls/{wid}")
+    @app.get("/walls/{wid}", responses=refusals(404))
     async def wall_info(request: Request, wid: str):
         return reply(request, walls.get(wid).info())
 
-    @app.delete("/walls/{wid}", dependencies=Token, status_code=204)
+    @app.delete("/walls/{wid}", dependencies=Token, status_code=204,
+                responses=refusals(400, 401, 404, 413))
     async def delete_wall(wid: str):
         walls.get(wid).close()
         walls.delete(wid)
         return Response(status_code=204)
 
-    @app.post("/walls/{wid}/frames", dependencies=Token, response_model=FrameAnswer)
+    @app.post("/walls/{wid}/frames", dependencies=Token, response_model=FrameAnswer,
+              responses=refusals(400, 401, 404, 409, 413))
     async def post_frame(request: Request, wid: str, body: FramePost):
         """Cull (and fit) a frame; answer its number and, with ``packets``, every tile's packet."""
         session = walls.get(wid)
@@ -372,14 +403,16 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
             out["packets"] = [session.packet(t, number, body.full) for t in range(session.wall.tiles)]
         return reply(request, out)
 
-    @app.get("/walls/{wid}/tiles/{tile}/packets/{frame}", response_model=Packet)
+    @app.get("/walls/{wid}/tiles/{tile}/packets/{frame}", response_model=Packet,
+             responses=refusals(404, 410))
     async def get_packet(request: Request, wid: str, tile: int,
                          frame: Annotated[str, Path(pattern=r"^(latest|\d{1,15})$")],
                          full: bool = False,
                          wait: Annotated[float, Query(ge=0, le=MAX_WAIT)] = 1.0):
         """Tile ``tile``'s packet of frame ``frame`` (a number or ``latest``): a delta against
         the frame the tile last acknowledged, or a full list. Waits up to ``wait`` seconds for a
-        frame that is not ready yet."""
+        frame that is not ready yet. A node that lost its lists asks with ``full=true`` and
+        acknowledges that frame before asking for deltas again."""
         session = walls.get(wid)
         session.check_tile(tile)
         if frame == "latest":
@@ -395,13 +428,15 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
         metrics.packet(pkt, len(response.body), "http")
         return response
 
-    @app.post("/walls/{wid}/tiles/{tile}/ack", dependencies=Token, status_code=204)
+    @app.post("/walls/{wid}/tiles/{tile}/ack", dependencies=Token, status_code=204,
+              responses=refusals(400, 401, 404, 409, 413))
     async def ack(wid: str, tile: int, body: Ack):
         """The tile has drawn frame ``frame`` (the swap barrier counts these)."""
         walls.get(wid).ack(tile, body.frame)
         return Response(status_code=204)
 
-    @app.get("/walls/{wid}/barrier/{frame}", response_model=Barrier)
+    @app.get("/walls/{wid}/barrier/{frame}", response_model=Barrier,
+             responses=refusals(404))
     async def barrier(request: Request, wid: str, frame: Annotated[int, Path(ge=0, le=2**53)],
                       timeout: Annotated[float, Query(ge=0, le=MAX_WAIT)] = 1.0):
         """Wait until every tile has acknowledged ``frame``, or ``timeout`` seconds."""
@@ -412,7 +447,9 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
                      token_param: Annotated[Optional[str], Query(alias="token")] = None):
         """Push every new frame's packet (conflated: a slow node gets the newest). The node
         sends ``{"ack": n}`` after drawing frame n (needs the token when one is set) and
-        ``{"full": true}`` to get a full list next."""
+        ``{"full": true}`` to get a full list next. The first packet is full, and deltas are
+        only against frames acknowledged since: a node that reconnects starts afresh. The
+        stream closes with code 4404 when the wall is deleted."""
         try:
             session = walls.get(wid)
             session.check_tile(tile)
@@ -427,10 +464,11 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
         state = {"full": True}
 
         async def sender():
-            last = -1
+            last = since = -1
             while True:
                 number = await session.next_frame(last)
-                pkt = session.packet(tile, number, state.pop("full", False))
+                pkt = session.packet(tile, number, state.pop("full", False), since)
+                since = number if since < 0 else since
                 data = protocol.encode(pkt, binary)
                 if binary:
                     await ws.send_bytes(data)
@@ -477,6 +515,12 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
                     pass  # the node went away, or the wall was deleted
             session.subscribers -= 1
             metrics.clients.dec()
+        if session.closed and ws.application_state == WebSocketState.CONNECTED \
+                and ws.client_state == WebSocketState.CONNECTED:
+            try:
+                await ws.close(code=4404, reason="the wall was deleted")
+            except (RuntimeError, WebSocketDisconnect, OSError):
+                pass  # the node left at the same moment
 
     return app
 
@@ -489,7 +533,7 @@ class _Refused(Exception):
 def _handler(status: int, metrics: Metrics):
     async def handle(request, exc):
         metrics.errors.labels(str(status)).inc()
-        return JSONResponse({"detail": str(exc).strip("'\"")}, status)
+        return JSONResponse({"detail": str(exc)}, status)
     return handle
 
 

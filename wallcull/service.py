@@ -22,9 +22,10 @@ import numpy as np
 
 from . import protocol
 from .errors import InputError
-from .fit import FitOptions
+from .fit import FitOptions, tile_projections, view_matrix
 from .pipeline import Session
 from .scene import Scene, load
+from .wall import Frame, Wall
 
 #: File types a scene folder may hold (what ``trimesh`` reads as a scene).
 SCENE_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off", ".3dxml", ".zip", ".dae")
@@ -67,7 +68,8 @@ class SceneStore:
                for n, d in bundled.BUNDLED.items()]
         if self.folder and self.folder.is_dir():
             for p in sorted(self.folder.iterdir()):
-                if p.is_file() and p.suffix.lower() in SCENE_SUFFIXES and _NAME.match(p.name):
+                if p.is_file() and p.suffix.lower() in SCENE_SUFFIXES and _NAME.match(p.name) \
+                        and p.resolve().parent == self.folder:  # not a symlink pointing out
                     out.append({"name": p.name, "source": "folder", "bytes": p.stat().st_size})
         out += [{"name": n, "source": "upload"} for n in self.uploaded]
         return out
@@ -97,7 +99,7 @@ class SceneStore:
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
                 spec = name if name in bundled.BUNDLED else str(self.path(name))
-                self.cache[name] = await asyncio.to_thread(load, spec)
+                self.cache[name] = await asyncio.to_thread(lambda: usable(load(spec)))
                 self.cache[name].name = name
         return self.cache[name]
 
@@ -141,7 +143,30 @@ def _parse_glb(data: bytes, name: str) -> Scene:
         loaded = trimesh.Scene(loaded)
     if not loaded.geometry:
         raise InputError("the uploaded GLB has no geometry")
-    return Scene.from_trimesh(loaded, name=name)
+    try:
+        with np.errstate(all="ignore"):  # odd files overflow on their way to being refused
+            return usable(Scene.from_trimesh(loaded, name=name))
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - whatever an odd file trips is bad input
+        raise InputError(f"cannot use the uploaded GLB: {type(exc).__name__}: {exc}") from None
+
+
+def usable(scene: Scene) -> Scene:
+    """``scene``, once it is known to have leaves and finite bounds (computed here, in the
+    loading thread, rather than by the first wall): a file can be well formed and still carry
+    no drawable node, NaN vertices or transforms that overflow."""
+    if not len(scene.leaves):
+        raise InputError(f"scene {scene.name!r} has no node that carries geometry")
+    if not np.isfinite(scene.leaf_points[0]).all():
+        raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
+    try:
+        b = scene.bounds("obb")
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        raise InputError(f"scene {scene.name!r} cannot be bounded: {exc}") from None
+    if not all(np.isfinite(a).all() for a in (b.center, b.axes, b.half, b.radius)):
+        raise InputError(f"scene {scene.name!r} is too large to bound in float64")
+    return scene
 
 
 def describe(scene: Scene, nodes: bool = True) -> dict:
@@ -236,9 +261,12 @@ class WallSession:
             number = self.latest + 1
         elif number <= self.latest:
             raise Conflict(f"frame {number} is out of order: frame {self.latest} is already in")
+        # Validate the whole request before anything moves: a refused frame changes nothing.
+        frame = Frame.from_dict(frame, self.wall)
+        check_matrices(self.wall, frame)
         changed = np.zeros(0, dtype=np.int64)
         if updates:
-            self.session.move(updates, refit)
+            self._move(updates, refit)
             moved = np.array([self.scene.index[n] for n in updates])
             start, count = self.scene.leaf_range
             changed = np.unique(np.concatenate(
@@ -260,10 +288,35 @@ class WallSession:
                         "fit_ms": result.timings["fit_ms"],
                         "lists_ms": (t3 - t2) * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
 
+    def _move(self, updates: Mapping[str, Any], refit: str | None) -> None:
+        """Apply node updates, or refuse them and leave the scene as it was: composed with
+        their parents' transforms they may collapse or overflow float64 (scales like 1e-100
+        or 1e100 on nested nodes), which would leave poses no later update could undo."""
+        state = self.session.state
+        saved = state.local.copy(), state.world.copy(), state.bounds.copy()
+        try:
+            with np.errstate(all="ignore"):
+                self.session.move(updates, refit)
+                world = state.world[(state.world != saved[1]).any(axis=(1, 2))]
+                sound = np.isfinite(world).all() and all(
+                    np.isfinite(a).all() for a in (state.bounds.center, state.bounds.half,
+                                                   state.bounds.radius))
+                # a singular value that underflowed to 0 makes the next move fail to invert it
+                sound = sound and (np.linalg.svd(world[:, :3, :3], compute_uv=False) > 0).all()
+            if not sound:
+                raise InputError("the updates collapse or overflow world transforms in float64")
+        except (InputError, np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+            state.local, state.world, state.bounds = saved
+            if isinstance(exc, InputError):
+                raise
+            raise InputError(f"the updates cannot be applied: {exc}") from None
+
     async def wait_frame(self, number: int, timeout: float) -> bool:
         """Wait until frame ``number`` exists (or the timeout passes)."""
         deadline = time.monotonic() + timeout
         while self.latest < number:
+            if self.closed:  # close() leaves the event set: waiting again would spin
+                raise NotFound(f"wall {self.id} was deleted")
             left = deadline - time.monotonic()
             if left <= 0:
                 return False
@@ -287,13 +340,19 @@ class WallSession:
         for event in (self._new_frame, self._new_ack):
             event.set()
 
-    def packet(self, tile: int, number: int, full: bool = False) -> dict:
+    def packet(self, tile: int, number: int, full: bool = False, since: int = -1) -> dict:
+        """Tile ``tile``'s packet of frame ``number``: a delta against the tile's acknowledged
+        frame if that is at least ``since``, else a full list. A stream passes its first frame
+        as ``since``: a node that reconnected holds nothing from before it."""
         self.check_tile(tile)
         if number > self.latest or number < 0:
             raise NotFound(f"frame {number} does not exist yet (latest {self.latest})")
         if self.history.get(number) is None:
+            if number > self.history.oldest:
+                raise NotFound(f"there is no frame {number}: frame numbers skipped it")
             raise Gone(f"frame {number} has left the history (oldest {self.history.oldest})")
-        base = None if full or self.acks[tile] < 0 else int(self.acks[tile])
+        ack = int(self.acks[tile])
+        base = None if full or ack < 0 or ack < since else ack
         return protocol.packet(self.history, number, tile, base)
 
     def ack(self, tile: int, number: int) -> None:
@@ -314,6 +373,8 @@ class WallSession:
         """Wait until every tile has acknowledged frame ``number`` (the swap barrier)."""
         deadline = time.monotonic() + timeout
         while not self.barrier_state(number)["complete"]:
+            if self.closed:  # close() leaves the event set: waiting again would spin
+                raise NotFound(f"wall {self.id} was deleted")
             left = deadline - time.monotonic()
             if left <= 0:
                 break
@@ -322,6 +383,18 @@ class WallSession:
             except asyncio.TimeoutError:
                 break
         return self.barrier_state(number)
+
+
+def check_matrices(wall: Wall, frame: Frame) -> None:
+    """Refuse a wall or a frame whose view or projections overflow float64 (sizes near 1e308,
+    tiles too small to tell their edges apart): they would go out as NaN and infinities."""
+    with np.errstate(all="ignore"):  # overflow is what this looks for
+        view = view_matrix(frame)
+        projections = tile_projections(wall, frame, np.full(wall.tiles, wall.near),
+                                       np.full(wall.tiles, wall.far))
+    if not (np.isfinite(view).all() and np.isfinite(projections).all()):
+        raise InputError("the wall and frame give matrices that overflow: position, eye or "
+                         "wall sizes are too large, or tiles too small for float64")
 
 
 class Walls:
@@ -335,6 +408,8 @@ class Walls:
                history: int, fit: FitOptions = FitOptions()) -> WallSession:
         if len(self.sessions) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
+        eye = np.array([0.0, 0.0, max(0.0, wall.near - wall.distance) + 1.0])  # in front
+        check_matrices(wall, Frame(np.zeros(3), np.array([1.0, 0, 0, 0]), eye, np.eye(3)))
         session = Session(scene, wall, method, bounds, pseudo_groups, fit)
         wid = secrets.token_hex(6)
         self.sessions[wid] = WallSession(wid, session, protocol.History(history))
