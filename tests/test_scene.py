@@ -239,3 +239,35 @@ def test_repeated_moves_do_not_grow_the_bounds(refit):
     vol = lambda b: np.prod(b.half + b.radius[:, None], axis=1)
     np.testing.assert_allclose(vol(walked.bounds), vol(once.bounds), rtol=1e-6)
     np.testing.assert_allclose(walked.bounds.center, once.bounds.center, atol=1e-6)
+
+
+def test_a_move_that_fails_changes_nothing(monkeypatch):
+    """All or nothing: if a refit turns out non-finite, the scene state is as before."""
+    from wallcull import bounds as bnd
+
+    scene = Scene.from_trimesh(random_scene(2, leaves=12))
+    state = SceneState(scene)
+    before = [a.copy() for a in (state.local, state.world, state.bounds.center, state.exact.center)]
+    real = bnd.enclose
+
+    def poisoned(*args, **kw):
+        out = real(*args, **kw)
+        out.center[:] = np.nan
+        return out
+
+    monkeypatch.setattr(bnd, "enclose", poisoned)
+    m = scene.local[scene.index["leaf3"]].copy()
+    m[:3, 3] += 1.0
+    with pytest.raises(InputError, match="overflow"):
+        state.move({"leaf3": m})
+    after = (state.local, state.world, state.bounds.center, state.exact.center)
+    for a, b in zip(before, after):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_updates_out_of_range_are_refused():
+    state = SceneState(Scene.from_trimesh(random_scene(1, leaves=5)))
+    for bad in ({"position": [0, 0, 0], "orientation": [1, 0, 0, 0], "scale": [1e-12, 1, 1]},
+                {"position": [1e16, 0, 0], "orientation": [1, 0, 0, 0]}):
+        with pytest.raises(InputError, match="out of range"):
+            state.move({"leaf0": bad})

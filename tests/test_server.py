@@ -335,9 +335,9 @@ BAD = [  # (id, method, path, request kwargs, status, detail pattern)
     ("eye-on-near-plane", "POST", "/walls/{wid}/frames",
      _json({"frame": {**FRAME, "eye": [0, 0, -1.9]}}), 422, "not in front of the wall"),
     ("position-overflows", "POST", "/walls/{wid}/frames",
-     _json({"frame": {"position": [HUGE, HUGE, HUGE], "orientation": Q45}}), 422, "overflow"),
+     _json({"frame": {"position": [HUGE, HUGE, HUGE], "orientation": Q45}}), 422, "within"),
     ("eye-overflows", "POST", "/walls/{wid}/frames",
-     _json({"frame": {**FRAME, "eye": [0, 0, HUGE]}}), 422, "overflow"),
+     _json({"frame": {**FRAME, "eye": [0, 0, HUGE]}}), 422, "within"),
     ("number-negative", "POST", "/walls/{wid}/frames", _json({"frame": FRAME, "number": -1}), 422,
      "number"),
     ("number-too-big", "POST", "/walls/{wid}/frames", _json({"frame": FRAME, "number": 2**60}),
@@ -394,10 +394,13 @@ BAD = [  # (id, method, path, request kwargs, status, detail pattern)
      _json({"wall": {**WALL, "near": 10, "far": 1}, "scene": "fatehpur"}), 422, "near < far"),
     ("wall-overflows", "POST", "/walls",
      _json({"wall": {**WALL, "tile_size": [1e307, 1e307], "cols": 64}, "scene": "fatehpur"}),
-     422, "overflow"),
+     422, "between"),
     ("tiles-too-small", "POST", "/walls",
      _json({"wall": {**WALL, "tile_size": [1e-300, 1e-300], "gap": [1.0, 1.0]},
-            "scene": "fatehpur"}), 422, "overflow"),
+            "scene": "fatehpur"}), 422, "between"),
+    ("tiles-lost-in-their-gaps", "POST", "/walls",
+     _json({"wall": {**WALL, "cols": 64, "tile_size": [1e-9, 0.3], "gap": [1e9, 0.0]},
+            "scene": "fatehpur"}), 422, "cannot tell"),
     ("wall-nan", "POST", "/walls",
      _raw(json.dumps({"wall": WALL, "scene": "fatehpur"}).replace("2.0", "NaN").encode()), 422,
      "finite"),
@@ -484,7 +487,7 @@ def test_updates_that_collapse_or_overflow_change_nothing(client, wid, fatehpur)
     for scale in (1e-100, 1e100, 1e-100):
         r = client.post(f"/walls/{wid}/frames", json={"frame": FRAME, "updates": scaled(scale)},
                         headers=AUTH)
-        assert r.status_code == 422 and "updates" in r.json()["detail"], r.text
+        assert r.status_code == 422 and "update" in r.json()["detail"], r.text
     good = scaled(0.5)
     post_frame(client, wid, updates=good)
     session = Session(fatehpur, Wall.from_dict(WALL))

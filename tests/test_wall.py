@@ -108,6 +108,8 @@ def test_frame_places_display_space_in_the_world():
     ({"position": [0, 0, float("nan")], "orientation": [1, 0, 0, 0]}, "finite"),
     ({"orientation": [1, 0, 0, 0]}, "missing"),
     ({"position": [0, 0, 0], "orientation": [1, 0, 0, 0], "eyes": [0, 0, 0]}, "unknown"),
+    ({"position": [1e16, 0, 0], "orientation": [1, 0, 0, 0]}, "within"),
+    ({"position": [0, 0, 0], "orientation": [1, 0, 0, 0], "eye": [0, 0, 1e10]}, "within"),
 ])
 def test_bad_frames_are_rejected_with_a_clear_message(frame, message):
     with pytest.raises(InputError, match=message):
@@ -132,6 +134,9 @@ def test_quaternion_within_tolerance_is_accepted_and_normalized():
     ({"distance": 0}, "positive"),
     ({"colls": 3}, "unknown"),
     ({"resolution": [1920]}, "resolution"),
+    ({"tile_size": [1e-12, 0.3]}, "between"),
+    ({"distance": 1e12}, "between"),
+    ({"cols": 64, "tile_size": [1e-9, 0.3], "gap": [1e9, 0]}, "cannot tell"),
 ])
 def test_bad_walls_are_rejected_with_a_clear_message(patch, message):
     with pytest.raises(InputError, match=message):

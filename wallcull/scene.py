@@ -240,7 +240,22 @@ class SceneState:
             local.append(node_matrix(value, name))
         if not ids:
             return np.zeros(0, dtype=np.int64)
-        return self.move_nodes(np.array(ids), np.array(local), refit_mode)
+        # All or nothing: composed down a chain of nodes, updates that are fine alone can still
+        # collapse or overflow a world transform; then the scene stays as it was.
+        saved = [a.copy() for a in (self.local, self.world)], self.bounds.copy(), self.exact.copy()
+        try:
+            with np.errstate(all="ignore"):
+                up = self.move_nodes(np.array(ids), np.array(local), refit_mode)
+                sound = (np.isfinite(self.world).all() and np.isfinite(self.bounds.center).all()
+                         and np.isfinite(self.bounds.half).all()
+                         and np.isfinite(self.bounds.radius).all()
+                         and (np.abs(np.linalg.det(self.world[:, :3, :3])) > 0).all())
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError):
+            sound = False
+        if not sound:
+            (self.local, self.world), self.bounds, self.exact = saved
+            raise InputError("the updates collapse or overflow world transforms in float64")
+        return up
 
     def move_nodes(self, nodes: np.ndarray, local: np.ndarray,
                    refit_mode: str | None = None) -> np.ndarray:
@@ -342,6 +357,10 @@ def node_matrix(value: Any, name: str = "node") -> np.ndarray:
     r = m[:3, :3]
     if abs(np.linalg.det(r)) <= 1e-12 * max(np.abs(r).max(), 1e-300) ** 3:
         raise InputError(f"update of {name!r} is singular (a zero scale)")
+    scales = np.linalg.svd(r, compute_uv=False)
+    if scales.min() < 1e-9 or scales.max() > 1e9 or np.abs(m[:3, 3]).max() > 1e15:
+        raise InputError(f"update of {name!r} is out of range: scales must lie between 1e-9 "
+                         "and 1e9 and positions within 1e15")
     return m
 
 

@@ -34,6 +34,11 @@ MAX_TILES = 1 << 16
 #: Relative tolerance on the norm of a frame's quaternion (SPEC section 3).
 QUATERNION_TOLERANCE = 1e-6
 
+#: The ranges float64 geometry stays meaningful in (beyond them the matrices sent to clients
+#: would overflow or lose every digit): lengths of the wall, m; and world coordinates.
+MIN_LENGTH, MAX_LENGTH = 1e-9, 1e9
+MAX_COORDINATE = 1e15
+
 WALL_DEFAULTS = {"gap": (0.0, 0.0), "near": 0.1, "far": 1000.0, "resolution": (1920, 1080)}
 WALL_KEYS = {"cols", "rows", "tile_size", "gap", "distance", "near", "far", "resolution"}
 
@@ -105,11 +110,24 @@ class Wall:
             raise InputError(f"wall distance must be positive, got {distance}")
         if not 0 < near < far:
             raise InputError(f"wall needs 0 < near < far, got near={near}, far={far}")
+        for what, value in (("tile_size", w), ("tile_size", h), ("distance", distance)):
+            if not MIN_LENGTH <= value <= MAX_LENGTH:
+                raise InputError(f"wall {what} must be between {MIN_LENGTH:g} and "
+                                 f"{MAX_LENGTH:g} m, got {value:g}")
+        if max(abs(gx), abs(gy)) > MAX_LENGTH or far > MAX_COORDINATE:
+            raise InputError(f"wall gap must be within {MAX_LENGTH:g} m and far within "
+                             f"{MAX_COORDINATE:g} m")
         res = spec["resolution"]
         if not isinstance(res, (list, tuple)) or len(res) != 2:
             raise InputError(f"wall resolution must be [width, height] in pixels, got {res!r}")
         resolution = (_count(res[0], "wall resolution[0]"), _count(res[1], "wall resolution[1]"))
-        return cls(cols, rows, (w, h), (gx, gy), distance, near, far, resolution)
+        wall = cls(cols, rows, (w, h), (gx, gy), distance, near, far, resolution)
+        for name, edges in (("columns", wall.col_edges), ("rows", wall.row_edges)):
+            # every tile must keep a width in float64 however far from the centre it lies
+            if not (edges[:, 1] > edges[:, 0]).all():
+                raise InputError(f"wall {name} are too narrow for their gaps: float64 cannot "
+                                 "tell a tile's edges apart")
+        return wall
 
     def to_dict(self) -> dict:
         return {
@@ -221,6 +239,10 @@ class Frame:
         eye = np.asarray(eye, dtype=np.float64).reshape(3)
         if not (np.isfinite(position).all() and np.isfinite(q).all() and np.isfinite(eye).all()):
             raise InputError("frame position, orientation and eye must be finite")
+        if np.abs(position).max() > MAX_COORDINATE:
+            raise InputError(f"frame position must be within {MAX_COORDINATE:g} of the origin")
+        if np.abs(eye).max() > MAX_LENGTH:
+            raise InputError(f"frame eye must be within {MAX_LENGTH:g} m of the display origin")
         norm = float(np.linalg.norm(q))
         if abs(norm - 1.0) > QUATERNION_TOLERANCE:
             raise InputError(
