@@ -1220,3 +1220,58 @@ def test_live_delete_wakes_every_waiter(live):
             ws.recv(timeout=30)
         assert closed.value.rcvd.code == 4404
     assert live.http.get("/health").json()["walls"] == 0
+
+
+def test_history_times_tiles_is_capped(client):
+    big = {**WALL, "cols": 64, "rows": 64, "tile_size": [0.05, 0.03], "gap": [0.0, 0.0]}
+    r = client.post("/walls", json={"wall": big, "scene": "fatehpur", "history": 1024},
+                    headers=AUTH)
+    assert r.status_code == 422 and "at most 256 frames" in r.json()["detail"]
+    r = client.post("/walls", json={"wall": big, "scene": "fatehpur", "history": 256},
+                    headers=AUTH)
+    assert r.status_code == 201
+    client.delete(f"/walls/{r.json()['id']}", headers=AUTH)
+
+
+def test_the_server_keeps_answering_while_a_frame_is_culled(monkeypatch):
+    """A frame is computed in a worker thread: requests that arrive meanwhile are answered
+    before it finishes (checked by order of completion, not by timing)."""
+    import asyncio
+    import threading
+
+    import httpx
+
+    from wallcull import service
+
+    started, release = threading.Event(), threading.Event()
+    real = service.WallSession.compute_frame
+
+    def slow(self, *args, **kwargs):
+        started.set()
+        release.wait(5)  # held until the test has been answered meanwhile
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(service.WallSession, "compute_frame", slow)
+    app = create_app(token=TOKEN)
+
+    async def scenario():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as c:
+            wid = (await c.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
+                                headers=AUTH)).json()["id"]
+            order = []
+
+            async def post():
+                r = await c.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH)
+                order.append(("frame", r.status_code))
+
+            task = asyncio.create_task(post())
+            while not started.is_set():
+                await asyncio.sleep(0.01)
+            r = await c.get("/health")
+            order.append(("health", r.status_code))
+            release.set()
+            await task
+            return order
+
+    assert asyncio.run(scenario()) == [("health", 200), ("frame", 200)]

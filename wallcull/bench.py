@@ -102,8 +102,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
         if fit is not None:
             fits.append(result.timings["fit_ms"])
             shown = np.diff(result.visibility.start) > 0
-            ratios.extend(np.log2(t["far"] / t["near"])
-                          for t, s in zip(result.fits, shown) if s)
+            ratios.extend(np.log2(result.fits.far[shown] / result.fits.near[shown]))
         stats = result.visibility.stats
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])

@@ -24,7 +24,9 @@ for them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -113,27 +115,51 @@ def depth_ranges(state: SceneState, wall: Wall, frame: Frame,
     return near, far
 
 
+@dataclass
+class Fits(Sequence):
+    """One frame's fitted frusta: arrays, read as a sequence of per-tile JSON-ready dicts
+    (``fits[t]``: ``view``, ``projection``, ``near``, ``far`` and any ``shadows``/``mirrors``).
+    Kept as arrays, a 64 x 64 wall's frame takes half a megabyte, not ten."""
+
+    view: np.ndarray  # (4, 4), shared by every tile
+    projection: np.ndarray  # (tiles, 4, 4)
+    near: np.ndarray  # (tiles,)
+    far: np.ndarray  # (tiles,)
+    extras: dict = field(default_factory=dict)  # tile -> {"shadows": [...], "mirrors": [...]}
+
+    def __len__(self) -> int:
+        return len(self.projection)
+
+    def __getitem__(self, tile: int) -> dict:
+        if not 0 <= tile < len(self):
+            raise IndexError(tile)
+        return {"view": self.view_rows, "projection": self.projection[tile].tolist(),
+                "near": float(self.near[tile]), "far": float(self.far[tile]),
+                **self.extras.get(tile, {})}
+
+    @cached_property
+    def view_rows(self) -> list:
+        return self.view.tolist()
+
+
 def fit_frame(wall: Wall, frame: Frame, visibility: Visibility | None = None,
               state: SceneState | None = None, scene_settings: cfg.Settings | None = None,
-              options: FitOptions = FitOptions()) -> list[dict]:
-    """Per tile, the JSON-ready fitted frusta of one frame (see the module docstring)."""
+              options: FitOptions = FitOptions()) -> Fits:
+    """One frame's fitted frusta (see the module docstring)."""
     view = view_matrix(frame)
     if options.depth == "tight" and visibility is not None:
         near, far = depth_ranges(state, wall, frame, visibility)
     else:
         near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
     projections = tile_projections(wall, frame, near, far, options.reversed_z)
-    view_rows = view.tolist()
-    out = [{"view": view_rows, "projection": p, "near": n, "far": f}
-           for p, n, f in zip(projections.tolist(), near.tolist(), far.tolist())]
+    out = Fits(view, projections, near, far)
     if scene_settings is None or scene_settings.empty or visibility is None:
         return out  # nothing declared: nothing computed, nothing sent
-    leaf_start, leaf_ids = visibility.leaf_lists()
     for light in scene_settings.lights:
         for t in range(wall.tiles):
             shadow = shadow_frustum(state, light, visibility.tile_nodes(t), options)
             if shadow is not None:
-                out[t].setdefault("shadows", []).append(shadow)
+                out.extras.setdefault(t, {}).setdefault("shadows", []).append(shadow)
     frusta = Frusta.build(wall, frame) if scene_settings.mirrors else None
     for mirror in scene_settings.mirrors:
         seen_from = MirrorSight.of(mirror, frame, view)
@@ -142,7 +168,7 @@ def fit_frame(wall: Wall, frame: Frame, visibility: Visibility | None = None,
         for t in range(wall.tiles):
             seen = seen_from.tile(state, frusta.tile(t), projections[t])
             if seen is not None:
-                out[t].setdefault("mirrors", []).append(seen)
+                out.extras.setdefault(t, {}).setdefault("mirrors", []).append(seen)
     return out
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from . import settings as cfg
 from .cull import Culler, Visibility
-from .fit import FitOptions, fit_frame
+from .fit import FitOptions, Fits, fit_frame
 from .scene import Scene, SceneState
 from .wall import Frame, Frusta, Wall
 
@@ -27,7 +27,7 @@ class FrameResult:
     frusta: Frusta
     visibility: Visibility
     timings: dict = field(default_factory=dict)  # ms per stage
-    fits: list[dict] | None = None  # per tile, when the session fits
+    fits: Fits | None = None  # when the session fits
 
 
 class Session:

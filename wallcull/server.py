@@ -393,8 +393,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
         """Cull (and fit) a frame; answer its number and, with ``packets``, every tile's packet."""
         session = walls.get(wid)
         updates = {name: u.value() for name, u in body.updates.items()}
-        number, timings = session.post_frame(body.frame.model_dump(), updates, body.number,
-                                             body.refit)
+        number, timings = await session.post_frame_async(body.frame.model_dump(), updates,
+                                                         body.number, body.refit)
         metrics.frames.inc()
         for stage in ("cull_ms", "fit_ms", "total_ms"):
             metrics.stage.labels(stage[:-3]).observe(timings[stage] / 1e3)

@@ -32,6 +32,11 @@ SCENE_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off", ".3dxml", ".z
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 
 
+#: A wall's history holds at most this many tile-frames (frames x tiles): about 150 bytes
+#: each, plus its lists, so a 64 x 64 wall keeps up to 256 frames.
+MAX_TILE_FRAMES = 1 << 20
+
+
 class NotFound(LookupError):
     """An unknown scene, wall, tile, node or frame."""
 
@@ -224,6 +229,7 @@ class WallSession:
     closed: bool = False
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
     _new_ack: asyncio.Event = field(default_factory=asyncio.Event)
+    _frame_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     _ever_moved: np.ndarray = None
 
     def __post_init__(self):
@@ -253,10 +259,12 @@ class WallSession:
         if not 0 <= tile < self.wall.tiles:
             raise NotFound(f"no tile {tile} on wall {self.id} ({self.wall.tiles} tiles)")
 
-    def post_frame(self, frame: Mapping[str, Any], updates: Mapping[str, Any] | None = None,
-                   number: int | None = None, refit: str | None = None) -> tuple[int, dict]:
-        """Move, cull, fit and record a frame; returns its number and per-stage timings (ms)."""
-        t0 = time.perf_counter()
+    def compute_frame(self, frame: Mapping[str, Any], updates: Mapping[str, Any] | None = None,
+                      number: int | None = None, refit: str | None = None
+                      ) -> tuple[protocol.FrameRecord, dict]:
+        """Move, cull and fit a frame: its record (not yet published) and per-stage timings
+        (ms). Touches no asyncio object, so it may run in a worker thread; one at a time."""
+        posted, t0 = time.time(), time.perf_counter()
         if number is None:
             number = self.latest + 1
         elif number <= self.latest:
@@ -275,17 +283,40 @@ class WallSession:
         result = self.session.frame(frame)
         t2 = time.perf_counter()
         start, leaves = result.visibility.leaf_lists()
-        fits = result.fits
-        t3 = time.perf_counter()
         posed = self._ever_moved
-        self.history.add(protocol.FrameRecord(
-            number, time.time(), start, leaves, fits, changed, posed,
-            self.session.state.world[posed]))
+        record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed, posed,
+                                      self.session.state.world[posed])
+        return record, {"update_ms": (t1 - t0) * 1e3, "cull_ms": result.timings["cull_ms"],
+                        "fit_ms": result.timings["fit_ms"],
+                        "lists_ms": (time.perf_counter() - t2) * 1e3,
+                        "total_ms": (time.perf_counter() - t0) * 1e3}
+
+    def publish(self, record: protocol.FrameRecord) -> int:
+        """Make a computed frame visible and wake whoever waits for it (on the event loop)."""
+        if record.number <= self.latest:
+            raise Conflict(f"frame {record.number} is out of order: frame {self.latest} is in")
+        self.history.add(record)
         old, self._new_frame = self._new_frame, asyncio.Event()
         old.set()
-        return number, {"update_ms": (t1 - t0) * 1e3, "cull_ms": result.timings["cull_ms"],
-                        "fit_ms": result.timings["fit_ms"],
-                        "lists_ms": (t3 - t2) * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
+        return record.number
+
+    def post_frame(self, frame: Mapping[str, Any], updates: Mapping[str, Any] | None = None,
+                   number: int | None = None, refit: str | None = None) -> tuple[int, dict]:
+        """Compute and publish a frame in the caller's thread; its number and timings."""
+        record, timings = self.compute_frame(frame, updates, number, refit)
+        return self.publish(record), timings
+
+    async def post_frame_async(self, frame: Mapping[str, Any],
+                               updates: Mapping[str, Any] | None = None,
+                               number: int | None = None, refit: str | None = None
+                               ) -> tuple[int, dict]:
+        """:meth:`post_frame` with the work in a worker thread, so that the event loop keeps
+        serving packets while a frame is culled and fitted; frames of one wall go one at a
+        time, in order."""
+        async with self._frame_lock:
+            record, timings = await asyncio.to_thread(self.compute_frame, frame, updates, number,
+                                                      refit)
+            return self.publish(record), timings
 
     async def wait_frame(self, number: int, timeout: float) -> bool:
         """Wait until frame ``number`` exists (or the timeout passes)."""
@@ -372,6 +403,10 @@ class Walls:
                history: int, fit: FitOptions = FitOptions()) -> WallSession:
         if len(self.sessions) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
+        if history * wall.tiles > MAX_TILE_FRAMES:
+            raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
+                             f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
+                             f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
         session = Session(scene, wall, method, bounds, pseudo_groups, fit)
         wid = secrets.token_hex(6)
         self.sessions[wid] = WallSession(wid, session, protocol.History(history))

@@ -142,7 +142,7 @@ def measure_depth(ctx: Context) -> dict:
         for frame in C.path_frames(scene, wall, path, ctx.size(120, 3)):
             result = session.frame(frame)
             shown = np.diff(result.visibility.start) > 0
-            bits += [np.log2(f["far"] / f["near"]) for f, s in zip(result.fits, shown) if s]
+            bits += np.log2(result.fits.far[shown] / result.fits.near[shown]).tolist()
         wall_bits = float(np.log2(wall.far / wall.near))
         out[f"{name}-{path}"] = {"wall_bits": wall_bits, "fitted_bits": _stats(bits),
                                  "gained_mean": wall_bits - float(np.mean(bits)),
