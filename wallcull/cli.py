@@ -297,6 +297,7 @@ def parser() -> argparse.ArgumentParser:
     q = sub.add_parser("scenes", help="list the bundled scenes")
     q.set_defaults(func=cmd_scenes)
     from .experiments import register; register(sub)
+    from .loadtest import register; register(sub)
     return p
 
 

@@ -34,6 +34,7 @@ from .service import Conflict, Gone, NotFound, SceneStore, Walls, describe, mesh
 from .wall import MAX_TILES, Wall
 
 MAX_BODY = 1 << 20  # bytes: frames, walls, updates
+STREAM_WINDOW = 8  # packets a stream may have sent and not yet seen acknowledged
 MAX_WAIT = 10.0  # seconds a request may wait for a frame or the barrier
 
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
@@ -257,12 +258,16 @@ class Metrics:
         self.bytes = Counter("wallcull_packet_bytes", "Packet bytes sent", ["kind", "transport"],
                              registry=r)
         self.clients = Gauge("wallcull_clients_connected", "Streaming render nodes", registry=r)
+        self._bound: dict = {}
         self.errors = Counter("wallcull_errors", "Requests refused", ["status"], registry=r)
 
     def packet(self, pkt: dict, size: int, transport: str):
-        kind = "full" if pkt["base"] is None else "delta"
-        self.packets.labels(kind, transport).inc()
-        self.bytes.labels(kind, transport).inc(size)
+        key = ("full" if pkt["base"] is None else "delta", transport)
+        bound = self._bound.get(key)
+        if bound is None:  # labels() costs a lock and a dict lookup: bind each pair once
+            bound = self._bound[key] = (self.packets.labels(*key), self.bytes.labels(*key))
+        bound[0].inc()
+        bound[1].inc(size)
 
 
 # --------------------------------------------------------------------------- the app
@@ -467,6 +472,13 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int = MAX_
             last = since = -1
             while True:
                 number = await session.next_frame(last)
+                if can_ack and since >= 0 and session.acks[tile] >= since:
+                    # Flow control, for nodes that acknowledge: at most STREAM_WINDOW packets
+                    # unacknowledged. A node that falls behind then gets the newest frame
+                    # (conflation) instead of a queue of stale ones in socket buffers:
+                    # uvicorn's send only blocks past the transport's 64 KiB high-water mark.
+                    await session.wait_acked(tile, last - STREAM_WINDOW + 1, MAX_WAIT)
+                    number = session.latest
                 pkt = session.packet(tile, number, state.pop("full", False), since)
                 since = number if since < 0 else since
                 data = protocol.encode(pkt, binary)

@@ -229,6 +229,7 @@ class WallSession:
     closed: bool = False
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
     _new_ack: asyncio.Event = field(default_factory=asyncio.Event)
+    _tile_acked: dict = field(default_factory=dict)  # tile -> Event its next ack sets
     _frame_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     _ever_moved: np.ndarray = None
 
@@ -344,7 +345,7 @@ class WallSession:
     def close(self) -> None:
         """Wake everyone waiting on this wall: it is being deleted."""
         self.closed = True
-        for event in (self._new_frame, self._new_ack):
+        for event in (self._new_frame, self._new_ack, *self._tile_acked.values()):
             event.set()
 
     def packet(self, tile: int, number: int, full: bool = False, since: int = -1) -> dict:
@@ -370,6 +371,24 @@ class WallSession:
             self.acks[tile] = number
             old, self._new_ack = self._new_ack, asyncio.Event()
             old.set()
+            waiter = self._tile_acked.pop(tile, None)
+            if waiter is not None:
+                waiter.set()
+
+    async def wait_acked(self, tile: int, number: int, timeout: float) -> bool:
+        """Wait until ``tile`` has acknowledged frame ``number`` or a later one (a stream's
+        flow control); False on timeout or when the wall closes."""
+        deadline = time.monotonic() + timeout
+        while self.acks[tile] < number and not self.closed:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            event = self._tile_acked.setdefault(tile, asyncio.Event())
+            try:
+                await asyncio.wait_for(event.wait(), left)
+            except asyncio.TimeoutError:
+                return False
+        return self.acks[tile] >= number
 
     def barrier_state(self, number: int) -> dict:
         acked = int((self.acks >= number).sum())

@@ -1,0 +1,35 @@
+# The wallcull server, simulated render nodes and the load driver, in one image.
+#   docker build -t wallcull .
+#   docker run --rm -p 8000:8000 -e WALLCULL_TOKEN=secret wallcull        # the server
+# docker-compose.yml runs a whole wall (server + nodes + driver) from this image.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    NUMBA_CACHE_DIR=/tmp/numba-cache
+
+WORKDIR /app
+
+# Dependencies first (a layer that survives source edits): install the project's requirements
+# from pyproject.toml alone, then the sources.
+COPY pyproject.toml README.md ./
+RUN python -c "import tomllib; d = tomllib.load(open('pyproject.toml', 'rb')); \
+print('\n'.join(d['project']['dependencies']))" > /tmp/requirements.txt \
+ && pip install -r /tmp/requirements.txt
+
+COPY wallcull ./wallcull
+COPY clients ./clients
+COPY scenes ./scenes
+COPY examples ./examples
+RUN pip install --no-deps . \
+ && useradd --create-home --uid 10001 wallcull \
+ && mkdir -p /tmp/numba-cache && chown wallcull /tmp/numba-cache
+USER wallcull
+
+EXPOSE 8000
+HEALTHCHECK --interval=5s --timeout=4s --start-period=60s --retries=20 \
+    CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/health', timeout=3)"]
+# The token comes from the environment: WALLCULL_TOKEN (read by `wallcull serve`).
+CMD ["wallcull", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -1,0 +1,292 @@
+"""The load driver: moves the camera along a scene's walkthrough and posts frames at a rate.
+
+Every frame it posts ``{"frame": ...}`` (msgpack) to ``POST /walls/{wid}/frames``, recording the
+time it sent the request and the time the answer came back. With ``barrier`` it then waits on the
+swap barrier, ``GET /walls/{wid}/barrier/{n}``, until every tile has acknowledged frame ``n``
+(or ``barrier_timeout`` seconds), and records when it completed: frame ``n + 1`` is never posted
+before the barrier of ``n`` has answered. Frames are paced from a fixed schedule (frame ``k`` no
+earlier than ``t0 + k / rate``); a driver that falls behind posts at once rather than skipping.
+
+The camera follows :func:`wallcull.paths.camera_path` around the scene's bounds (from
+``GET /scenes/{name}``), one loop every ``path_frames`` frames.
+
+    python -m clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
+        --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+from urllib.parse import quote
+
+import numpy as np
+
+from wallcull.errors import InputError
+from wallcull.paths import PATHS, camera_path
+from wallcull.wall import Wall
+
+from .rawhttp import Connection, HTTPError
+
+PATH_FRAMES = 600  # one loop of the walkthrough: 10 s at 60 frames/s
+
+
+@dataclass
+class FrameLog:
+    """What the driver saw of each frame (parallel lists, one entry per posted frame)."""
+
+    frame: list[int] = field(default_factory=list)  # the server's frame number
+    send: list[float] = field(default_factory=list)  # time.time() before the POST
+    done: list[float] = field(default_factory=list)  # time.time() when its answer came
+    total_ms: list[float] = field(default_factory=list)  # the server's own time for the frame
+    cull_ms: list[float] = field(default_factory=list)
+    barrier_done: list[float] = field(default_factory=list)  # when the barrier answered
+    barrier_complete: list[bool] = field(default_factory=list)
+    barrier_acked: list[int] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def path_frames(kind: str, lo, hi, wall: dict, count: int, loop: int = PATH_FRAMES,
+                up=(0.0, 1.0, 0.0)) -> list[dict]:
+    """``count`` frame dicts (SPEC section 3) of path ``kind``, repeating every ``loop``."""
+    loop = max(1, min(loop, count)) if loop else count
+    frames = camera_path(kind, np.asarray(lo, float), np.asarray(hi, float),
+                         Wall.from_dict(wall), loop, up=up)
+    return [frames[k % loop].to_dict() for k in range(count)]
+
+
+class Driver:
+    """Posts frames to one wall of a server (see the module docstring)."""
+
+    def __init__(self, server: str, token: str | None = None, timeout: float = 30.0):
+        self.server = server.rstrip("/")
+        self.conn = Connection(server, token, timeout)
+        self.log = FrameLog()
+
+    async def close(self) -> None:
+        await self.conn.close()
+
+    async def __aenter__(self):
+        return self
+
+    async def __aexit__(self, *exc):
+        await self.close()
+
+    async def create_wall(self, scene: str, wall: dict, method: str = "adaptive",
+                          bounds: str = "obb", history: int = 64) -> dict:
+        """``POST /walls``; returns the wall's info (``id``, ``tiles``, ...)."""
+        return await self.conn.call("POST", "/walls", {"wall": wall, "scene": scene,
+                                                       "method": method, "bounds": bounds,
+                                                       "history": history}, auth=True)
+
+    async def wall_info(self, wid: str) -> dict:
+        return await self.conn.call("GET", f"/walls/{wid}")
+
+    async def frames(self, scene: str, wall: dict, kind: str, count: int,
+                     loop: int = PATH_FRAMES) -> list[dict]:
+        """The walkthrough's frames around the scene's bounds, as the server reports them."""
+        info = await self.conn.call("GET", f"/scenes/{quote(scene, safe='')}")
+        return path_frames(kind, info["bounds"]["min"], info["bounds"]["max"], wall, count,
+                           loop, info.get("settings", {}).get("up", (0.0, 1.0, 0.0)))
+
+    async def wait_clients(self, wid: str, count: int, timeout: float) -> int:
+        """Wait until ``count`` nodes stream from the wall; returns how many do."""
+        deadline = time.monotonic() + timeout
+        while True:
+            subscribers = (await self.wall_info(wid))["subscribers"]
+            if subscribers >= count or time.monotonic() > deadline:
+                return subscribers
+            await asyncio.sleep(0.1)
+
+    async def post(self, wid: str, frame: dict) -> dict:
+        return await self.conn.call("POST", f"/walls/{wid}/frames", {"frame": frame},
+                                    auth=True, body_format="msgpack")
+
+    async def barrier(self, wid: str, number: int, timeout: float) -> dict:
+        return await self.conn.call("GET", f"/walls/{wid}/barrier/{number}?timeout={timeout:g}")
+
+    async def run(self, wid: str, frames: list[dict], rate: float = 60.0, barrier: bool = False,
+                  barrier_timeout: float = 1.0, on_event: Callable | None = None,
+                  stop: asyncio.Event | None = None,
+                  progress: Callable[[int], None] | None = None) -> FrameLog:
+        """Post ``frames`` in order at ``rate`` per second (0: as fast as possible).
+
+        ``on_event(kind, frame)`` is called with ``"post"`` just before a frame is sent,
+        ``"posted"`` when its answer came and ``"barrier"`` when its barrier answered.
+        """
+        log = self.log
+        period = 1.0 / rate if rate > 0 else 0.0
+        t0 = time.monotonic()
+        for k, frame in enumerate(frames):
+            if stop is not None and stop.is_set():
+                break
+            delay = t0 + k * period - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            if on_event:
+                on_event("post", log.frame[-1] + 1 if log.frame else None)
+            send = time.time()
+            answer = await self.post(wid, frame)
+            done = time.time()
+            number = answer["frame"]
+            log.frame.append(number)
+            log.send.append(send)
+            log.done.append(done)
+            log.total_ms.append(answer["timings"]["total_ms"])
+            log.cull_ms.append(answer["timings"]["cull_ms"])
+            if on_event:
+                on_event("posted", number)
+            if barrier:
+                state = await self.barrier(wid, number, barrier_timeout)
+                log.barrier_done.append(time.time())
+                log.barrier_complete.append(bool(state["complete"]))
+                log.barrier_acked.append(int(state["acked"]))
+                if on_event:
+                    on_event("barrier", number, state)
+            if progress:
+                progress(k + 1)
+        return log
+
+
+def summary(log: FrameLog) -> dict:
+    """Achieved rate, post round trips and barrier latencies (ms)."""
+    out: dict = {"frames": len(log.frame)}
+    if len(log.send) > 1:
+        out["rate"] = (len(log.send) - 1) / (log.send[-1] - log.send[0])
+    if log.frame:
+        rtt = (np.asarray(log.done) - np.asarray(log.send)) * 1e3
+        out["post_ms"] = {"p50": float(np.median(rtt)), "p99": float(np.percentile(rtt, 99))}
+    if log.barrier_done:
+        lat = (np.asarray(log.barrier_done) - np.asarray(log.send)) * 1e3
+        out["barrier_ms"] = {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99))}
+        out["barrier_incomplete"] = int(len(log.barrier_complete) - sum(log.barrier_complete))
+    return out
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def read_wall(text: str) -> dict:
+    from wallcull.cli import read_json
+
+    return read_json(text, "--wall")
+
+
+def _count_or_all(text: str):
+    if text == "all":
+        return text
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a number or 'all', got {text!r}")
+    return int(text)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m clients.driver",
+                                description="Post a walkthrough's frames to a wallcull wall.")
+    p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
+    p.add_argument("--scene", default="powerplant")
+    p.add_argument("--wall", default="examples/wall-4x4.json",
+                   help="WALL.json (or inline JSON) of the wall to create")
+    p.add_argument("--wall-id", help="drive this existing wall instead of creating one")
+    p.add_argument("--method", default="adaptive")
+    p.add_argument("--bounds", default="obb")
+    p.add_argument("--history", type=int, default=64)
+    p.add_argument("--rate", type=float, default=60.0, help="frames per second (0: flat out)")
+    p.add_argument("--frames", type=int, default=600)
+    p.add_argument("--path", choices=PATHS, default="orbit")
+    p.add_argument("--path-frames", type=int, default=PATH_FRAMES,
+                   help="frames per loop of the path")
+    p.add_argument("--barrier", action="store_true", help="wait on the swap barrier every frame")
+    p.add_argument("--barrier-timeout", type=float, default=1.0)
+    p.add_argument("--wait-clients", type=_count_or_all, default=0, metavar="N|all",
+                   help="before driving, wait until N nodes (all: one per tile) stream from "
+                        "the wall (WebSocket nodes; pulling nodes need no wait)")
+    p.add_argument("--wait-timeout", type=float, default=60.0)
+    p.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
+                   help="the server's token (default: $WALLCULL_TOKEN)")
+    p.add_argument("--out", help="write the per-frame log to this JSON file")
+    p.add_argument("--delete", action="store_true", help="delete the wall when done")
+    return p
+
+
+async def _wait_server(server: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            async with Connection(server, timeout=5) as conn:
+                await conn.call("GET", "/health")
+                return
+        except (ConnectionError, OSError, asyncio.TimeoutError, HTTPError):
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.2)
+
+
+async def _main(args) -> int:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await _wait_server(args.server, args.wait_timeout)
+    async with Driver(args.server, args.token) as driver:
+        if args.wall_id:
+            info = await driver.wall_info(args.wall_id)
+        else:
+            info = await driver.create_wall(args.scene, read_wall(args.wall), args.method,
+                                            args.bounds, args.history)
+        wid = info["id"]
+        print(json.dumps({"wall": wid, "tiles": info["tiles"], "scene": info["scene"]}),
+              flush=True)
+        frames = await driver.frames(info["scene"], info["wall"], args.path, args.frames,
+                                     args.path_frames)
+        if args.wait_clients:
+            want = info["tiles"] if args.wait_clients == "all" else args.wait_clients
+            n = await driver.wait_clients(wid, want, args.wait_timeout)
+            print(json.dumps({"subscribers": n}), flush=True)
+        log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
+                               stop=stop)
+        result = {"wall": wid, "summary": summary(log)}
+        if args.out:
+            tmp = f"{args.out}.tmp"
+            with open(tmp, "w") as f:
+                json.dump({**result, "log": log.to_dict(), "cpu_seconds": time.process_time()}, f)
+            os.replace(tmp, args.out)
+        if args.delete:
+            await driver.conn.call("DELETE", f"/walls/{wid}", auth=True)
+        print(json.dumps(result), flush=True)
+    return 0
+
+
+def run(coro):
+    """Run on uvloop when it is installed, as uvicorn does for the server: less CPU per
+    socket event, which counts with a whole wall of nodes in one process."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(coro)
+    return uvloop.run(coro)
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        return run(_main(args))
+    except (ConnectionError, OSError, asyncio.TimeoutError, HTTPError, ValueError,
+            InputError) as exc:
+        print(f"clients.driver: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

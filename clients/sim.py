@@ -1,0 +1,793 @@
+"""Simulated render clients: one per tile, as asyncio tasks, pulling or streaming packets.
+
+A :class:`TileClient` plays one render node of the wall. Every frame it
+
+1. receives its tile's packet, over a WebSocket stream (``mode="ws"``; the server pushes the
+   newest frame, conflating when the node is slow) or by long-polling ``GET .../packets/{n}``
+   for every frame number in turn (``mode="pull"``);
+2. rebuilds the frame's leaf list with :func:`wallcull.protocol.apply` from the list of the
+   delta's base frame. The server bases a delta on the last frame the tile *acknowledged* that
+   it has taken, which is older than the last one the node received while acks are in flight
+   (by one or two frames normally, by many when the node or the server lags). So the node keeps
+   the lists of every frame from the newest base it has seen on (older ones can never be bases
+   again), at most ``keep`` (256) of them. A node missing a base asks for a full list
+   (``GET ...?full=1``; a WebSocket node repairs the frame over HTTP and, when even that is
+   gone, sends ``{"full": true}`` so its next packet is full);
+3. "draws": makes sure every mesh its leaves use is in its cache (fetching the missing ones),
+   then counts the triangles, or with ``renderer`` draws them with
+   :class:`clients.render.TileRenderer` using the packet's view and projection;
+4. acknowledges the frame (``{"ack": n}`` on the stream, ``POST .../ack`` when pulling).
+
+Geometry: the scene description (``GET /scenes/{name}?nodes=true``: every leaf's mesh key and rest
+world transform) is fetched once per process and shared (:class:`SceneInfo`); each node has its
+own :class:`MeshCache`, an LRU by bytes standing for GPU memory, in front of a host copy. A mesh
+missing from the GPU cache that the host still holds is revalidated with ``If-None-Match`` (a
+scene can be replaced by an upload under the same name, so the ETag is what makes the copy safe);
+a 304 costs a few bytes instead of the mesh.
+
+Per packet a node records the receive time, the server's post time (``packet["time"]``: their
+difference is the frame-to-tile latency; both are ``time.time()`` on the same clock when client
+and server share a host), the bytes received, whether it was full or a delta, and the size the
+same packet would have had as a full list (re-encoded exactly as the server would).
+
+Run a wall of them::
+
+    python -m clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import bisect
+import json
+import os
+import signal
+import sys
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Callable
+from urllib.parse import quote
+
+import msgpack
+import numpy as np
+
+from wallcull import protocol
+from wallcull.errors import InputError
+
+from .rawhttp import MSGPACK, Connection, HTTPError
+
+try:
+    from asyncio import timeout as _timeout  # Python 3.11+
+except ImportError:  # pragma: no cover - 3.10
+    _timeout = None
+
+KEEP = 256  # at most this many lists of recent frames kept for delta bases (see _prune)
+DEFAULT_CACHE = 256 << 20
+
+
+# --------------------------------------------------------------------------- the scene
+
+
+@dataclass
+class SceneInfo:
+    """What a render node needs to know of the scene: per node, its mesh and rest transform."""
+
+    name: str
+    keys: list[str]  # mesh keys, indexed by mesh number
+    mesh_of: np.ndarray  # (n,) mesh number of each node, -1 where it carries none
+    world: np.ndarray  # (n, 4, 4) rest world transforms
+    leaves: np.ndarray  # leaf node ids
+
+    @classmethod
+    def from_description(cls, data: dict) -> "SceneInfo":
+        nodes = data["nodes"]
+        keys = sorted({k for k in nodes["mesh"] if k is not None})
+        number = {k: i for i, k in enumerate(keys)}
+        mesh_of = np.array([-1 if k is None else number[k] for k in nodes["mesh"]], dtype=np.int64)
+        world = np.asarray(nodes["world"], dtype=np.float64).reshape(-1, 4, 4)
+        leaves = np.flatnonzero(np.asarray(nodes["leaf"], dtype=bool))
+        return cls(data["name"], keys, mesh_of, world, leaves)
+
+    @classmethod
+    async def fetch(cls, conn: Connection, name: str) -> "SceneInfo":
+        return cls.from_description(await conn.call("GET", f"/scenes/{quote(name, safe='')}"
+                                                           "?nodes=true"))
+
+
+_scene_cache: dict[tuple[str, str], asyncio.Future] = {}
+
+
+async def shared_scene(server: str, name: str) -> SceneInfo:
+    """The scene description, fetched once per process and server however many nodes ask."""
+    key = (server, name)
+    if key not in _scene_cache:
+        _scene_cache[key] = asyncio.ensure_future(_fetch_scene(server, name))
+    try:
+        return await asyncio.shield(_scene_cache[key])
+    except Exception:
+        _scene_cache.pop(key, None)
+        raise
+
+
+async def _fetch_scene(server: str, name: str) -> SceneInfo:
+    async with Connection(server, timeout=120) as conn:
+        return await SceneInfo.fetch(conn, name)
+
+
+# --------------------------------------------------------------------------- geometry cache
+
+
+@dataclass
+class Mesh:
+    key: str
+    etag: str | None
+    vertices: np.ndarray  # (v, 3) float32
+    faces: np.ndarray  # (f, 3) uint32
+
+    @property
+    def nbytes(self) -> int:
+        return self.vertices.nbytes + self.faces.nbytes
+
+    @property
+    def triangles(self) -> int:
+        return len(self.faces)
+
+
+def decode_mesh(body: dict, etag: str | None) -> Mesh:
+    def array(part):
+        data = part["data"]
+        if isinstance(data, str):  # JSON carries bytes as base64
+            import base64
+
+            data = base64.b64decode(data)
+        return np.frombuffer(data, dtype=part["dtype"]).reshape(part["shape"])
+
+    return Mesh(body["mesh"], etag, array(body["vertices"]), array(body["faces"]))
+
+
+class MeshCache:
+    """An LRU cache of meshes bounded by bytes (the node's GPU memory).
+
+    ``put`` evicts least recently used meshes until the new one fits; a mesh larger than the
+    whole budget still goes in (the node must draw it) and stays alone. ``on_evict(key)`` lets a
+    renderer free the GPU copy.
+    """
+
+    def __init__(self, budget: int, on_evict: Callable[[str], None] | None = None):
+        if budget < 0:
+            raise ValueError(f"cache budget must be >= 0 bytes, got {budget}")
+        self.budget = budget
+        self.on_evict = on_evict
+        self.entries: OrderedDict[str, Mesh] = OrderedDict()
+        self.bytes = 0
+        self.hits = self.misses = self.evictions = 0
+        self.peak_bytes = 0
+
+    def __contains__(self, key) -> bool:
+        return key in self.entries
+
+    def get(self, key: str) -> Mesh | None:
+        mesh = self.entries.get(key)
+        if mesh is None:
+            self.misses += 1
+            return None
+        self.entries.move_to_end(key)
+        self.hits += 1
+        return mesh
+
+    def put(self, mesh: Mesh) -> list[str]:
+        """Insert (or replace) ``mesh``; returns the keys evicted to make room."""
+        evicted = []
+        old = self.entries.pop(mesh.key, None)
+        if old is not None:
+            self.bytes -= old.nbytes
+        while self.entries and self.bytes + mesh.nbytes > self.budget:
+            key, gone = self.entries.popitem(last=False)
+            self.bytes -= gone.nbytes
+            self.evictions += 1
+            evicted.append(key)
+            if self.on_evict:
+                self.on_evict(key)
+        self.entries[mesh.key] = mesh
+        self.bytes += mesh.nbytes
+        self.peak_bytes = max(self.peak_bytes, self.bytes)
+        return evicted
+
+    def stats(self) -> dict:
+        return {"budget": self.budget, "bytes": self.bytes, "peak_bytes": self.peak_bytes,
+                "meshes": len(self.entries), "hits": self.hits, "misses": self.misses,
+                "evictions": self.evictions}
+
+
+# --------------------------------------------------------------------------- one render node
+
+
+@dataclass
+class TileStats:
+    """Per-packet records (parallel lists) and counters of one node."""
+
+    tile: int
+    frame: list[int] = field(default_factory=list)
+    recv: list[float] = field(default_factory=list)  # time.time() when the packet arrived
+    posted: list[float] = field(default_factory=list)  # packet["time"]: server time of the post
+    full: list[bool] = field(default_factory=list)
+    bytes: list[int] = field(default_factory=list)  # as received (after any WS inflation)
+    full_bytes: list[int] = field(default_factory=list)  # the same packet as a full list
+    list_bytes: list[int] = field(default_factory=list)  # encoded ids: visible, or added+removed
+    full_list_bytes: list[int] = field(default_factory=list)  # encoded ids of the whole list
+    fit_bytes: list[int] = field(default_factory=list)  # encoded view + projection
+    leaves: list[int] = field(default_factory=list)
+    triangles: list[int] = field(default_factory=list)
+    base_misses: int = 0  # deltas whose base the node no longer held
+    repairs: int = 0  # full packets fetched to repair a base miss
+    errors: list[str] = field(default_factory=list)
+    mesh_fetches: int = 0
+    mesh_not_modified: int = 0
+    mesh_bytes: int = 0
+    acks: int = 0
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items()}
+
+
+def _packed_len(obj, binary: bool) -> int:
+    return len(protocol.encode(obj, binary))
+
+
+_ADDED, _REMOVED, _VISIBLE = (msgpack.packb(k) for k in ("added", "removed", "visible"))
+
+
+_THRESHOLDS = (128, 256, 1 << 16, 1 << 32)
+
+
+def sorted_ints_len(values) -> int:
+    """:func:`msgpack_ints_len` of a sorted list or array of ints >= 0, by bisection: the
+    packets' lists are sorted, and this costs a few microseconds instead of tens."""
+    n = len(values)
+    head = 1 if n < 16 else 3 if n < 1 << 16 else 5
+    if isinstance(values, np.ndarray):
+        below = np.searchsorted(values, _THRESHOLDS).tolist()
+    else:
+        below = [bisect.bisect_left(values, t) for t in _THRESHOLDS]
+    return head + n + (n - below[0]) + (n - below[1]) + 2 * (n - below[2]) + 4 * (n - below[3])
+
+
+def msgpack_ints_len(values) -> int:
+    """Bytes of a list of ints >= 0 as msgpack encodes it, without encoding it: the header
+    (fixarray / array16 / array32) plus 1, 2, 3, 5 or 9 bytes per value."""
+    v = np.asarray(values, dtype=np.int64)
+    n = len(v)
+    head = 1 if n < 16 else 3 if n < 1 << 16 else 5
+    if not n:
+        return head
+    if v.min() < 0:
+        return len(msgpack.packb(v.tolist()))  # negative ints: not in our packets
+    size = (1 + (v >= 128) + (v >= 256) + 2 * (v >= 1 << 16) + 4 * (v >= 1 << 32)).sum()
+    return head + int(size)
+
+
+class TileClient:
+    """One simulated render node (see the module docstring).
+
+    ``on_list(tile, frame, leaves)`` is called with every list the node rebuilds (tests compare
+    them with the in-process culler); ``on_event(kind, tile, frame)`` with ``"ack"`` just before
+    an acknowledgement is sent and ``"acked"`` once the server has taken it (pull mode).
+    """
+
+    def __init__(self, server: str, wall_id: str, tile: int, scene: SceneInfo, *,
+                 mode: str = "ws", token: str | None = None, binary: bool = True,
+                 cache_bytes: int = DEFAULT_CACHE, renderer=None, keep: int = KEEP,
+                 measure_full: bool = True, wait: float = 5.0, draw_time: float = 0.0,
+                 on_list: Callable | None = None, on_event: Callable | None = None):
+        if mode not in ("ws", "pull"):
+            raise ValueError(f"mode must be ws or pull, got {mode!r}")
+        self.server, self.wall_id, self.tile, self.scene = server.rstrip("/"), wall_id, tile, scene
+        self.mode, self.token, self.binary = mode, token, binary
+        self.renderer = renderer
+        self.cache = MeshCache(cache_bytes, on_evict=renderer.evict if renderer else None)
+        self.host: dict[str, Mesh] = {}  # host copies of every mesh fetched (see module doc)
+        self.triangles_of = np.zeros(len(scene.keys), dtype=np.int64)
+        self.keep = keep
+        self.measure_full = measure_full
+        self.wait = wait
+        self.draw_time = draw_time
+        self.on_list, self.on_event = on_list, on_event
+        self.lists: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.world = scene.world  # copied on the first moved leaf
+        self.stats = TileStats(tile)
+        self.http = Connection(server, token)
+        self.last_frame = -1
+        self.image = None  # the last frame drawn, with a renderer (clients.render.Image)
+        self.connected = asyncio.Event()
+        self._ws = None
+        self._accept = MSGPACK if binary else "application/json"
+        self._base = f"/walls/{wall_id}/tiles/{tile}"
+
+    # ------------------------------------------------------------------ packets
+
+    async def receive(self, pkt: dict, size: int, recv: float) -> bool:
+        """Take one packet: rebuild, record, draw, acknowledge. False when it had to be
+        dropped (a delta with no base that could not be repaired)."""
+        if "error" in pkt:
+            self.stats.errors.append(str(pkt["error"]))
+            return False
+        number = pkt["frame"]
+        base = pkt.get("base")
+        held = None if base is None else self.lists.get(base)
+        if base is not None and held is None:
+            self.stats.base_misses += 1
+            repaired = await self._repair(number)
+            if repaired is None:
+                return False
+            pkt, size, recv = repaired
+            self.stats.repairs += 1
+        try:
+            leaves = protocol.apply(held if pkt.get("base") is not None else None, pkt)
+        except InputError as exc:
+            self.stats.errors.append(f"frame {number}: {exc}")
+            self.lists.clear()  # start over from a full list
+            await self._ask_full()
+            return False
+        self.lists[number] = leaves
+        self._prune(pkt.get("base"))
+        self._record(pkt, leaves, size, recv)
+        if self.on_list is not None:
+            self.on_list(self.tile, number, leaves)
+        await self.draw(leaves, pkt)
+        await self.acknowledge(number)
+        self.last_frame = number
+        return True
+
+    def _prune(self, base: int | None) -> None:
+        """Drop the lists no future delta can be based on. A delta's base is the newest
+        acknowledgement the server had taken when it made the packet, and those only grow, so
+        lists older than the newest base seen are dead; newer ones may still be bases (their
+        acks may be in flight). ``keep`` bounds the rest when acks lag very far behind."""
+        if base is not None:
+            while self.lists and next(iter(self.lists)) < base:
+                self.lists.popitem(last=False)
+        while len(self.lists) > self.keep:
+            self.lists.popitem(last=False)
+
+    def _record(self, pkt: dict, leaves: np.ndarray, size: int, recv: float) -> None:
+        s = self.stats
+        full = pkt.get("base") is None
+        s.frame.append(pkt["frame"])
+        s.recv.append(recv)
+        s.posted.append(pkt["time"])
+        s.full.append(full)
+        s.bytes.append(size)
+        s.leaves.append(len(leaves))
+        if not self.measure_full:
+            return
+        if self.binary:  # exact msgpack arithmetic: cheap enough to do for every packet
+            whole = sorted_ints_len(leaves)
+            if full:
+                s.full_bytes.append(size)
+                s.list_bytes.append(whole)
+            else:
+                added, removed = sorted_ints_len(pkt["added"]), sorted_ints_len(pkt["removed"])
+                s.full_bytes.append(size - (len(_ADDED) + added) - (len(_REMOVED) + removed)
+                                    + len(_VISIBLE) + whole
+                                    - sorted_ints_len([pkt["base"]]) + 1 + 1)
+                s.list_bytes.append(added + removed)
+        else:
+            ids = leaves.tolist()
+            whole = _packed_len(ids, False)
+            if full:
+                s.full_bytes.append(size)
+                s.list_bytes.append(whole)
+            else:
+                as_full = {k: v for k, v in pkt.items() if k not in ("added", "removed")}
+                as_full["base"] = None
+                as_full["visible"] = ids
+                s.full_bytes.append(_packed_len(as_full, False))
+                s.list_bytes.append(_packed_len(pkt["added"], False)
+                                    + _packed_len(pkt["removed"], False))
+        s.full_list_bytes.append(whole)
+        s.fit_bytes.append(_packed_len({k: pkt[k] for k in ("view", "projection") if k in pkt},
+                                       self.binary) - 1)  # less the map's own header
+
+    async def _repair(self, number: int):
+        """A full packet of frame ``number`` over HTTP, or None when it is gone."""
+        r = await self.http.request("GET", f"{self._base}/packets/{number}?full=1&wait=0",
+                                    accept=self._accept)
+        if r.status != 200:
+            await self._ask_full()
+            return None
+        return r.data(), len(r.body), time.time()
+
+    async def _ask_full(self) -> None:
+        if self._ws is not None:
+            await self._ws.send(protocol.encode({"full": True}, self.binary)
+                                if self.binary else json.dumps({"full": True}))
+
+    # ------------------------------------------------------------------ drawing
+
+    async def draw(self, leaves: np.ndarray, pkt: dict) -> int:
+        """Make sure every mesh is cached, then count (or render) the triangles."""
+        if "transforms" in pkt:
+            if self.world is self.scene.world:
+                self.world = self.scene.world.copy()
+            t = pkt["transforms"]
+            self.world[np.asarray(t["ids"], dtype=np.int64)] = np.asarray(
+                t["matrices"], dtype=np.float64).reshape(-1, 4, 4)
+        meshes = self.scene.mesh_of[leaves]
+        uses = np.bincount(meshes, minlength=len(self.scene.keys))
+        for m in np.flatnonzero(uses).tolist():
+            if self.cache.get(self.scene.keys[m]) is None:
+                await self.fetch_mesh(m)
+        triangles = int(uses @ self.triangles_of)
+        self.stats.triangles.append(triangles)
+        if self.draw_time:  # a GPU busy for this long: the node's own time, not the process's
+            await asyncio.sleep(self.draw_time)
+        if self.renderer is not None:
+            keys = self.scene.keys
+            self.image = self.renderer.render([(keys[m], self.world[leaf], leaf + 1)
+                                  for leaf, m in zip(leaves.tolist(), meshes.tolist())],
+                                 np.asarray(pkt["view"]), np.asarray(pkt["projection"]))
+        return triangles
+
+    async def fetch_mesh(self, number: int) -> Mesh:
+        key = self.scene.keys[number]
+        held = self.host.get(key)
+        headers = {"if-none-match": held.etag} if held is not None and held.etag else None
+        r = await self.http.request(
+            "GET", f"/scenes/{quote(self.scene.name, safe='')}/meshes/{quote(key, safe='')}",
+            accept=self._accept, headers=headers)
+        if r.status == 304 and held is not None:
+            self.stats.mesh_not_modified += 1
+            mesh = held
+        elif r.status == 200:
+            self.stats.mesh_fetches += 1
+            self.stats.mesh_bytes += len(r.body)
+            mesh = decode_mesh(r.data(), r.headers.get("etag"))
+            self.host[key] = mesh
+        else:
+            raise HTTPError(r.status, r.detail(), "GET", f"mesh {key}")
+        self.cache.put(mesh)
+        self.triangles_of[number] = mesh.triangles
+        if self.renderer is not None:
+            self.renderer.upload(key, mesh.vertices, mesh.faces)
+        return mesh
+
+    # ------------------------------------------------------------------ acknowledging
+
+    async def acknowledge(self, number: int) -> None:
+        if self.on_event is not None:
+            self.on_event("ack", self.tile, number)
+        if self._ws is not None:
+            await self._ws.send(protocol.encode({"ack": number}, self.binary)
+                                if self.binary else json.dumps({"ack": number}))
+        else:
+            await self.http.call("POST", f"{self._base}/ack", {"frame": number}, auth=True)
+            if self.on_event is not None:
+                self.on_event("acked", self.tile, number)
+        self.stats.acks += 1
+
+    # ------------------------------------------------------------------ the loops
+
+    async def run(self, until: int | None = None, idle_timeout: float | None = None,
+                  start: int | str = 0) -> TileStats:
+        """Receive packets until frame ``until`` has been taken, or nothing came for
+        ``idle_timeout`` seconds (after a first packet), or the task is cancelled."""
+        try:
+            if self.mode == "ws":
+                await self._run_ws(until, idle_timeout)
+            else:
+                await self._run_pull(until, idle_timeout, start)
+        finally:
+            await self.http.close()
+        return self.stats
+
+    def _done(self, until) -> bool:
+        return until is not None and self.last_frame >= until
+
+    async def _run_ws(self, until, idle_timeout) -> None:
+        from websockets.asyncio.client import connect
+        from websockets.exceptions import ConnectionClosed
+
+        scheme_url = "ws" + self.server[len("http"):]
+        query = f"format={'msgpack' if self.binary else 'json'}"
+        if self.token:
+            query += f"&token={quote(self.token, safe='')}"
+        async with connect(f"{scheme_url}{self._base}/stream?{query}", max_size=None,
+                           compression=None, open_timeout=30) as ws:
+            self._ws = ws
+            self.connected.set()
+            try:
+                while not self._done(until):
+                    timeout = idle_timeout if self.last_frame >= 0 else None
+                    try:
+                        if timeout is None:
+                            message = await ws.recv()
+                        elif _timeout is not None:  # no task per message, unlike wait_for
+                            async with _timeout(timeout):
+                                message = await ws.recv()
+                        else:
+                            message = await asyncio.wait_for(ws.recv(), timeout)
+                    except asyncio.TimeoutError:
+                        return
+                    except ConnectionClosed:
+                        return
+                    recv = time.time()
+                    data = message if isinstance(message, bytes) else message.encode()
+                    pkt = protocol.decode(data, self.binary)
+                    await self.receive(pkt, len(data), recv)
+            finally:
+                self._ws = None
+
+    async def _run_pull(self, until, idle_timeout, start) -> None:
+        number = None if start == "latest" else int(start)
+        self.connected.set()
+        idle_since = time.monotonic()
+        while not self._done(until):
+            target = "latest" if number is None else str(number)
+            r = await self.http.request(
+                "GET", f"{self._base}/packets/{target}?wait={self.wait:g}", accept=self._accept)
+            recv = time.time()
+            if r.status == 200:
+                pkt = r.data()
+                await self.receive(pkt, len(r.body), recv)
+                number = pkt["frame"] + 1
+                idle_since = time.monotonic()
+            elif r.status == 404 and r.detail().startswith(("frame", "no frame")):
+                if (idle_timeout is not None and self.last_frame >= 0
+                        and time.monotonic() - idle_since > idle_timeout):
+                    return
+            elif r.status == 410:  # fell out of the history: skip to the newest
+                number = None
+            elif r.status == 404:  # the wall is gone
+                return
+            else:
+                self.stats.errors.append(f"GET packet {target}: HTTP {r.status}: {r.detail()}")
+                await asyncio.sleep(0.05)
+
+
+# --------------------------------------------------------------------------- a wall of them
+
+
+def parse_tiles(spec: str, count: int | None = None) -> list[int]:
+    """``"0-63"``, ``"0,2,5-7"`` or ``"all"`` (needs ``count``) to tile ids."""
+    spec = spec.strip()
+    if spec == "all":
+        if count is None:
+            raise ValueError("'all' tiles needs the wall's tile count")
+        return list(range(count))
+    out = []
+    for part in spec.split(","):
+        lo, dash, hi = part.strip().partition("-")
+        if not lo.isdigit() or (dash and not hi.isdigit()):
+            raise ValueError(f"bad tile range {part!r}: use N, N-M, or a comma list of them")
+        out.extend(range(int(lo), int(hi or lo) + 1))
+    if not out:
+        raise ValueError("no tiles given")
+    return out
+
+
+async def find_wall(server: str, wall: str, timeout: float = 60.0) -> dict:
+    """The info of wall ``wall``; ``"auto"`` waits for a wall to exist and takes the newest."""
+    deadline = time.monotonic() + timeout
+    async with Connection(server) as conn:
+        while True:
+            try:
+                if wall == "auto":
+                    walls = (await conn.call("GET", "/walls"))["walls"]
+                    if walls:
+                        return walls[-1]
+                else:
+                    return await conn.call("GET", f"/walls/{wall}")
+            except (ConnectionError, OSError):
+                pass  # the server is not up yet
+            except HTTPError as exc:
+                if exc.status != 404:
+                    raise
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no wall {wall!r} on {server} after {timeout:g} s")
+            await asyncio.sleep(0.2)
+
+
+def make_renderers(tiles, wall: dict, size: tuple[int, int] | None):
+    from .render import TileRenderer
+
+    w, h = size or (wall["resolution"][0] // 8, wall["resolution"][1] // 8)
+    return {t: TileRenderer(w, h) for t in tiles}
+
+
+async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mode: str = "ws",
+                   token: str | None = None, binary: bool = True,
+                   cache_bytes: int = DEFAULT_CACHE, render: bool = False,
+                   render_size: tuple[int, int] | None = None, until: int | None = None,
+                   idle_timeout: float | None = None, start: int | str = 0,
+                   measure_full: bool = True, draw_time: float = 0.0, on_list=None,
+                   on_event=None,
+                   ready: Callable[[list[TileClient]], None] | None = None,
+                   stop: asyncio.Event | None = None) -> list[TileClient]:
+    """Run the nodes of ``tiles`` on wall ``wall`` (an id, or ``"auto"``) until they stop
+    (see :meth:`TileClient.run`) or ``stop`` is set; returns the clients with their stats."""
+    info = await find_wall(server, wall)
+    ids = parse_tiles(tiles, info["tiles"]) if isinstance(tiles, str) else list(tiles)
+    bad = [t for t in ids if not 0 <= t < info["tiles"]]
+    if bad:
+        raise ValueError(f"wall {info['id']} has {info['tiles']} tiles; no tile {bad[0]}")
+    scene = await shared_scene(server, info["scene"])
+    renderers = make_renderers(ids, info["wall"], render_size) if render else {}
+    clients = [TileClient(server, info["id"], t, scene, mode=mode, token=token, binary=binary,
+                          cache_bytes=cache_bytes, renderer=renderers.get(t),
+                          measure_full=measure_full, draw_time=draw_time, on_list=on_list,
+                          on_event=on_event)
+               for t in ids]
+    tasks = [asyncio.create_task(c.run(until, idle_timeout, start)) for c in clients]
+    waits = [asyncio.ensure_future(c.connected.wait()) for c in clients]
+    done, _ = await asyncio.wait([asyncio.gather(*waits), *tasks],
+                                 return_when=asyncio.FIRST_COMPLETED)
+    if ready is not None and all(c.connected.is_set() for c in clients):
+        ready(clients)
+    stopper = asyncio.ensure_future(stop.wait()) if stop is not None else None
+    try:
+        pending = set(tasks)
+        while pending:
+            waiting = pending | ({stopper} if stopper else set())
+            done, _ = await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+            pending -= done
+            if stopper in done:
+                break
+            for task in done:
+                if task.exception() is not None:
+                    raise task.exception()
+    finally:
+        for task in [*tasks, *waits, *([stopper] if stopper else [])]:
+            task.cancel()
+        await asyncio.gather(*tasks, *waits, return_exceptions=True)
+        for r in renderers.values():
+            r.release()
+    return clients
+
+
+def wall_report(clients: list[TileClient]) -> dict:
+    """Everything the nodes recorded, JSON-ready (what ``--out`` writes)."""
+    return {"tiles": [{**c.stats.to_dict(), "cache": c.cache.stats(), "mode": c.mode}
+                      for c in clients],
+            "cpu_seconds": time.process_time()}  # this process's, since it started
+
+
+def summary_rows(clients: list[TileClient]) -> list[dict]:
+    rows = []
+    for c in clients:
+        s = c.stats
+        lat = (np.asarray(s.recv) - np.asarray(s.posted)) * 1e3
+        rows.append({"tile": c.tile, "packets": len(s.frame), "full": int(sum(s.full)),
+                     "bytes": int(sum(s.bytes)),
+                     "p50_ms": float(np.median(lat)) if len(lat) else float("nan"),
+                     "p99_ms": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
+                     "misses": c.cache.misses, "evictions": c.cache.evictions,
+                     "base_misses": s.base_misses, "errors": len(s.errors)})
+    return rows
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def size_bytes(text: str) -> int:
+    """``"256M"``, ``"1G"``, ``"65536"`` to bytes."""
+    text = text.strip().upper().removesuffix("B")
+    scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(text[-1:], 1)
+    try:
+        value = float(text[:-1] if scale > 1 else text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad size {text!r}: use e.g. 65536, 64M, 1G") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError("a size must be >= 0")
+    return int(value * scale)
+
+
+def pixels(text: str) -> tuple[int, int]:
+    w, _, h = text.lower().partition("x")
+    if not (w.isdigit() and h.isdigit() and int(w) > 0 and int(h) > 0):
+        raise argparse.ArgumentTypeError(f"bad size {text!r}: use WIDTHxHEIGHT, e.g. 240x135")
+    return int(w), int(h)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m clients.sim",
+                                description="Simulated render clients of a wallcull wall.")
+    p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
+    p.add_argument("--wall", default="auto",
+                   help="wall id, or 'auto': wait for a wall to exist and take the newest")
+    p.add_argument("--tiles", default="all", help="tile ids: 'all', N-M, or a comma list")
+    p.add_argument("--mode", choices=("ws", "pull"), default="ws",
+                   help="ws: subscribe to the stream; pull: long-poll every frame number")
+    p.add_argument("--format", choices=("msgpack", "json"), default="msgpack")
+    p.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
+                   help="the server's token, needed to acknowledge (default: $WALLCULL_TOKEN)")
+    p.add_argument("--cache-bytes", type=size_bytes, default=DEFAULT_CACHE,
+                   help="mesh cache budget per node (LRU by bytes), e.g. 64M")
+    p.add_argument("--render", action="store_true",
+                   help="draw with the headless OpenGL renderer instead of counting triangles")
+    p.add_argument("--render-size", type=pixels, help="WxH pixels (default: resolution / 8)")
+    p.add_argument("--draw-time", type=float, default=0.0, metavar="SECONDS",
+                   help="simulated drawing time per frame (each node waits this long, as if "
+                        "its GPU were busy; the nodes of a process wait concurrently)")
+    p.add_argument("--start", default="0", help="pull: first frame number, or 'latest'")
+    p.add_argument("--until-frame", type=int, help="stop once this frame has been taken")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--idle-timeout", type=float,
+                   help="stop when no packet came for this many seconds (after the first)")
+    p.add_argument("--no-full-size", action="store_true",
+                   help="do not compute what each delta would have cost as a full list")
+    p.add_argument("--out", help="write every record to this JSON file")
+    p.add_argument("--quiet", action="store_true", help="no summary table")
+    return p
+
+
+async def _main(args) -> int:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    if args.duration:
+        loop.call_later(args.duration, stop.set)
+
+    def ready(clients):
+        print(json.dumps({"ready": True, "tiles": [c.tile for c in clients]}), flush=True)
+
+    start = args.start if args.start == "latest" else int(args.start)
+    clients = await run_wall(args.server, args.wall, args.tiles, mode=args.mode,
+                             token=args.token, binary=args.format == "msgpack",
+                             cache_bytes=args.cache_bytes, render=args.render,
+                             render_size=args.render_size, until=args.until_frame,
+                             idle_timeout=args.idle_timeout, start=start,
+                             measure_full=not args.no_full_size, draw_time=args.draw_time,
+                             ready=ready, stop=stop)
+    if args.out:
+        tmp = f"{args.out}.tmp"
+        with open(tmp, "w") as f:
+            json.dump(wall_report(clients), f)
+        os.replace(tmp, args.out)
+    if not args.quiet:
+        from rich.console import Console
+        from rich.table import Table
+
+        rows = summary_rows(clients)
+        table = Table(title="simulated render nodes")
+        for col in rows[0] if rows else []:
+            table.add_column(col, justify="right")
+        for row in rows:
+            table.add_row(*(f"{v:.2f}" if isinstance(v, float) else str(v) for v in row.values()))
+        Console(stderr=True).print(table)
+    errors = sum(len(c.stats.errors) for c in clients)
+    return 1 if errors else 0
+
+
+def run(coro):
+    """Run on uvloop when it is installed, as uvicorn does for the server: less CPU per
+    socket event, which counts with a whole wall of nodes in one process."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(coro)
+    return uvloop.run(coro)
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    if args.start != "latest" and not args.start.isdigit():
+        parser().error("--start must be a frame number or 'latest'")
+    try:
+        if args.tiles.strip() != "all":
+            parse_tiles(args.tiles)
+    except ValueError as exc:
+        parser().error(str(exc))
+    try:
+        return run(_main(args))
+    except (ConnectionError, OSError, TimeoutError, HTTPError, ValueError) as exc:
+        print(f"clients.sim: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

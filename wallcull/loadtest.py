@@ -1,0 +1,852 @@
+"""``wallcull loadtest``: a real server, a wall of simulated render nodes and a driver, measured.
+
+Walkthrough mode (the default)::
+
+    wallcull loadtest --scene powerplant --wall examples/wall-8x8.json --rate 60 --duration 10 \\
+        --mode ws --clients-procs 1 [--barrier] [--path orbit|fly] --out DIR [--json]
+
+starts ``wallcull serve`` on a free loopback port, creates the wall, starts the render nodes
+(``python -m clients.sim``, the tiles split over ``--clients-procs`` processes, each node an
+asyncio task) and, once every node is connected, the driver (``python -m clients.driver``), which
+posts ``rate x duration`` frames of the camera path. It then writes ``report.json`` and
+``report.md`` to ``--out``:
+
+* frames/s the driver achieved;
+* frame-to-all-tiles latency per frame: the latest arrival over all tiles minus the server's post
+  time (``packet["time"]``), over the frames every tile received (p50/p99/max); also from the
+  driver's send time, and the *display* latency (until every tile holds that frame or a newer
+  one, which also covers frames conflated away);
+* per-tile latency (every packet, pooled), and per tile in ``tiles``;
+* bytes per frame as received (deltas) against the same packets as full lists (each node
+  re-encodes every delta it gets as the full packet the server would have sent), in total and for
+  the leaf-id lists alone, and the bytes of the fitted frusta that every packet carries;
+* CPU seconds and percent of the server, the node processes and the driver (psutil), over the
+  driving window;
+* frames dropped (tile-frames a node never saw: conflation on the stream, or history loss),
+  errors, barrier timeouts, and the server's own counters (``/metrics``).
+
+The first ``--warmup`` seconds of frames (nodes fetching their meshes) are left out of the
+latency and bytes statistics; everything else counts.
+
+Request mode::
+
+    wallcull loadtest --requests 20000 [--concurrency 64]
+
+creates a wall, posts one frame, then a separate process (``python -m wallcull.loadtest``) sends
+``GET /walls/{wid}/tiles/{t}/packets/latest`` over ``--concurrency`` keep-alive connections
+(tiles spread over the connections; no tile has acknowledged anything, so each answer is a full
+list) and reports requests/s. The load generator is the minimal asyncio HTTP/1.1 client of
+:mod:`clients.rawhttp` (on uvloop when installed): ``httpx`` tops out near the rates measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import secrets
+import socket
+import sys
+import tempfile
+import time
+from collections import Counter
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_WALL = "examples/wall-8x8.json"
+
+
+# --------------------------------------------------------------------------- processes
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def machine_busy() -> float:
+    """CPU seconds the whole machine has spent busy (all cores, all processes)."""
+    import psutil
+
+    t = psutil.cpu_times()
+    return sum(t) - t.idle - getattr(t, "iowait", 0.0)
+
+
+def cpu_seconds(proc) -> float:
+    """User + system CPU seconds of a psutil process (0 once it is gone)."""
+    import psutil
+
+    try:
+        t = proc.cpu_times()
+        return t.user + t.system
+    except psutil.Error:
+        return float("nan")
+
+
+class Server:
+    """``wallcull serve`` in a subprocess on a free loopback port."""
+
+    def __init__(self, token: str | None = None, port: int | None = None,
+                 log_level: str = "warning"):
+        self.token = token
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_level = log_level
+        self.proc = None
+        self.log = tempfile.TemporaryFile()
+
+    async def start(self, timeout: float = 120.0) -> "Server":
+        import psutil
+
+        from clients.rawhttp import Connection
+
+        cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1",
+               "--port", str(self.port), "--log-level", self.log_level]
+        if self.token:
+            cmd += ["--token", self.token]
+        self.proc = await asyncio.create_subprocess_exec(*cmd, stdout=self.log, stderr=self.log)
+        self.ps = psutil.Process(self.proc.pid)
+        deadline = time.monotonic() + timeout
+        while True:
+            if self.proc.returncode is not None:
+                raise RuntimeError(f"the server exited with status {self.proc.returncode}: "
+                                   f"{self.output()[-2000:]}")
+            try:
+                async with Connection(self.url, timeout=5) as conn:
+                    await conn.call("GET", "/health")
+                return self
+            except (ConnectionError, OSError, asyncio.TimeoutError):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the server did not answer /health in {timeout:g} s")
+                await asyncio.sleep(0.2)
+
+    def output(self) -> str:
+        self.log.seek(0)
+        return self.log.read().decode(errors="replace")
+
+    async def stop(self) -> None:
+        if self.proc is not None and self.proc.returncode is None:
+            self.proc.terminate()
+            try:
+                await asyncio.wait_for(self.proc.wait(), 10)
+            except asyncio.TimeoutError:
+                self.proc.kill()
+                await self.proc.wait()
+
+    async def __aenter__(self):
+        return await self.start()
+
+    async def __aexit__(self, *exc):
+        await self.stop()
+
+
+@contextmanager
+def running_server(token: str | None = None, timeout: float = 120.0, env: dict | None = None):
+    """``wallcull serve`` on a free loopback port for the ``with`` block (no event loop
+    needed, for tests); yields its base URL."""
+    import subprocess
+    import urllib.request
+
+    port = free_port()
+    cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1", "--port",
+           str(port), "--log-level", "warning"] + (["--token", token] if token else [])
+    log = tempfile.TemporaryFile()
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                            env={**os.environ, **(env or {})})
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + timeout
+        while True:
+            if proc.poll() is not None:
+                log.seek(0)
+                raise RuntimeError(f"the server exited ({proc.returncode}): "
+                                   f"{log.read().decode(errors='replace')[-2000:]}")
+            try:
+                with urllib.request.urlopen(f"{url}/health", timeout=2):
+                    break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the server did not answer /health in {timeout:g} s")
+                time.sleep(0.1)
+        yield url
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+async def metrics(url: str) -> dict:
+    """The server's counters: packets and bytes by kind and transport, stage times, errors."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from clients.rawhttp import Connection
+
+    async with Connection(url) as conn:
+        r = await conn.request("GET", "/metrics", accept="text/plain")
+    out: dict = {"packets": {}, "packet_bytes": {}, "stage_seconds": {}, "errors": {}}
+    for family in text_string_to_metric_families(r.body.decode()):
+        for s in family.samples:
+            if s.name == "wallcull_frames_total":
+                out["frames"] = s.value
+            elif s.name == "wallcull_packets_total":
+                out["packets"][f"{s.labels['kind']}/{s.labels['transport']}"] = s.value
+            elif s.name == "wallcull_packet_bytes_total":
+                out["packet_bytes"][f"{s.labels['kind']}/{s.labels['transport']}"] = s.value
+            elif s.name in ("wallcull_stage_seconds_sum", "wallcull_stage_seconds_count"):
+                entry = out["stage_seconds"].setdefault(s.labels["stage"], {})
+                entry["sum" if s.name.endswith("sum") else "count"] = s.value
+            elif s.name == "wallcull_errors_total":
+                out["errors"][s.labels["status"]] = s.value
+    for entry in out["stage_seconds"].values():
+        if entry.get("count"):
+            entry["mean_ms"] = entry["sum"] / entry["count"] * 1e3
+    return out
+
+
+def split(tiles: int, parts: int) -> list[tuple[int, int]]:
+    """``parts`` contiguous, near-equal ranges ``(first, last)`` covering ``range(tiles)``."""
+    parts = max(1, min(parts, tiles))
+    bounds = np.linspace(0, tiles, parts + 1).round().astype(int)
+    return [(int(a), int(b) - 1) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+async def _read_json_line(stream, timeout: float, what: str, proc) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise RuntimeError(f"{what} did not report in {timeout:g} s")
+        try:
+            line = await asyncio.wait_for(stream.readline(), left)
+        except asyncio.TimeoutError:
+            raise RuntimeError(f"{what} did not report in {timeout:g} s") from None
+        if not line:
+            err = (await proc.stderr.read()).decode(errors="replace")[-2000:]
+            raise RuntimeError(f"{what} exited before reporting: {err}")
+        line = line.strip()
+        if line.startswith(b"{"):
+            return json.loads(line)
+
+
+# --------------------------------------------------------------------------- statistics
+
+
+def pct(values, q) -> float | None:
+    values = np.asarray(values, dtype=float)
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+def dist(values_ms) -> dict:
+    v = np.asarray(values_ms, dtype=float)
+    if not len(v):
+        return {"n": 0}
+    return {"n": int(len(v)), "p50": pct(v, 50), "p99": pct(v, 99), "max": float(v.max()),
+            "mean": float(v.mean()), "min": float(v.min())}
+
+
+def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
+    """The walkthrough statistics from the driver's log and every node's records."""
+    log = driver["log"]
+    frames = np.asarray(log["frame"], dtype=np.int64)
+    send = np.asarray(log["send"], dtype=float)
+    measured = frames[warmup_frames:]
+    out: dict = {"frames_posted": int(len(frames)), "frames_measured": int(len(measured))}
+    if len(send) > 1:
+        out["frames_per_s"] = (len(send) - 1) / (send[-1] - send[0])
+        out["driver_seconds"] = float(send[-1] - send[0])
+    # server post time of each frame, from whichever node saw it
+    posted = {}
+    for t in tiles:
+        posted.update(zip(t["frame"], t["posted"]))
+    server_time = np.array([posted.get(int(n), np.nan) for n in measured])
+    send_of = dict(zip(frames.tolist(), send.tolist()))
+    sent = np.array([send_of[int(n)] for n in measured])
+    # arrivals: exact (tile got frame n) and display (first frame >= n)
+    exact = np.full((len(tiles), len(measured)), np.nan)
+    shown = np.full((len(tiles), len(measured)), np.nan)
+    per_tile = []
+    in_window = set(measured.tolist())
+    for i, t in enumerate(tiles):
+        f = np.asarray(t["frame"], dtype=np.int64)
+        r = np.asarray(t["recv"], dtype=float)
+        order = np.argsort(f, kind="stable")
+        f, r = f[order], r[order]
+        idx = np.searchsorted(f, measured)
+        ok = idx < len(f)
+        shown[i, ok] = r[idx[ok]]
+        hit = ok.copy()
+        hit[ok] = f[idx[ok]] == measured[ok]
+        exact[i, hit] = r[idx[hit]]
+        mask = np.isin(np.asarray(t["frame"]), measured)
+        lat = (np.asarray(t["recv"])[mask] - np.asarray(t["posted"])[mask]) * 1e3
+        got = len(set(t["frame"]) & in_window)
+        per_tile.append({"tile": t["tile"], "packets": len(t["frame"]),
+                         "full": int(sum(t["full"])), "dropped": len(measured) - got,
+                         "p50_ms": pct(lat, 50), "p99_ms": pct(lat, 99),
+                         "bytes": int(sum(t["bytes"])), "cache": t.get("cache", {}),
+                         "mesh_fetches": t["mesh_fetches"], "base_misses": t["base_misses"],
+                         "errors": len(t["errors"])})
+    complete = ~np.isnan(exact).any(axis=0) & ~np.isnan(server_time)
+    all_tiles = (exact.max(axis=0)[complete] - server_time[complete]) * 1e3
+    from_send = (exact.max(axis=0)[complete] - sent[complete]) * 1e3
+    disp_ok = ~np.isnan(shown).any(axis=0) & ~np.isnan(server_time)
+    display = (shown.max(axis=0)[disp_ok] - server_time[disp_ok]) * 1e3
+    pooled = np.concatenate([
+        (np.asarray(t["recv"]) - np.asarray(t["posted"]))[np.isin(t["frame"], measured)]
+        for t in tiles]) * 1e3 if tiles else np.zeros(0)
+    out["latency_ms"] = {"all_tiles": dist(all_tiles), "all_tiles_from_send": dist(from_send),
+                         "display": dist(display), "per_tile": dist(pooled)}
+    out["dropped"] = {"tile_frames": int(np.isnan(exact).sum()),
+                      "frames_not_on_every_tile": int((~complete).sum())}
+    # bytes, over the measured window
+    sums = Counter()
+    for t in tiles:
+        mask = np.isin(np.asarray(t["frame"]), measured)
+        full = np.asarray(t["full"], dtype=bool)
+        for key in ("bytes", "full_bytes", "list_bytes", "full_list_bytes", "fit_bytes"):
+            if len(t.get(key, ())) == len(mask):
+                sums[key] += int(np.asarray(t[key])[mask].sum())
+        sums["packets"] += int(mask.sum())
+        sums["full_packets"] += int((mask & full).sum())
+    n = max(len(measured), 1)
+    b = {"packets": sums["packets"], "full_packets": sums["full_packets"],
+         "delta_packets": sums["packets"] - sums["full_packets"],
+         "per_frame": sums["bytes"] / n, "per_frame_if_full": sums["full_bytes"] / n,
+         "lists_per_frame": sums["list_bytes"] / n,
+         "lists_per_frame_if_full": sums["full_list_bytes"] / n,
+         "fits_per_frame": sums["fit_bytes"] / n}
+    b["reduction"] = b["per_frame_if_full"] / b["per_frame"] if b["per_frame"] else None
+    b["lists_reduction"] = (b["lists_per_frame_if_full"] / b["lists_per_frame"]
+                            if b["lists_per_frame"] else None)
+    out["bytes"] = b
+    if log.get("barrier_done"):
+        bd = np.asarray(log["barrier_done"], dtype=float)
+        out["barrier"] = {"latency_ms": dist((bd - send)[warmup_frames:] * 1e3),
+                          "incomplete": int(len(log["barrier_complete"])
+                                            - sum(log["barrier_complete"]))}
+    out["errors"] = {"node_errors": sum(len(t["errors"]) for t in tiles),
+                     "base_misses": sum(t["base_misses"] for t in tiles),
+                     "examples": [e for t in tiles for e in t["errors"]][:5]}
+    out["tiles"] = per_tile
+    out["nodes"] = {"mesh_fetches": sum(t["mesh_fetches"] for t in tiles),
+                    "mesh_not_modified": sum(t["mesh_not_modified"] for t in tiles),
+                    "mesh_bytes": sum(t["mesh_bytes"] for t in tiles),
+                    "cache_misses": sum(t.get("cache", {}).get("misses", 0) for t in tiles),
+                    "cache_evictions": sum(t.get("cache", {}).get("evictions", 0)
+                                           for t in tiles),
+                    "every_tile_got_packets": all(len(t["frame"]) > 0 for t in tiles)}
+    return out
+
+
+# --------------------------------------------------------------------------- walkthrough
+
+
+def _wall_spec(text: str) -> dict:
+    from .cli import read_json
+
+    path = Path(text)
+    if not text.strip().startswith("{") and not path.exists() and (ROOT / text).exists():
+        text = str(ROOT / text)  # examples/... from anywhere
+    return read_json(text, "--wall")
+
+
+async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL,
+                      rate: float = 60.0, duration: float = 10.0, mode: str = "ws",
+                      clients_procs: int = 1, barrier: bool = False, path: str = "orbit",
+                      path_frames: int | None = None, warmup: float = 0.5,
+                      cache_bytes: str = "256M", history: int = 64, method: str = "adaptive",
+                      server: str | None = None, token: str | None = None,
+                      progress: bool = True, workdir: str | None = None,
+                      render: bool = False, draw_time: float = 0.0) -> dict:
+    """Run one walkthrough load test (see the module docstring) and return its report."""
+    import psutil
+
+    from clients.driver import PATH_FRAMES, Driver
+
+    host = machine()  # before we load it
+    wall = _wall_spec(wall) if isinstance(wall, str) else wall
+    frames = max(2, int(round(rate * duration))) if rate > 0 else max(2, int(duration * 60))
+    token = token or secrets.token_hex(8)
+    tmp = tempfile.TemporaryDirectory(dir=workdir)
+    own = Server(token) if server is None else None
+    procs: list = []
+    try:
+        if own:
+            await own.start()
+        url = own.url if own else server
+        async with Driver(url, token) as d:
+            info = await d.create_wall(scene, wall, method, "obb", history)
+        wid, tiles = info["id"], info["tiles"]
+        ranges = split(tiles, clients_procs)
+        for k, (a, b) in enumerate(ranges):
+            cmd = [sys.executable, "-m", "clients.sim", "--server", url, "--wall", wid,
+                   "--tiles", f"{a}-{b}", "--mode", mode, "--token", token,
+                   "--until-frame", str(frames - 1), "--idle-timeout", "5",
+                   "--cache-bytes", str(cache_bytes), "--out", f"{tmp.name}/nodes-{k}.json",
+                   "--quiet", "--draw-time", str(draw_time)] + (["--render"] if render else [])
+            procs.append(await asyncio.create_subprocess_exec(
+                *cmd, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+                cwd=str(ROOT)))
+        for k, p in enumerate(procs):
+            await _read_json_line(p.stdout, 120, f"render node process {k}", p)
+        async with Driver(url, token) as d:
+            if mode == "ws":
+                got = await d.wait_clients(wid, tiles, 30)
+                if got < tiles:
+                    raise RuntimeError(f"only {got} of {tiles} nodes subscribed")
+        server_ps = own.ps if own else None
+        client_ps = [psutil.Process(p.pid) for p in procs]
+        cmd = [sys.executable, "-m", "clients.driver", "--server", url, "--wall-id", wid,
+               "--rate", str(rate), "--frames", str(frames), "--path", path,
+               "--path-frames", str(path_frames or PATH_FRAMES), "--token", token,
+               "--out", f"{tmp.name}/driver.json"]
+        if barrier:
+            cmd += ["--barrier"]
+        cpu0 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
+                "clients": sum(cpu_seconds(p) for p in client_ps),
+                "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process())}
+        t0 = time.monotonic()
+        drv = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
+                                                   stderr=asyncio.subprocess.PIPE,
+                                                   cwd=str(ROOT))
+        drv_cpu0 = cpu_seconds(psutil.Process(drv.pid))
+        await _watch(url, wid, frames, drv, progress)
+        wall_s = time.monotonic() - t0
+        cpu1 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
+                "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process())}
+        clients_at_end = [cpu_seconds(p) for p in client_ps]  # nan for those already gone
+        drv_out, drv_err = await drv.communicate()
+        if drv.returncode != 0:
+            raise RuntimeError(f"the driver failed ({drv.returncode}): "
+                               f"{drv_err.decode(errors='replace')[-2000:]}")
+        node_errors = []
+        for k, p in enumerate(procs):
+            try:
+                _, err = await asyncio.wait_for(p.communicate(), 30)
+            except asyncio.TimeoutError:
+                p.terminate()
+                _, err = await p.communicate()
+            if p.returncode not in (0, 1):
+                node_errors.append(f"node process {k} exited {p.returncode}: "
+                                   f"{err.decode(errors='replace')[-1000:]}")
+        # the processes report their own CPU time when they finish (they may exit before
+        # anyone could sample them); less what they had used when the driver started
+        driver = json.loads(Path(f"{tmp.name}/driver.json").read_text())
+        drv_cpu = driver["cpu_seconds"] - (drv_cpu0 if drv_cpu0 == drv_cpu0 else 0.0)
+        nodes, cpu1["clients"] = [], 0.0
+        for k in range(len(procs)):
+            f = Path(f"{tmp.name}/nodes-{k}.json")
+            if f.exists():
+                part = json.loads(f.read_text())
+                nodes += part["tiles"]
+                alive = clients_at_end[k]
+                cpu1["clients"] += part["cpu_seconds"] if alive != alive else alive
+        server_metrics = await metrics(url)
+    finally:
+        for p in procs:
+            if p.returncode is None:
+                p.terminate()
+                await p.wait()
+        if own:
+            await own.stop()
+        tmp.cleanup()
+    warm = min(int(round(warmup * rate)) if rate > 0 else 0, max(frames - 2, 0))
+    report = {"kind": "walkthrough",
+              "config": {"scene": scene, "wall": wall, "tiles": tiles, "rate": rate,
+                         "duration": duration, "frames": frames, "mode": mode,
+                         "clients_procs": len(procs), "barrier": barrier, "path": path,
+                         "path_frames": path_frames or PATH_FRAMES, "warmup_frames": warm,
+                         "cache_bytes": cache_bytes, "method": method, "render": render,
+                         "draw_time": draw_time},
+              "machine": host}
+    report.update(analyze(driver, sorted(nodes, key=lambda t: t["tile"]), warm))
+    report["driver"] = driver["summary"]
+    report["cpu"] = {name: {"seconds": cpu1[name] - cpu0[name],
+                            "percent": 100 * (cpu1[name] - cpu0[name]) / wall_s}
+                     for name in cpu0}
+    report["cpu"]["driver"] = {"seconds": drv_cpu, "percent": 100 * drv_cpu / wall_s}
+    ours = sum(report["cpu"][k]["seconds"] for k in ("server", "clients", "driver", "loadtest"))
+    others = report["cpu"]["machine"]["seconds"] - ours
+    report["cpu"]["others"] = {"seconds": others, "percent": 100 * others / wall_s}
+    report["cpu"]["window_s"] = wall_s
+    report["server_metrics"] = server_metrics
+    report["targets"] = walkthrough_targets(report)
+    report["errors"]["process_errors"] = node_errors
+    report["errors"]["tiles_missing"] = tiles - len(nodes)
+    return report
+
+
+#: The issue's targets: 60 frames/s sustained, frame-to-all-tiles p99 under 50 ms, deltas at
+#: least 10x smaller than full lists, 2,000 single-packet requests/s.
+TARGETS = {"p99_all_tiles_ms": 50.0, "bytes_reduction": 10.0, "requests_per_s": 2000.0}
+
+
+def walkthrough_targets(report: dict) -> dict:
+    """The targets, met or not, for this run's configuration (the rate is the one asked)."""
+    rate, achieved = report["config"]["rate"], report.get("frames_per_s") or 0.0
+    p99 = report["latency_ms"]["all_tiles"].get("p99")
+    b = report["bytes"]
+    return {
+        "rate": {"target": rate, "value": achieved, "met": bool(achieved >= 0.99 * rate)},
+        "p99_all_tiles_ms": {"target": TARGETS["p99_all_tiles_ms"], "value": p99,
+                             "met": bool(p99 is not None and p99 < TARGETS["p99_all_tiles_ms"]
+                                         and report["dropped"]["tile_frames"] == 0)},
+        "bytes_reduction_lists": {"target": TARGETS["bytes_reduction"],
+                                  "value": b["lists_reduction"],
+                                  "met": bool((b["lists_reduction"] or 0)
+                                              >= TARGETS["bytes_reduction"])},
+        "bytes_reduction_packets": {"target": TARGETS["bytes_reduction"],
+                                    "value": b["reduction"],
+                                    "met": bool((b["reduction"] or 0)
+                                                >= TARGETS["bytes_reduction"])},
+    }
+
+
+async def _watch(url, wid, frames, drv, show: bool) -> None:
+    """Wait for the driver to finish, with a progress bar of the wall's latest frame."""
+    from rich.console import Console
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn)
+
+    from clients.rawhttp import Connection
+
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TextColumn("{task.fields[rate]}"), TimeElapsedColumn())
+    console = Console(stderr=True)
+    with Progress(*columns, console=console, disable=not show, transient=True) as bar:
+        task = bar.add_task("frames", total=frames, rate="")
+        t0 = time.monotonic()
+        async with Connection(url) as conn:
+            while drv.returncode is None:
+                try:
+                    latest = (await conn.call("GET", f"/walls/{wid}"))["latest"] + 1
+                except Exception:  # noqa: BLE001 - the bar is best effort
+                    latest = 0
+                elapsed = time.monotonic() - t0
+                bar.update(task, completed=latest,
+                           rate=f"{latest / elapsed:5.1f} frames/s" if elapsed > 0 else "")
+                try:
+                    await asyncio.wait_for(drv.wait(), 0.25)
+                except asyncio.TimeoutError:
+                    pass
+
+
+def machine() -> dict:
+    import platform
+
+    import psutil
+
+    return {"python": platform.python_version(), "cpu": platform.processor() or
+            platform.machine(), "cores": os.cpu_count(),
+            "cores_physical": psutil.cpu_count(logical=False),
+            "load_average_1m": os.getloadavg()[0]}
+
+
+# --------------------------------------------------------------------------- request throughput
+
+
+async def hammer(server: str, targets: list[str], total: int, concurrency: int,
+                 accept: str = "application/msgpack", duration: float | None = None) -> dict:
+    """``total`` GETs (or as many as fit in ``duration`` seconds) over ``concurrency``
+    keep-alive connections, connection ``i`` asking for ``targets[i % len(targets)]``."""
+    from clients.rawhttp import Connection
+
+    issued = 0
+    statuses: Counter = Counter()
+    latencies: list[float] = []
+    received = 0
+    stop_at = None
+
+    async def worker(i: int):
+        nonlocal issued, received
+        conn = Connection(server, timeout=30)
+        target = targets[i % len(targets)]
+        try:
+            while issued < total and (stop_at is None or time.perf_counter() < stop_at):
+                issued += 1
+                t = time.perf_counter()
+                r = await conn.request("GET", target, accept=accept)
+                latencies.append(time.perf_counter() - t)
+                statuses[r.status] += 1
+                received += len(r.body)
+        finally:
+            await conn.close()
+
+    t0, cpu0 = time.perf_counter(), time.process_time()
+    if duration:
+        stop_at = t0 + duration
+    await asyncio.gather(*(worker(i) for i in range(concurrency)))
+    elapsed = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
+    lat = np.asarray(latencies) * 1e3
+    done = len(latencies)
+    return {"requests": done, "seconds": elapsed, "requests_per_s": done / elapsed,
+            "generator_cpu_seconds": cpu,
+            "concurrency": concurrency, "status": {str(k): v for k, v in statuses.items()},
+            "bytes_per_response": received / done if done else 0,
+            "latency_ms": {"p50": pct(lat, 50), "p99": pct(lat, 99), "max": float(lat.max())
+                           if len(lat) else None}}
+
+
+async def requests_test(requests: int = 20000, concurrency: int = 64,
+                        scene: str = "powerplant", wall: dict | str = DEFAULT_WALL,
+                        server: str | None = None, token: str | None = None,
+                        progress: bool = True) -> dict:
+    """Single-packet request throughput of one server (see the module docstring)."""
+    import psutil
+
+    from clients.driver import Driver
+
+    wall = _wall_spec(wall) if isinstance(wall, str) else wall
+    token = token or secrets.token_hex(8)
+    own = Server(token) if server is None else None
+    try:
+        if own:
+            await own.start()
+        url = own.url if own else server
+        async with Driver(url, token) as d:
+            info = await d.create_wall(scene, wall)
+            frames = await d.frames(scene, info["wall"], "orbit", 1)
+            await d.post(info["id"], frames[0])
+        cmd = [sys.executable, "-m", "wallcull.loadtest", "--server", url, "--wall-id",
+               info["id"], "--tiles", str(info["tiles"]), "--requests", str(requests),
+               "--concurrency", str(concurrency)]
+        cpu0 = cpu_seconds(own.ps) if own else float("nan")
+        t0 = time.monotonic()
+        gen = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
+                                                   stderr=asyncio.subprocess.PIPE,
+                                                   cwd=str(ROOT))
+        from rich.console import Console
+        from rich.progress import Progress
+
+        with Progress(console=Console(stderr=True), disable=not progress,
+                      transient=True) as bar:
+            bar.add_task(f"{requests} requests, {concurrency} connections", total=None)
+            while gen.returncode is None:
+                try:
+                    await asyncio.wait_for(gen.wait(), 0.25)
+                except asyncio.TimeoutError:
+                    pass
+        wall_s = time.monotonic() - t0
+        cpu1 = cpu_seconds(own.ps) if own else float("nan")
+        out, err = await gen.communicate()
+        if gen.returncode != 0:
+            raise RuntimeError(f"the load generator failed: {err.decode(errors='replace')}")
+        result = json.loads(out)
+        gen_cpu = result.pop("generator_cpu_seconds")
+        wall_s = result["seconds"]  # the server's CPU is over a slightly longer window
+        server_metrics = await metrics(url)
+    finally:
+        if own:
+            await own.stop()
+    return {"kind": "requests",
+            "config": {"scene": scene, "wall": wall, "tiles": info["tiles"],
+                       "requests": requests, "concurrency": concurrency,
+                       "target": "/walls/{wid}/tiles/{t}/packets/latest (full packets)"},
+            "machine": machine(), **result,
+            "targets": {"requests_per_s": {
+                "target": TARGETS["requests_per_s"], "value": result["requests_per_s"],
+                "met": bool(result["requests_per_s"] >= TARGETS["requests_per_s"])}},
+            "cpu": {"server": {"seconds": cpu1 - cpu0, "percent": 100 * (cpu1 - cpu0) / wall_s},
+                    "generator": {"seconds": gen_cpu, "percent": 100 * gen_cpu / wall_s},
+                    "window_s": wall_s},
+            "server_metrics": server_metrics}
+
+
+def _hammer_main(argv=None) -> int:
+    """``python -m wallcull.loadtest``: the request-mode load generator (prints JSON)."""
+    p = argparse.ArgumentParser(prog="python -m wallcull.loadtest")
+    p.add_argument("--server", required=True)
+    p.add_argument("--wall-id", required=True)
+    p.add_argument("--tiles", type=int, default=1)
+    p.add_argument("--requests", type=int, default=10000)
+    p.add_argument("--concurrency", type=int, default=64)
+    p.add_argument("--duration", type=float)
+    args = p.parse_args(argv)
+    try:
+        import uvloop
+    except ImportError:
+        uvloop = None
+    targets = [f"/walls/{args.wall_id}/tiles/{t}/packets/latest" for t in range(args.tiles)]
+    coro = hammer(args.server, targets, args.requests, args.concurrency,
+                  duration=args.duration)
+    result = uvloop.run(coro) if uvloop else asyncio.run(coro)
+    print(json.dumps(result))
+    return 0
+
+
+# --------------------------------------------------------------------------- reports
+
+
+def _f(v, fmt="{:.1f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def markdown(report: dict) -> str:
+    c = report["config"]
+    m = report["machine"]
+    lines = [f"# wallcull load test ({report['kind']})", ""]
+    if report["kind"] == "requests":
+        lines += [f"{c['requests']} requests of `{c['target']}` over {c['concurrency']} "
+                  f"keep-alive connections; scene {c['scene']}, {c['tiles']} tiles; "
+                  f"{m['cores']} cores.", "",
+                  "| metric | value |", "|---|---|",
+                  f"| requests/s | {report['requests_per_s']:.0f} |",
+                  f"| latency p50 / p99 ms | {_f(report['latency_ms']['p50'], '{:.2f}')} / "
+                  f"{_f(report['latency_ms']['p99'], '{:.2f}')} |",
+                  f"| statuses | {report['status']} |",
+                  f"| bytes per response | {report['bytes_per_response']:.0f} |",
+                  f"| server CPU | {report['cpu']['server']['percent']:.0f}% |",
+                  f"| generator CPU | {report['cpu']['generator']['percent']:.0f}% |", ""]
+        return "\n".join(lines + _targets_md(report))
+    lat, b = report["latency_ms"], report["bytes"]
+    w = c["wall"]
+    lines += [f"Scene {c['scene']}, {w['cols']} x {w['rows']} wall ({c['tiles']} nodes in "
+              f"{c['clients_procs']} process(es), mode {c['mode']}), {c['frames']} frames of the "
+              f"{c['path']} path (a loop every {c['path_frames']} frames) at {c['rate']:g} "
+              f"frames/s{', swap barrier every frame' if c['barrier'] else ''}; first "
+              f"{c['warmup_frames']} frames left out of latency and bytes; {m['cores']} cores.",
+              "", "| metric | value |", "|---|---|",
+              f"| frames/s achieved | {_f(report.get('frames_per_s'))} |",
+              f"| frame-to-all-tiles latency p50 / p99 / max ms | "
+              f"{_f(lat['all_tiles'].get('p50'), '{:.2f}')} / "
+              f"{_f(lat['all_tiles'].get('p99'), '{:.2f}')} / "
+              f"{_f(lat['all_tiles'].get('max'), '{:.2f}')} |",
+              f"| same, from the driver's send, p50 / p99 ms | "
+              f"{_f(lat['all_tiles_from_send'].get('p50'), '{:.2f}')} / "
+              f"{_f(lat['all_tiles_from_send'].get('p99'), '{:.2f}')} |",
+              f"| display latency (every tile at n or newer) p50 / p99 ms | "
+              f"{_f(lat['display'].get('p50'), '{:.2f}')} / "
+              f"{_f(lat['display'].get('p99'), '{:.2f}')} |",
+              f"| per-tile latency p50 / p99 ms | {_f(lat['per_tile'].get('p50'), '{:.2f}')} / "
+              f"{_f(lat['per_tile'].get('p99'), '{:.2f}')} |",
+              f"| bytes/frame received (deltas) | {b['per_frame']:.0f} |",
+              f"| bytes/frame as full lists | {b['per_frame_if_full']:.0f} |",
+              f"| reduction, whole packets | {_f(b['reduction'])}x |",
+              f"| leaf-id bytes/frame: deltas / full | {b['lists_per_frame']:.0f} / "
+              f"{b['lists_per_frame_if_full']:.0f} ({_f(b['lists_reduction'])}x) |",
+              f"| fitted-frusta bytes/frame (in every packet) | {b['fits_per_frame']:.0f} |",
+              f"| packets full / delta | {b['full_packets']} / {b['delta_packets']} |",
+              f"| tile-frames dropped | {report['dropped']['tile_frames']} "
+              f"({report['dropped']['frames_not_on_every_tile']} frames not on every tile) |"]
+    if "barrier" in report:
+        bl = report["barrier"]["latency_ms"]
+        lines.append(f"| barrier latency p50 / p99 ms (incomplete) | {_f(bl.get('p50'), '{:.2f}')}"
+                     f" / {_f(bl.get('p99'), '{:.2f}')} ({report['barrier']['incomplete']}) |")
+    cpu = report["cpu"]
+    lines += [f"| CPU server / nodes / driver (% of one core) | {cpu['server']['percent']:.0f}% / "
+              f"{cpu['clients']['percent']:.0f}% / {cpu['driver']['percent']:.0f}% |",
+              f"| CPU of other processes on the machine meanwhile | "
+              f"{cpu['others']['percent']:.0f}% |",
+              f"| errors | {report['errors']['node_errors']} node, "
+              f"{report['errors']['base_misses']} base misses, "
+              f"{len(report['errors']['process_errors'])} process |", "",
+              *_targets_md(report),
+              "| tile | packets | full | dropped | p50 ms | p99 ms | mesh fetches | evictions |",
+              "|---|---|---|---|---|---|---|---|"]
+    for t in report["tiles"]:
+        lines.append(f"| {t['tile']} | {t['packets']} | {t['full']} | {t['dropped']} | "
+                     f"{_f(t['p50_ms'], '{:.2f}')} | {_f(t['p99_ms'], '{:.2f}')} | "
+                     f"{t['mesh_fetches']} | {t['cache'].get('evictions', 0)} |")
+    return "\n".join(lines) + "\n"
+
+
+def _targets_md(report: dict) -> list[str]:
+    lines = ["| target | wanted | measured | |", "|---|---|---|---|"]
+    for name, t in report.get("targets", {}).items():
+        value = "-" if t["value"] is None else f"{t['value']:.1f}"
+        lines.append(f"| {name} | {t['target']:g} | {value} | "
+                     f"{'met' if t['met'] else '**missed**'} |")
+    return lines + [""]
+
+
+def write(report: dict, out: str | None) -> None:
+    if not out:
+        return
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "report.json").write_text(json.dumps(report, indent=1))
+    (folder / "report.md").write_text(markdown(report))
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def register(sub) -> None:
+    """Add ``wallcull loadtest`` to the CLI's subparsers."""
+    q = sub.add_parser("loadtest", help="measure a real server with simulated render nodes")
+    q.add_argument("--scene", default="powerplant")
+    q.add_argument("--wall", default=DEFAULT_WALL, help="WALL.json, or the JSON inline")
+    q.add_argument("--rate", type=float, default=60.0, help="frames per second")
+    q.add_argument("--duration", type=float, default=10.0, help="seconds of frames")
+    q.add_argument("--mode", choices=("ws", "pull"), default="ws")
+    q.add_argument("--clients-procs", type=int, default=1, metavar="K",
+                   help="render node processes (the tiles are split between them)")
+    q.add_argument("--barrier", action="store_true", help="the driver waits on the swap barrier")
+    q.add_argument("--path", choices=("orbit", "fly"), default="orbit")
+    q.add_argument("--path-frames", type=int, help="frames per loop of the path (default 600)")
+    q.add_argument("--warmup", type=float, default=0.5,
+                   help="seconds of first frames left out of latency and bytes")
+    q.add_argument("--cache-bytes", default="256M", help="mesh cache budget per node")
+    q.add_argument("--draw-time", type=float, default=0.0, metavar="SECONDS",
+                   help="simulated drawing time per frame of every node (a slow GPU)")
+    q.add_argument("--render", action="store_true",
+                   help="the nodes draw with the headless OpenGL renderer (slow on a CPU)")
+    q.add_argument("--history", type=int, default=64)
+    q.add_argument("--requests", type=int, metavar="N",
+                   help="instead: N single-packet GETs from a separate process; requests/s")
+    q.add_argument("--concurrency", type=int, default=64,
+                   help="--requests: keep-alive connections")
+    q.add_argument("--server", help="use this running server instead of starting one")
+    q.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
+                   help="the running server's token (default: $WALLCULL_TOKEN)")
+    q.add_argument("--out", help="folder for report.json and report.md")
+    q.add_argument("--json", action="store_true", help="print the report as JSON")
+    q.set_defaults(func=cmd_loadtest)
+
+
+def cmd_loadtest(args) -> int:
+    from .errors import InputError
+
+    if args.clients_procs < 1:
+        raise InputError("--clients-procs must be at least 1")
+    if args.duration <= 0 or args.rate < 0:
+        raise InputError("--duration must be positive and --rate at least 0")
+    if args.requests is not None and (args.requests < 1 or args.concurrency < 1):
+        raise InputError("--requests and --concurrency must be at least 1")
+    wall = _wall_spec(args.wall)
+    progress = sys.stderr.isatty()
+    if args.requests:
+        report = asyncio.run(requests_test(args.requests, args.concurrency, args.scene, wall,
+                                           args.server, args.token, progress))
+    else:
+        report = asyncio.run(walkthrough(
+            args.scene, wall, args.rate, args.duration, args.mode, args.clients_procs,
+            args.barrier, args.path, args.path_frames, args.warmup, args.cache_bytes,
+            args.history, server=args.server, token=args.token, progress=progress,
+            render=args.render, draw_time=args.draw_time))
+    write(report, args.out)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        from rich.console import Console
+        from rich.markdown import Markdown
+
+        text = markdown(report)
+        if report["kind"] == "walkthrough":  # the per-tile table is in the file
+            text = text.split("\n| tile |")[0]
+        Console().print(Markdown(text))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_hammer_main())
