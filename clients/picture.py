@@ -1,0 +1,72 @@
+"""A picture of a wall: every tile rendered from its own culled list and fitted frusta, by the
+real OpenGL renderer, laid out with the wall's bezels. The README's picture comes from here:
+
+    python -m clients.picture powerplant --wall examples/wall-4x4.json --out docs/wall.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from wallcull.fit import FitOptions
+from wallcull.paths import camera_path
+from wallcull.pipeline import Session
+from wallcull.scene import load
+from wallcull.wall import Wall
+
+from .render import TileRenderer
+
+
+def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str = "orbit",
+                 pixels: int = 240) -> np.ndarray:
+    """``(H, W, 3)`` uint8: the wall's tiles, each ``pixels`` wide, bezels in dark grey."""
+    scene = load(scene_spec)
+    points = scene.leaf_points[0]
+    frame = camera_path(path, points.min(0), points.max(0), wall, 120)[frame_index]
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    w_px = pixels
+    h_px = int(round(pixels * wall.tile_size[1] / wall.tile_size[0]))
+    scale = w_px / wall.tile_size[0]  # pixels per metre, so that the bezels keep their size
+    gx, gy = (max(0, int(round(g * scale))) for g in wall.gap)
+    out = np.full((wall.rows * h_px + (wall.rows - 1) * gy,
+                   wall.cols * w_px + (wall.cols - 1) * gx, 3), 12, dtype=np.uint8)
+    renderer = TileRenderer(w_px, h_px)
+    uploaded = set()
+    for t in range(wall.tiles):
+        draws = []
+        for leaf in result.visibility.tile_leaves(t):
+            key = scene.geometry[leaf]
+            if key not in uploaded:
+                renderer.upload(key, *scene.meshes[key])
+                uploaded.add(key)
+            draws.append((key, scene.world[leaf], int(leaf) + 1))
+        fit = result.fits[t]
+        image = renderer.render(draws, np.asarray(fit["view"]), np.asarray(fit["projection"]))
+        r, c = divmod(t, wall.cols)
+        y, x = r * (h_px + gy), c * (w_px + gx)
+        out[y:y + h_px, x:x + w_px] = image.color[:, :, :3]
+    renderer.release()
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("scene", nargs="?", default="powerplant")
+    p.add_argument("--wall", default="examples/wall-4x4.json")
+    p.add_argument("--frame", type=int, default=30, help="frame of the orbit path (of 120)")
+    p.add_argument("--pixels", type=int, default=240, help="width of one tile, pixels")
+    p.add_argument("--out", default="wall.png")
+    args = p.parse_args(argv)
+    from PIL import Image
+
+    wall = Wall.from_dict(json.load(open(args.wall)))
+    Image.fromarray(wall_picture(args.scene, wall, args.frame, pixels=args.pixels)).save(args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
