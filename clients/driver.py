@@ -33,7 +33,7 @@ from wallcull.errors import InputError
 from wallcull.paths import PATHS, camera_path
 from wallcull.wall import Wall
 
-from .rawhttp import Connection, HTTPError
+from .rawhttp import Connection, HTTPError, run
 
 PATH_FRAMES = 600  # one loop of the walkthrough: 10 s at 60 frames/s
 
@@ -264,16 +264,6 @@ async def _main(args) -> int:
             await driver.conn.call("DELETE", f"/walls/{wid}", auth=True)
         print(json.dumps(result), flush=True)
     return 0
-
-
-def run(coro):
-    """Run on uvloop when it is installed, as uvicorn does for the server: less CPU per
-    socket event, which counts with a whole wall of nodes in one process."""
-    try:
-        import uvloop
-    except ImportError:
-        return asyncio.run(coro)
-    return uvloop.run(coro)
 
 
 def main(argv=None) -> int:

@@ -176,3 +176,13 @@ class Connection:
 
     async def __aexit__(self, *exc):
         await self.close()
+
+
+def run(coro):
+    """Run on uvloop when it is installed, as uvicorn does for the server: less CPU per
+    socket event, which counts with a whole wall of nodes in one process."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(coro)
+    return uvloop.run(coro)

@@ -56,7 +56,7 @@ import numpy as np
 from wallcull import protocol
 from wallcull.errors import InputError
 
-from .rawhttp import MSGPACK, Connection, HTTPError
+from .rawhttp import MSGPACK, Connection, HTTPError, run
 
 try:
     from asyncio import timeout as _timeout  # Python 3.11+
@@ -759,16 +759,6 @@ async def _main(args) -> int:
         Console(stderr=True).print(table)
     errors = sum(len(c.stats.errors) for c in clients)
     return 1 if errors else 0
-
-
-def run(coro):
-    """Run on uvloop when it is installed, as uvicorn does for the server: less CPU per
-    socket event, which counts with a whole wall of nodes in one process."""
-    try:
-        import uvloop
-    except ImportError:
-        return asyncio.run(coro)
-    return uvloop.run(coro)
 
 
 def main(argv=None) -> int:

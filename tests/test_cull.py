@@ -10,7 +10,7 @@ from wallcull.cull import METHODS, Culler, cull
 from wallcull.scene import Scene, SceneState
 from wallcull.wall import Frame, Frusta, Wall
 
-from wallcull.oracle import false_positives, visible_leaves
+from wallcull.oracle import visible_leaves
 from .randscene import look_at_frame, random_scene, random_wall
 
 BOUNDS = ("obb", "aabb", "sphere")

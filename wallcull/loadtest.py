@@ -122,7 +122,8 @@ class Server:
                 return self
             except (ConnectionError, OSError, asyncio.TimeoutError):
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"the server did not answer /health in {timeout:g} s")
+                    raise RuntimeError(f"the server did not answer /health in {timeout:g} s"
+                                       ) from None
                 await asyncio.sleep(0.2)
 
     def output(self) -> str:
@@ -171,7 +172,8 @@ def running_server(token: str | None = None, timeout: float = 120.0, env: dict |
                     break
             except OSError:
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"the server did not answer /health in {timeout:g} s")
+                    raise RuntimeError(f"the server did not answer /health in {timeout:g} s"
+                                       ) from None
                 time.sleep(0.1)
         yield url
     finally:
@@ -602,7 +604,6 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
                         server: str | None = None, token: str | None = None,
                         progress: bool = True) -> dict:
     """Single-packet request throughput of one server (see the module docstring)."""
-    import psutil
 
     from clients.driver import Driver
 

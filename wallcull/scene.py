@@ -466,7 +466,7 @@ class _FileTree:
                 self._attach(parent, np.array(kids), groups, world)
 
     def _attach(self, parent: int, kids: np.ndarray, groups, world) -> None:
-        for k, group in enumerate(groups):
+        for group in groups:
             if isinstance(group, np.ndarray) and len(group) == 1:
                 index = int(kids[group[0]])
                 self.kids[parent].append(index)

@@ -12,11 +12,9 @@ import asyncio
 import base64
 import json
 import secrets
-import time
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal, Optional
 
-import msgpack
 from fastapi import Depends, FastAPI, Header, Path, Query, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response

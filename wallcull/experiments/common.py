@@ -20,7 +20,7 @@ from ..bench import WARMUP_FRAMES, Motion
 from ..errors import InputError
 from ..paths import camera_path
 from ..pipeline import Session
-from ..scene import Scene, SceneState, load
+from ..scene import Scene, load
 from ..wall import Wall
 from .context import Context, Task  # noqa: F401 - experiments name them through this module
 

@@ -42,7 +42,7 @@ def run(ctx: C.Context) -> tuple[dict, str]:
 
 def report(ctx: C.Context, data: dict) -> str:
     plt = C.pyplot()
-    md = [f"## Fig. 4: the four traversals over a walkthrough\n",
+    md = ["## Fig. 4: the four traversals over a walkthrough\n",
           f"{data['frames']} frames of the `orbit` path (the whole scene in view and filling the "
           f"wall: the paper's worst case) on the 4 x 4 wall of SPEC section 2, eigenvector OBBs. "
           f"Every method culls every frame. Time is the culling step alone "
