@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from wallcull.cull import METHODS, cull
-from wallcull.fit import FitOptions, tile_projections, view_matrix
+from wallcull.fit import FitOptions, tile_projections
+from wallcull.projection import view_matrix
 from wallcull.lowilie import fit_frustum
 from wallcull.oracle import visible_leaves
 from wallcull.pipeline import Session

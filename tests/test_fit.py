@@ -6,7 +6,8 @@ import trimesh
 from hypothesis import HealthCheck, given, settings as hsettings, strategies as st
 
 from wallcull import fit as fitmod
-from wallcull.fit import FitOptions, tile_projections, view_matrix
+from wallcull.fit import FitOptions, tile_projections
+from wallcull.projection import view_matrix
 from wallcull.oracle import clip_triangles, frustum_planes as oracle_planes
 from wallcull.pipeline import Session
 from wallcull.projection import frustum_planes, tile_view_projection

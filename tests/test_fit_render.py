@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from wallcull.fit import FitOptions, tile_projections, view_matrix
+from wallcull.fit import FitOptions, tile_projections
+from wallcull.projection import view_matrix
 from wallcull.lowilie import fit_frustum
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, load

@@ -67,6 +67,12 @@ class Bounds:
         proj = np.abs(np.einsum("nkj,nj->nk", self.axes, normals))
         return (proj * self.half).sum(axis=1) + self.radius
 
+    def reach(self, index, direction: np.ndarray) -> np.ndarray:
+        """Support radius of bounds ``index`` along one unit ``direction (3,)``: how far each
+        extends either side of its centre's depth along it."""
+        return (np.abs(self.axes[index] @ direction) * self.half[index]).sum(axis=1) \
+            + self.radius[index]
+
     def corners(self) -> np.ndarray:
         """``(n, 8, 3)`` corners of the boxes (the ball part not included)."""
         return _corners(self.center, self.axes, self.half)

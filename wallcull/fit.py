@@ -33,7 +33,8 @@ import numpy as np
 from . import settings as cfg
 from .cull import Visibility, cull_region
 from .lowilie import FitError, fit_frustum
-from .projection import ClipPlaneError, frustum_planes, look_at, oblique_near, rigid_inverse
+from .projection import (ClipPlaneError, frustum_planes, look_at, oblique_near, rigid_inverse,
+                         view_matrix)
 from .scene import SceneState
 from .wall import Frame, Frusta, Wall
 
@@ -51,14 +52,6 @@ class FitOptions:
     def __post_init__(self):
         if self.depth not in ("tight", "wall"):
             raise ValueError(f"depth must be 'tight' or 'wall', got {self.depth!r}")
-
-
-def view_matrix(frame: Frame) -> np.ndarray:
-    """World to eye space: display axes, origin at the tracked eye."""
-    eye_to_world = np.eye(4)
-    eye_to_world[:3, :3] = frame.rotation
-    eye_to_world[:3, 3] = frame.to_world(frame.eye)
-    return rigid_inverse(eye_to_world)
 
 
 def tile_projections(wall: Wall, frame: Frame, near: np.ndarray, far: np.ndarray,
@@ -99,7 +92,7 @@ def depth_ranges(state: SceneState, wall: Wall, frame: Frame,
     nodes = visibility.nodes
     rel = b.center[nodes] - frame.to_world(frame.eye)
     center = rel @ forward
-    reach = (np.abs(b.axes[nodes] @ forward) * b.half[nodes]).sum(axis=1) + b.radius[nodes]
+    reach = b.reach(nodes, forward)
     near = np.full(wall.tiles, wall.near)
     far = np.full(wall.tiles, wall.far)
     counts = np.diff(visibility.start)
@@ -214,7 +207,7 @@ def _nearest_depth(state: SceneState, nodes: np.ndarray, view: np.ndarray, far: 
     b = state.bounds
     forward = -view[2, :3]
     depth = (b.center[nodes] @ forward + (-view[2, 3]))
-    reach = (np.abs(b.axes[nodes] @ forward) * b.half[nodes]).sum(axis=1) + b.radius[nodes]
+    reach = b.reach(nodes, forward)
     nearest = float((depth - reach).min()) if len(nodes) else far * 0.5
     return max(nearest * (1 - 1e-6), far * 1e-6)
 

@@ -209,10 +209,16 @@ def tile_view_projection(wall, frame, tile: int, near: float | None = None,
     scale = near / depth
     projection = frustum((x0 - ex) * scale, (x1 - ex) * scale,
                          (y0 - ey) * scale, (y1 - ey) * scale, near, far)
+    return view_matrix(frame), projection
+
+
+def view_matrix(frame) -> np.ndarray:
+    """World to eye space for a frame: display space's axes, origin at the tracked eye,
+    ``inverse([R(q) | R(q) eye + t])``. The same for every tile of the frame."""
     eye_to_world = np.eye(4)
     eye_to_world[:3, :3] = frame.rotation
-    eye_to_world[:3, 3] = frame.rotation @ frame.eye + frame.position
-    return rigid_inverse(eye_to_world), projection
+    eye_to_world[:3, 3] = frame.to_world(frame.eye)
+    return rigid_inverse(eye_to_world)
 
 
 # ---------------------------------------------------------------------------------------- planes

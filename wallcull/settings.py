@@ -36,6 +36,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import InputError
+from .wall import _vector
 
 
 @dataclass(frozen=True)
@@ -76,13 +77,7 @@ class Settings:
 
 
 def _vec(value: Any, what: str, n: int = 3) -> np.ndarray:
-    try:
-        out = np.asarray(value, dtype=np.float64).reshape(n)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be {n} numbers, got {value!r}") from None
-    if not np.isfinite(out).all():
-        raise InputError(f"{what} must be finite")
-    return out
+    return np.array(_vector(value, n, what))  # the wall's check: n finite numbers
 
 
 def _unit(value: Any, what: str) -> np.ndarray:
