@@ -319,20 +319,26 @@ class WallSession:
                                                       refit)
             return self.publish(record), timings
 
-    async def wait_frame(self, number: int, timeout: float) -> bool:
-        """Wait until frame ``number`` exists (or the timeout passes)."""
+    async def _wait(self, done, event, timeout: float) -> bool:
+        """Wait until ``done()``, waking whenever ``event()`` is set (read again each time:
+        events are replaced once set); False after ``timeout`` seconds. A deleted wall raises
+        :class:`NotFound` (close() leaves the events set: waiting again would spin)."""
         deadline = time.monotonic() + timeout
-        while self.latest < number:
-            if self.closed:  # close() leaves the event set: waiting again would spin
+        while not done():
+            if self.closed:
                 raise NotFound(f"wall {self.id} was deleted")
             left = deadline - time.monotonic()
             if left <= 0:
                 return False
             try:
-                await asyncio.wait_for(self._new_frame.wait(), left)
+                await asyncio.wait_for(event().wait(), left)
             except asyncio.TimeoutError:
                 return False
         return True
+
+    async def wait_frame(self, number: int, timeout: float) -> bool:
+        """Wait until frame ``number`` exists (or the timeout passes)."""
+        return await self._wait(lambda: self.latest >= number, lambda: self._new_frame, timeout)
 
     async def next_frame(self, after: int) -> int:
         """The newest frame number once one newer than ``after`` exists."""
@@ -377,18 +383,10 @@ class WallSession:
 
     async def wait_acked(self, tile: int, number: int, timeout: float) -> bool:
         """Wait until ``tile`` has acknowledged frame ``number`` or a later one (a stream's
-        flow control); False on timeout or when the wall closes."""
-        deadline = time.monotonic() + timeout
-        while self.acks[tile] < number and not self.closed:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            event = self._tile_acked.setdefault(tile, asyncio.Event())
-            try:
-                await asyncio.wait_for(event.wait(), left)
-            except asyncio.TimeoutError:
-                return False
-        return self.acks[tile] >= number
+        flow control); False on timeout."""
+        return await self._wait(lambda: self.acks[tile] >= number,
+                                lambda: self._tile_acked.setdefault(tile, asyncio.Event()),
+                                timeout)
 
     def barrier_state(self, number: int) -> dict:
         acked = int((self.acks >= number).sum())
@@ -397,17 +395,8 @@ class WallSession:
 
     async def barrier(self, number: int, timeout: float) -> dict:
         """Wait until every tile has acknowledged frame ``number`` (the swap barrier)."""
-        deadline = time.monotonic() + timeout
-        while not self.barrier_state(number)["complete"]:
-            if self.closed:  # close() leaves the event set: waiting again would spin
-                raise NotFound(f"wall {self.id} was deleted")
-            left = deadline - time.monotonic()
-            if left <= 0:
-                break
-            try:
-                await asyncio.wait_for(self._new_ack.wait(), left)
-            except asyncio.TimeoutError:
-                break
+        await self._wait(lambda: self.barrier_state(number)["complete"], lambda: self._new_ack,
+                         timeout)
         return self.barrier_state(number)
 
 
