@@ -276,9 +276,7 @@ class WallSession:
         if updates:
             self.session.move(updates, refit)
             moved = np.array([self.scene.index[n] for n in updates])
-            start, count = self.scene.leaf_range
-            changed = np.unique(np.concatenate(
-                [self.scene.leaves[start[m]:start[m] + count[m]] for m in moved]))
+            changed = np.unique(self.scene.subtree_leaves(moved))
             self._ever_moved = np.union1d(self._ever_moved, changed)
         t1 = time.perf_counter()
         result = self.session.frame(frame)
