@@ -12,7 +12,7 @@ import json
 import numpy as np
 
 from wallcull.fit import FitOptions
-from wallcull.paths import camera_path
+from wallcull.paths import scene_path
 from wallcull.pipeline import Session
 from wallcull.scene import load
 from wallcull.wall import Wall
@@ -24,8 +24,7 @@ def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str =
                  pixels: int = 240) -> np.ndarray:
     """``(H, W, 3)`` uint8: the wall's tiles, each ``pixels`` wide, bezels in dark grey."""
     scene = load(scene_spec)
-    points = scene.leaf_points[0]
-    frame = camera_path(path, points.min(0), points.max(0), wall, 120)[frame_index]
+    frame = scene_path(scene, wall, path, 120)[frame_index]
     result = Session(scene, wall, fit=FitOptions()).frame(frame)
     w_px = pixels
     h_px = int(round(pixels * wall.tile_size[1] / wall.tile_size[0]))

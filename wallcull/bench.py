@@ -18,7 +18,7 @@ from . import oracle
 from .cull import METHODS
 from .errors import InputError
 from .fit import FitOptions
-from .paths import camera_path
+from .paths import scene_path
 from .pipeline import Session
 from .scene import Scene
 from .wall import Wall
@@ -173,9 +173,7 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         scene.bounds(kind)
     t2 = time.perf_counter()
     rss = peak_rss_mb()
-    points = scene.leaf_points[0]
-    path_frames = camera_path(path, points.min(axis=0), points.max(axis=0), wall,
-                              frames, up=scene.settings.get("up", (0, 1, 0)))
+    path_frames = scene_path(scene, wall, path, frames)
     motion = Motion(scene, moving) if moving else None
     by_bounds: dict = {}
     bar = _progress() if progress else nullcontext()

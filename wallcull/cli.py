@@ -167,15 +167,13 @@ def cmd_walk(args) -> int:
     from rich.progress import track
     from rich.table import Table
 
-    from .paths import camera_path
+    from .paths import scene_path
     from .pipeline import Session
 
     wall = _wall(args.wall)
     scene = _load(args)
     session = Session(scene, wall, args.method, args.bounds)
-    points = scene.leaf_points[0]
-    frames = camera_path(args.path, points.min(axis=0), points.max(axis=0), wall, args.frames,
-                         up=scene.settings.get("up", (0, 1, 0)))
+    frames = scene_path(scene, wall, args.path, args.frames)
     session.frame(frames[0])  # compile
     counts = np.zeros((len(frames), wall.tiles), dtype=np.int64)
     times = []

@@ -72,3 +72,11 @@ def camera_path(kind: str, lo: np.ndarray, hi: np.ndarray, wall: Wall, frames: i
         vel = span_a * np.cos(t)[:, None] * a + 2 * span_b * np.cos(2 * t)[:, None] * b
         return [_frame(p, v - 0.15 * np.linalg.norm(v) * up, up, wall) for p, v in zip(pos, vel)]
     raise InputError(f"unknown path {kind!r}; choose from {', '.join(PATHS)}")
+
+
+def scene_path(scene, wall: Wall, kind: str, frames: int) -> list[Frame]:
+    """``frames`` frames of path ``kind`` around a scene at rest: the box of its leaves' points,
+    turned about the scene's up axis (its settings' ``up``, +y by default)."""
+    points = scene.leaf_points[0]
+    return camera_path(kind, points.min(axis=0), points.max(axis=0), wall, frames,
+                       up=scene.settings.get("up", (0, 1, 0)))

@@ -18,7 +18,7 @@ import numpy as np
 from .. import oracle
 from ..bench import WARMUP_FRAMES, Motion
 from ..errors import InputError
-from ..paths import camera_path
+from ..paths import scene_path as path_frames  # noqa: F401 - the experiments call it C.path_frames
 from ..pipeline import Session
 from ..scene import Scene, load
 from ..wall import Wall
@@ -52,13 +52,6 @@ def fixed_wall(cols: int, rows: int) -> Wall:
     return Wall.from_dict({"cols": cols, "rows": rows,
                            "tile_size": [(W - (cols - 1) * gx) / cols, (H - (rows - 1) * gy) / rows],
                            "gap": [gx, gy], "distance": 2.0, "near": 0.1, "far": 1000.0})
-
-
-def path_frames(scene: Scene, wall: Wall, kind: str, frames: int):
-    """``frames`` frames of camera path ``kind`` around the scene at rest."""
-    points = scene.leaf_points[0]
-    return camera_path(kind, points.min(axis=0), points.max(axis=0), wall, frames,
-                       up=scene.settings.get("up", (0, 1, 0)))
 
 
 def spaced(count: int, total: int, seed: int) -> list[int]:
