@@ -20,8 +20,6 @@ print('\n'.join(d['project']['dependencies']))" > /tmp/requirements.txt \
  && pip install -r /tmp/requirements.txt
 
 COPY wallcull ./wallcull
-COPY clients ./clients
-COPY scenes ./scenes
 COPY examples ./examples
 RUN pip install --no-deps . \
  && useradd --create-home --uid 10001 wallcull \

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from wallcull.loadtest import free_port
+from wallcull.clients.loadtest import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
@@ -117,8 +117,8 @@ def test_token_comes_from_the_environment(monkeypatch):
     # the programs read it from the environment: nobody passes it on a command line
     for name in SERVICES:
         assert not any("token" in a.lower() for a in command(name, ENV))
-    from clients.driver import parser as driver_parser
-    from clients.sim import parser as sim_parser
+    from wallcull.clients.driver import parser as driver_parser
+    from wallcull.clients.sim import parser as sim_parser
 
     monkeypatch.setenv("WALLCULL_TOKEN", "from-env")
     assert sim_parser().parse_args([]).token == "from-env"
@@ -179,7 +179,7 @@ def test_dockerfile_copies_what_exists_and_is_in_the_context():
         if op == "COPY":
             *sources, _ = shlex.split(rest)
             copied += sources
-    assert {"pyproject.toml", "README.md", "wallcull", "clients", "scenes", "examples"} <= set(copied)
+    assert {"pyproject.toml", "README.md", "wallcull", "examples"} <= set(copied)
     for src in copied:
         assert (ROOT / src).exists(), src
         assert not _ignored(src, patterns), f"{src} is excluded by .dockerignore"

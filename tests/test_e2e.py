@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clients.driver import Driver
-from clients.sim import run_wall
-from wallcull.loadtest import running_server
+from wallcull.clients.driver import Driver
+from wallcull.clients.sim import run_wall
+from wallcull.clients.loadtest import running_server
 from wallcull.pipeline import Session
 from wallcull.scene import load
 from wallcull.wall import Wall

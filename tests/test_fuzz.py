@@ -151,11 +151,11 @@ def _glb(ctx, value):
 def _tidy() -> None:
     """Keep the state bounded between cases: only the prepared wall survives, with its
     history intact, and fuzzed uploads are forgotten."""
-    walls = APP.state.walls
+    walls = APP.state.server.walls
     for wid in [w for w in walls.sessions if w != WID]:
         walls.get(wid).close()
         walls.delete(wid)
-    store = APP.state.store
+    store = APP.state.server.store
     for name in [n for n in store.uploaded if n != "tiny.glb"]:
         store.uploaded.pop(name)
         store.cache.pop(name, None)
@@ -182,7 +182,7 @@ def test_api_never_fails_and_keeps_its_schema(case):
                                        content_type_conformance, response_schema_conformance])
     finally:
         _tidy()
-    assert WID in APP.state.walls.sessions
+    assert WID in APP.state.server.walls.sessions
 
 
 def test_the_prepared_objects_survived_the_fuzzing():

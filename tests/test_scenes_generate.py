@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import trimesh
 
-import scenes
-from scenes import meshes
-from scenes.generate import digest, tree_stats
-from scenes.tree import members, placements, polyline_pipe
+from wallcull import scenes
+from wallcull.scenes import meshes
+from wallcull.scenes.generate import digest, tree_stats
+from wallcull.scenes.tree import members, placements, polyline_pipe
 
 TARGETS = {
     #              internal, leaves, branching, triangles (lo, hi), half extent x/z, max height
@@ -94,7 +94,7 @@ def test_other_seed_other_scene_same_shape(built, seed):
 
 def test_digest_independent_of_python_hash_seed(built):
     """No set order or ``hash()`` leaks into the scene: another interpreter, another hash seed."""
-    code = "import scenes; from scenes.generate import digest; print(digest(scenes.build('fatehpur')))"
+    code = "from wallcull import scenes; from wallcull.scenes.generate import digest; print(digest(scenes.build('fatehpur')))"
     env = dict(os.environ, PYTHONHASHSEED="12345")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")

@@ -696,7 +696,7 @@ def test_state_changing_routes_need_the_token(client, wid, route, auth, folder):
     if path == "/walls":
         client.delete(f"/walls/{r.json()['id']}", headers=AUTH)
     (folder.scenes / "tok.glb").unlink(missing_ok=True)
-    client.app.state.store.cache.pop("tok.glb", None)
+    client.app.state.server.store.cache.pop("tok.glb", None)
 
 
 def test_reads_are_open(client, wid):

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .documents import read_json
 
 #: The wall of SPEC section 2, used where no ``--wall`` is given.
 DEFAULT_WALL = {"cols": 4, "rows": 4, "tile_size": [0.60, 0.34], "gap": [0.012, 0.012],
@@ -27,20 +28,6 @@ DEFAULT_WALL = {"cols": 4, "rows": 4, "tile_size": [0.60, 0.34], "gap": [0.012, 
 class _Parser(argparse.ArgumentParser):
     def error(self, message):  # one line, status 2 (argparse prints usage too by default)
         raise InputError(message)
-
-
-def read_json(text: str, what: str):
-    """A JSON document given inline (starting with ``{`` or ``[``) or as a file path."""
-    text = text.strip()
-    if not text.startswith(("{", "[")):
-        path = Path(text)
-        if not path.is_file():
-            raise InputError(f"{what} file not found: {text}")
-        text = path.read_text()
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"malformed JSON in {what}: {exc}") from None
 
 
 def _wall(arg):
@@ -213,7 +200,7 @@ def cmd_serve(args) -> int:
 
 
 def cmd_scenes(args) -> int:
-    import scenes
+    from wallcull import scenes
 
     for name, text in scenes.BUNDLED.items():
         print(f"{name}\t{text}")
@@ -295,7 +282,7 @@ def parser() -> argparse.ArgumentParser:
     q = sub.add_parser("scenes", help="list the bundled scenes")
     q.set_defaults(func=cmd_scenes)
     from .experiments import register; register(sub)
-    from .loadtest import register; register(sub)
+    from .clients.loadtest import register; register(sub)
     return p
 
 

@@ -584,7 +584,7 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
     """A bundled scene by name (``wallcull scenes``) or a scene file by path. Its settings
     (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled scene's or the
     file's sidecar ``<file>.wallcull.json``."""
-    import scenes as bundled
+    from wallcull import scenes as bundled
 
     from . import settings as cfg
 

@@ -67,7 +67,7 @@ class SceneStore:
         self._locks: dict[str, asyncio.Lock] = {}
 
     def names(self) -> list[dict]:
-        import scenes as bundled
+        from wallcull import scenes as bundled
 
         out = [{"name": n, "source": "bundled", "description": d}
                for n, d in bundled.BUNDLED.items()]
@@ -90,7 +90,7 @@ class SceneStore:
         return path
 
     async def get(self, name: str) -> Scene:
-        import scenes as bundled
+        from wallcull import scenes as bundled
 
         if name in self.cache:
             return self.cache[name]
@@ -110,7 +110,7 @@ class SceneStore:
 
     async def upload(self, name: str, data: bytes, replace: bool = False) -> Scene:
         """Store a GLB: checked, parsed (nothing in it is executed), then saved atomically."""
-        import scenes as bundled
+        from wallcull import scenes as bundled
 
         if not name.lower().endswith(".glb"):
             name += ".glb"

@@ -10,7 +10,7 @@ earlier than ``t0 + k / rate``); a driver that falls behind posts at once rather
 The camera follows :func:`wallcull.paths.camera_path` around the scene's bounds (from
 ``GET /scenes/{name}``), one loop every ``path_frames`` frames.
 
-    python -m clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
+    python -m wallcull.clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
         --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly]
 """
 
@@ -176,7 +176,7 @@ def summary(log: FrameLog) -> dict:
 
 
 def read_wall(text: str) -> dict:
-    from wallcull.cli import read_json
+    from wallcull.documents import read_json
 
     return read_json(text, "--wall")
 
@@ -190,7 +190,7 @@ def _count_or_all(text: str):
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m clients.driver",
+    p = argparse.ArgumentParser(prog="python -m wallcull.clients.driver",
                                 description="Post a walkthrough's frames to a wallcull wall.")
     p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
     p.add_argument("--scene", default="powerplant")

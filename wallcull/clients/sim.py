@@ -32,7 +32,7 @@ same packet would have had as a full list (re-encoded exactly as the server woul
 
 Run a wall of them::
 
-    python -m clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws
+    python -m wallcull.clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws
 """
 
 from __future__ import annotations
@@ -691,7 +691,7 @@ def pixels(text: str) -> tuple[int, int]:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m clients.sim",
+    p = argparse.ArgumentParser(prog="python -m wallcull.clients.sim",
                                 description="Simulated render clients of a wallcull wall.")
     p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
     p.add_argument("--wall", default="auto",

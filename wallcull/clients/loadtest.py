@@ -6,8 +6,8 @@ Walkthrough mode (the default)::
         --mode ws --clients-procs 1 [--barrier] [--path orbit|fly] --out DIR [--json]
 
 starts ``wallcull serve`` on a free loopback port, creates the wall, starts the render nodes
-(``python -m clients.sim``, the tiles split over ``--clients-procs`` processes, each node an
-asyncio task) and, once every node is connected, the driver (``python -m clients.driver``), which
+(``python -m wallcull.clients.sim``, the tiles split over ``--clients-procs`` processes, each node an
+asyncio task) and, once every node is connected, the driver (``python -m wallcull.clients.driver``), which
 posts ``rate x duration`` frames of the camera path. It then writes ``report.json`` and
 ``report.md`` to ``--out``:
 
@@ -32,11 +32,11 @@ Request mode::
 
     wallcull loadtest --requests 20000 [--concurrency 64]
 
-creates a wall, posts one frame, then a separate process (``python -m wallcull.loadtest``) sends
+creates a wall, posts one frame, then a separate process (``python -m wallcull.clients.loadtest``) sends
 ``GET /walls/{wid}/tiles/{t}/packets/latest`` over ``--concurrency`` keep-alive connections
 (tiles spread over the connections; no tile has acknowledged anything, so each answer is a full
 list) and reports requests/s. The load generator is the minimal asyncio HTTP/1.1 client of
-:mod:`clients.rawhttp` (on uvloop when installed): ``httpx`` tops out near the rates measured.
+:mod:`wallcull.clients.rawhttp` (on uvloop when installed): ``httpx`` tops out near the rates measured.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_WALL = "examples/wall-8x8.json"
 
 
@@ -103,7 +103,7 @@ class Server:
     async def start(self, timeout: float = 120.0) -> "Server":
         import psutil
 
-        from clients.rawhttp import Connection
+        from wallcull.clients.rawhttp import Connection
 
         cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1",
                "--port", str(self.port), "--log-level", self.log_level]
@@ -190,7 +190,7 @@ async def metrics(url: str) -> dict:
     """The server's counters: packets and bytes by kind and transport, stage times, errors."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    from clients.rawhttp import Connection
+    from wallcull.clients.rawhttp import Connection
 
     async with Connection(url) as conn:
         r = await conn.request("GET", "/metrics", accept="text/plain")
@@ -353,7 +353,7 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
 
 
 def _wall_spec(text: str) -> dict:
-    from .cli import read_json
+    from ..documents import read_json
 
     path = Path(text)
     if not text.strip().startswith("{") and not path.exists() and (ROOT / text).exists():
@@ -372,7 +372,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     """Run one walkthrough load test (see the module docstring) and return its report."""
     import psutil
 
-    from clients.driver import PATH_FRAMES, Driver
+    from wallcull.clients.driver import PATH_FRAMES, Driver
 
     host = machine()  # before we load it
     wall = _wall_spec(wall) if isinstance(wall, str) else wall
@@ -390,7 +390,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         wid, tiles = info["id"], info["tiles"]
         ranges = split(tiles, clients_procs)
         for k, (a, b) in enumerate(ranges):
-            cmd = [sys.executable, "-m", "clients.sim", "--server", url, "--wall", wid,
+            cmd = [sys.executable, "-m", "wallcull.clients.sim", "--server", url, "--wall", wid,
                    "--tiles", f"{a}-{b}", "--mode", mode, "--token", token,
                    "--until-frame", str(frames - 1), "--idle-timeout", "5",
                    "--cache-bytes", str(cache_bytes), "--out", f"{tmp.name}/nodes-{k}.json",
@@ -407,7 +407,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                     raise RuntimeError(f"only {got} of {tiles} nodes subscribed")
         server_ps = own.ps if own else None
         client_ps = [psutil.Process(p.pid) for p in procs]
-        cmd = [sys.executable, "-m", "clients.driver", "--server", url, "--wall-id", wid,
+        cmd = [sys.executable, "-m", "wallcull.clients.driver", "--server", url, "--wall-id", wid,
                "--rate", str(rate), "--frames", str(frames), "--path", path,
                "--path-frames", str(path_frames or PATH_FRAMES), "--token", token,
                "--out", f"{tmp.name}/driver.json"]
@@ -519,7 +519,7 @@ async def _watch(url, wid, frames, drv, show: bool) -> None:
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                                TimeElapsedColumn)
 
-    from clients.rawhttp import Connection
+    from wallcull.clients.rawhttp import Connection
 
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[rate]}"), TimeElapsedColumn())
@@ -560,7 +560,7 @@ async def hammer(server: str, targets: list[str], total: int, concurrency: int,
                  accept: str = "application/msgpack", duration: float | None = None) -> dict:
     """``total`` GETs (or as many as fit in ``duration`` seconds) over ``concurrency``
     keep-alive connections, connection ``i`` asking for ``targets[i % len(targets)]``."""
-    from clients.rawhttp import Connection
+    from wallcull.clients.rawhttp import Connection
 
     issued = 0
     statuses: Counter = Counter()
@@ -605,7 +605,7 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
                         progress: bool = True) -> dict:
     """Single-packet request throughput of one server (see the module docstring)."""
 
-    from clients.driver import Driver
+    from wallcull.clients.driver import Driver
 
     wall = _wall_spec(wall) if isinstance(wall, str) else wall
     token = token or secrets.token_hex(8)
@@ -618,7 +618,7 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
             info = await d.create_wall(scene, wall)
             frames = await d.frames(scene, info["wall"], "orbit", 1)
             await d.post(info["id"], frames[0])
-        cmd = [sys.executable, "-m", "wallcull.loadtest", "--server", url, "--wall-id",
+        cmd = [sys.executable, "-m", "wallcull.clients.loadtest", "--server", url, "--wall-id",
                info["id"], "--tiles", str(info["tiles"]), "--requests", str(requests),
                "--concurrency", str(concurrency)]
         cpu0 = cpu_seconds(own.ps) if own else float("nan")
@@ -664,8 +664,8 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
 
 
 def _hammer_main(argv=None) -> int:
-    """``python -m wallcull.loadtest``: the request-mode load generator (prints JSON)."""
-    p = argparse.ArgumentParser(prog="python -m wallcull.loadtest")
+    """``python -m wallcull.clients.loadtest``: the request-mode load generator (prints JSON)."""
+    p = argparse.ArgumentParser(prog="python -m wallcull.clients.loadtest")
     p.add_argument("--server", required=True)
     p.add_argument("--wall-id", required=True)
     p.add_argument("--tiles", type=int, default=1)
@@ -816,7 +816,7 @@ def register(sub) -> None:
 
 
 def cmd_loadtest(args) -> int:
-    from .errors import InputError
+    from ..errors import InputError
 
     if args.clients_procs < 1:
         raise InputError("--clients-procs must be at least 1")

@@ -1,1 +1,0 @@
-"""Clients of the culling server: the OpenGL tile renderer (``clients.render``)."""
