@@ -5,35 +5,49 @@ which yields *roots*: internal nodes wholly inside the primary frustum, and leav
 Then:
 
 * ``naive``    every leaf under the roots against every tile frustum, O(n m);
-* ``oh``       the object hierarchy culled to each tile in turn, O(m log n);
+* ``oh``       the object hierarchy culled to each tile in turn, with plane masking;
 * ``fh``       each leaf pushed down the frustum hierarchy, O(n log m);
-* ``adaptive`` Algorithm 2 with the decision of the text: a pair (object node, frustum node)
-  whose object lies on one side of the frustum node's split moves down the FH intact; one the
-  split cuts unfolds into the object's children (a cut leaf goes down both sides). Optional
-  *pseudo-groups*: when a node unfolds, the children that fall on the same side are regrouped
-  under a fresh axis-aligned box and move down together.
+* ``adaptive`` Algorithm 2, adaptive in the paper's sense: at every frustum node it decides
+  which hierarchy to descend. A pair (object node, frustum node) whose object lies on one side
+  of the frustum node's split moves down the FH intact. One the split cuts either unfolds into
+  its children now (the object is large for this frustum node: it would reach many of its
+  tiles) or moves down *both* sides whole (it is small: it will reach few tiles), carrying a
+  mask of the tile planes it is cut by. At a tile such an object is tested against the planes
+  in its mask only and then unfolded against that tile alone, as ``oh`` does with plane
+  masking: a node known inside a plane is never tested against it again below.
+  ``pseudo_groups=True`` runs the paper's Algorithm 2 as written (a cut object always unfolds)
+  with its pseudo-groups: the unfolded children that fall on one side are regrouped under a
+  fresh axis-aligned box and move down together.
 
-Every test is the rounded-box test of :mod:`wallcull.bounds`: a bound is outside a plane when
-``n . c + d < -r``. Every method is conservative, and an internal node is reported to a tile
-only when its bound lies inside all the planes that tile is tested against, so a reported node
-never stands for leaves the same test would have rejected. For the same bounds:
+Every test is the rounded-box test of :mod:`wallcull.bounds` on a packed record per node
+(:func:`pack`): a bound is outside a plane when ``n . c + d < -r``. Every method is
+conservative, and an internal node is reported to a tile only when its bound lies inside all
+the planes that tile is tested against, so a reported node never stands for leaves the same
+test would have rejected. For the same bounds:
 
 * ``naive`` and ``oh`` report the same leaves: those whose bound is outside none of the tile's
   six planes;
-* ``fh`` and ``adaptive`` (with or without pseudo-groups) report the same leaves: those outside
-  none of the primary planes and the split planes on the tile's path down the FH;
-* the second set is contained in the first. The split planes above a tile are planes through the
-  eye whose half-spaces contain the tile frustum, so they are valid culling planes; in front of
-  the eye they add nothing to the tile's own planes, but a bound that straddles the eye's plane
-  can pass each of the tile's planes one at a time and still be rejected by one of them.
+* ``fh`` (and ``adaptive`` with pseudo-groups) report the leaves outside none of the primary
+  planes and the split planes on the tile's path down the FH; ``adaptive`` reports leaves
+  between the two (a leaf reached through an object unfolded at a tile is tested against the
+  tile's own planes);
+* ``fh``'s set is contained in ``naive``'s. The split planes above a tile are planes through
+  the eye whose half-spaces contain the tile frustum, so they are valid culling planes; in
+  front of the eye they add nothing to the tile's own planes, but a bound that straddles the
+  eye's plane can pass each of the tile's planes one at a time and still be rejected by one of
+  them.
 
-The methods differ in how many tests they take, and how many internal nodes stand for leaves.
+**Bezels.** With a gap between tiles (``gap > 0``) a frustum node's children are bounded by two
+planes, and for a bound wholly in front of the eye, inside the first means outside the second
+(the half-spaces meet only behind the eye). The FH methods then skip the second test. With
+``gap == 0`` the two planes are one, negated exactly; with overlap (``gap < 0``) both are tested.
 
 The kernels are compiled with numba: the recursion of the paper is a loop over an explicit
-stack of node ids, over the structure-of-arrays hierarchy, with no Python object per node.
-Each kernel writes out its own plane-masked test, stack pushes and output appends. Helpers for
-them, inlined or not, made the kernels 15-20% slower (numba passes the grown arrays back as
-tuples), so the repetition is deliberate.
+stack of node ids, over flat arrays, with no Python object per node. Stacks and outputs are
+allocated by the caller (:class:`Culler` keeps them from frame to frame): a stack's depth is
+bounded by the two hierarchies' heights times the largest branching factor, and an output that
+fills up makes the kernel return ``-1``, the caller double it and run again. Nothing is
+allocated, grown or reference-counted inside a traversal loop.
 """
 
 from __future__ import annotations
@@ -44,192 +58,62 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from .bounds import Bounds
 from .errors import InputError
 from .scene import Scene, SceneState
 from .wall import Frusta
 
 METHODS = ("naive", "oh", "fh", "adaptive")
 
-_ALL6 = 63  # the six planes of a frustum as a bit mask: L, R, T, B, near, far
+#: Width of a packed node record (float64): centre (3), ball radius, the three half-extent
+#: vectors ``axes[k] * half[k]`` (9), the radius of a sphere around the whole bound, padding.
+#: 128 bytes: two cache lines.
+RECORD = 16
+_R_BALL, _R_AXES, _R_SPHERE = 3, 4, 13
+
+#: ``adaptive`` unfolds a cut object when it would reach more tiles than this many times the
+#: levels of frustum hierarchy below the split (see :func:`_adaptive`). Measured on the bench
+#: scenes and walls (``python -m wallcull.cull``): 2 keeps its box-plane tests below ``oh``'s
+#: on all of them; the count is flat between 1 and 4.
+UNFOLD_RATIO = 1.0
+
+_OUT, _CUT, _FULL = 0, 1, 2
+
+# Columns of the frustum-hierarchy table (int64).
+_FIRST, _SECOND, _PA, _PB, _TILE, _MODE, _SIDE_A, _SIDE_B = range(8)
+_SHARED, _DISJOINT, _OVERLAP = 0, 1, 2
+
+# Bits of an object's mask in ``adaptive``: the four side planes of its frustum node's region
+# (L, R, T, B), "unknown" in bits 0-3 (not tested: inherited from a parent unfolded above) and
+# "cut" in bits 4-7 (tested, cut); bit 8: the object may reach behind the eye.
+_UNKNOWN = 15
+_BEHIND = 256
+
+
+def pack(bounds: Bounds) -> np.ndarray:
+    """``(n, RECORD)`` float64 records of the bounds: what every kernel reads. The half-extent
+    vectors are premultiplied, so a plane test is three dot products and a sum."""
+    n = len(bounds)
+    out = np.zeros((n, RECORD))
+    out[:, :3] = bounds.center
+    out[:, _R_BALL] = bounds.radius
+    out[:, _R_AXES:_R_AXES + 9] = (bounds.axes * bounds.half[:, :, None]).reshape(n, 9)
+    out[:, _R_SPHERE] = np.sqrt((bounds.half ** 2).sum(axis=1)) + bounds.radius
+    return out
 
 
 # --------------------------------------------------------------------------- kernels
 
 
 @njit(cache=True, inline="always")
-def _classify(c, a, h, rad, i, planes, p):
+def _sr(box, i, planes, p):
     """``(s, r)`` of bound ``i`` against plane ``p``: outside when ``s < -r``, inside if ``s >= r``."""
     nx, ny, nz, d = planes[p, 0], planes[p, 1], planes[p, 2], planes[p, 3]
-    s = nx * c[i, 0] + ny * c[i, 1] + nz * c[i, 2] + d
-    r = (abs(nx * a[i, 0, 0] + ny * a[i, 0, 1] + nz * a[i, 0, 2]) * h[i, 0]
-         + abs(nx * a[i, 1, 0] + ny * a[i, 1, 1] + nz * a[i, 1, 2]) * h[i, 1]
-         + abs(nx * a[i, 2, 0] + ny * a[i, 2, 1] + nz * a[i, 2, 2]) * h[i, 2] + rad[i])
+    s = nx * box[i, 0] + ny * box[i, 1] + nz * box[i, 2] + d
+    r = (abs(nx * box[i, 4] + ny * box[i, 5] + nz * box[i, 6])
+         + abs(nx * box[i, 7] + ny * box[i, 8] + nz * box[i, 9])
+         + abs(nx * box[i, 10] + ny * box[i, 11] + nz * box[i, 12]) + box[i, 3])
     return s, r
-
-
-@njit(cache=True)
-def _grow(a):
-    out = np.empty(2 * a.shape[0], a.dtype)
-    out[:a.shape[0]] = a
-    return out
-
-
-@njit(cache=True)
-def _primary(child_start, child_count, children, is_leaf, c, a, h, rad, planes, plane_ids):
-    """Cull the root's children to one convex region: ``(roots, masks, tests)``.
-
-    The region is the intersection of the planes ``plane_ids`` (at most 63). ``roots`` are the
-    nodes wholly inside it and the leaves that meet it; ``masks`` holds, per root, the planes it
-    is not yet known to be inside (bit ``p`` for ``plane_ids[p]``). Planes a node is inside of
-    are dropped for its children (plane masking).
-    """
-    roots = np.empty(256, np.int64)
-    masks = np.empty(256, np.int64)
-    stack_n = np.empty(256, np.int64)
-    stack_m = np.empty(256, np.int64)
-    count = plane_ids.shape[0]
-    n = 0
-    tests = 0
-    for k in range(child_start[0], child_start[0] + child_count[0]):
-        sp = 1
-        stack_n[0] = children[k]
-        stack_m[0] = (1 << count) - 1
-        while sp > 0:
-            sp -= 1
-            i = stack_n[sp]
-            m = stack_m[sp]
-            outside = False
-            for p in range(count):
-                if m & (1 << p):
-                    s, r = _classify(c, a, h, rad, i, planes, plane_ids[p])
-                    tests += 1
-                    if s < -r:
-                        outside = True
-                        break
-                    if s >= r:
-                        m &= ~(1 << p)
-            if outside:
-                continue
-            if m == 0 or is_leaf[i]:
-                if n == roots.shape[0]:
-                    roots = _grow(roots)
-                    masks = _grow(masks)
-                roots[n] = i
-                masks[n] = m
-                n += 1
-                continue
-            k0 = child_start[i]
-            while sp + child_count[i] > stack_n.shape[0]:
-                stack_n = _grow(stack_n)
-                stack_m = _grow(stack_m)
-            for j in range(k0 + child_count[i] - 1, k0 - 1, -1):
-                stack_n[sp] = children[j]
-                stack_m[sp] = m
-                sp += 1
-    return roots[:n], masks[:n], tests
-
-
-@njit(cache=True)
-def _tile_mask(root_mask, force, inherit):
-    # A tile must test its inner side planes; its border planes and near/far are the primary's,
-    # which the root may already be known to be inside.
-    return force | (root_mask & inherit)
-
-
-@njit(cache=True)
-def _naive(roots, masks, leaves, leaf_start, leaf_count, c, a, h, rad, planes, tile_planes,
-           force, inherit):
-    out_n = np.empty(1024, np.int64)
-    out_t = np.empty(1024, np.int64)
-    k = 0
-    tests = 0
-    for j in range(roots.shape[0]):
-        root = roots[j]
-        for li in range(leaf_start[root], leaf_start[root] + leaf_count[root]):
-            leaf = leaves[li]
-            for t in range(tile_planes.shape[0]):
-                m = _tile_mask(masks[j], force[t], inherit[t])
-                visible = True
-                for p in range(6):
-                    if m & (1 << p):
-                        s, r = _classify(c, a, h, rad, leaf, planes, tile_planes[t, p])
-                        tests += 1
-                        if s < -r:
-                            visible = False
-                            break
-                if visible:
-                    if k == out_n.shape[0]:
-                        out_n = _grow(out_n)
-                        out_t = _grow(out_t)
-                    out_n[k] = leaf
-                    out_t[k] = t
-                    k += 1
-    return out_n[:k], out_t[:k], tests
-
-
-@njit(cache=True)
-def _oh(roots, masks, child_start, child_count, children, is_leaf, c, a, h, rad, planes,
-        tile_planes, force, inherit):
-    out_n = np.empty(1024, np.int64)
-    out_t = np.empty(1024, np.int64)
-    stack_n = np.empty(256, np.int64)
-    stack_m = np.empty(256, np.int64)
-    k = 0
-    tests = 0
-    for t in range(tile_planes.shape[0]):
-        while roots.shape[0] > stack_n.shape[0]:
-            stack_n = _grow(stack_n)
-            stack_m = _grow(stack_m)
-        sp = 0
-        for j in range(roots.shape[0] - 1, -1, -1):
-            stack_n[sp] = roots[j]
-            stack_m[sp] = _tile_mask(masks[j], force[t], inherit[t])
-            sp += 1
-        while sp > 0:
-            sp -= 1
-            i = stack_n[sp]
-            m = stack_m[sp]
-            outside = False
-            for p in range(6):
-                if m & (1 << p):
-                    s, r = _classify(c, a, h, rad, i, planes, tile_planes[t, p])
-                    tests += 1
-                    if s < -r:
-                        outside = True
-                        break
-                    if s >= r:
-                        m &= ~(1 << p)
-            if outside:
-                continue
-            if m == 0 or is_leaf[i]:
-                if k == out_n.shape[0]:
-                    out_n = _grow(out_n)
-                    out_t = _grow(out_t)
-                out_n[k] = i
-                out_t[k] = t
-                k += 1
-                continue
-            k0 = child_start[i]
-            while sp + child_count[i] > stack_n.shape[0]:
-                stack_n = _grow(stack_n)
-                stack_m = _grow(stack_m)
-            for q in range(k0 + child_count[i] - 1, k0 - 1, -1):
-                stack_n[sp] = children[q]
-                stack_m[sp] = m
-                sp += 1
-    return out_n[:k], out_t[:k], tests
-
-
-@njit(cache=True, inline="always")
-def _box_sr(box, g, planes, p):
-    """``(s, r)`` of an axis-aligned box ``box[g] = (centre, half extents)`` against plane ``p``."""
-    nx, ny, nz, d = planes[p, 0], planes[p, 1], planes[p, 2], planes[p, 3]
-    s = nx * box[g, 0] + ny * box[g, 1] + nz * box[g, 2] + d
-    r = abs(nx) * box[g, 3] + abs(ny) * box[g, 4] + abs(nz) * box[g, 5]
-    return s, r
-
-
-_OUT, _CUT, _FULL = 0, 1, 2
 
 
 @njit(cache=True, inline="always")
@@ -242,26 +126,155 @@ def _state(s, r):
 
 
 @njit(cache=True, inline="always")
-def _states(c, a, h, rad, i, planes, pa, pb, shared_split):
-    """States of bound ``i`` against a split's two planes: ``(state_a, state_b, tests)``."""
-    s, r = _classify(c, a, h, rad, i, planes, pa)
-    if shared_split:
-        return _state(s, r), _state(-s, r), 1
+def _split(box, o, planes, fh, f, behind):
+    """States of bound ``o`` against frustum node ``f``'s two child planes, and the tests
+    taken: one when the planes are one (no gap), or when the bound, wholly in front of the
+    eye, is inside the first plane of a bezel split (then it is outside the second)."""
+    s, r = _sr(box, o, planes, fh[f, _PA])
     sa = _state(s, r)
-    s, r = _classify(c, a, h, rad, i, planes, pb)
+    mode = fh[f, _MODE]
+    if mode == _SHARED:
+        return sa, _state(-s, r), 1
+    if mode == _DISJOINT and sa == _FULL and not behind:
+        return sa, _OUT, 1
+    s, r = _sr(box, o, planes, fh[f, _PB])
     return sa, _state(s, r), 2
 
 
 @njit(cache=True)
-def _fh(roots, leaves, leaf_start, leaf_count, c, a, h, rad, planes, fh_first, fh_second,
-        fh_plane_a, fh_plane_b, fh_tile, shared_split):
-    out_n = np.empty(1024, np.int64)
-    out_t = np.empty(1024, np.int64)
-    stack = np.empty(256, np.int64)
+def _primary(child_start, child_count, children, box, planes, plane_ids, roots, masks,
+             stack_n, stack_m):
+    """Cull the root's children to one convex region: ``(count, tests)``, writing ``roots``
+    and ``masks``.
+
+    The region is the intersection of the planes ``plane_ids`` (at most 63). ``roots`` are the
+    nodes wholly inside it and the leaves that meet it; ``masks`` holds, per root, the planes it
+    is not yet known to be inside (bit ``p`` for ``plane_ids[p]``). Planes a node is inside of
+    are dropped for its children (plane masking).
+    """
+    count = plane_ids.shape[0]
+    n = 0
+    tests = 0
+    sp = 0
+    for k in range(child_start[0] + child_count[0] - 1, child_start[0] - 1, -1):
+        stack_n[sp] = children[k]
+        stack_m[sp] = (1 << count) - 1
+        sp += 1
+    while sp > 0:
+        sp -= 1
+        i = stack_n[sp]
+        m = stack_m[sp]
+        outside = False
+        for p in range(count):
+            if m & (1 << p):
+                s, r = _sr(box, i, planes, plane_ids[p])
+                tests += 1
+                if s < -r:
+                    outside = True
+                    break
+                if s >= r:
+                    m &= ~(1 << p)
+        if outside:
+            continue
+        if m == 0 or child_count[i] == 0:
+            roots[n] = i
+            masks[n] = m
+            n += 1
+            continue
+        for j in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
+            stack_n[sp] = children[j]
+            stack_m[sp] = m
+            sp += 1
+    return n, tests
+
+
+@njit(cache=True)
+def _naive(roots, masks, leaves, leaf_start, leaf_count, box, planes, tile_planes, force,
+           inherit, out_n, out_t):
     k = 0
     tests = 0
+    cap = out_n.shape[0]
     for j in range(roots.shape[0]):
         root = roots[j]
+        for li in range(leaf_start[root], leaf_start[root] + leaf_count[root]):
+            leaf = leaves[li]
+            for t in range(tile_planes.shape[0]):
+                # A tile tests its inner side planes; its border planes and near/far are the
+                # primary's, which the root may already be known to be inside.
+                m = force[t] | (masks[j] & inherit[t])
+                visible = True
+                for p in range(6):
+                    if m & (1 << p):
+                        s, r = _sr(box, leaf, planes, tile_planes[t, p])
+                        tests += 1
+                        if s < -r:
+                            visible = False
+                            break
+                if visible:
+                    if k == cap:
+                        return -1, tests
+                    out_n[k] = leaf
+                    out_t[k] = t
+                    k += 1
+    return k, tests
+
+
+@njit(cache=True)
+def _oh(roots, masks, child_start, child_count, children, box, planes, region_planes,
+        region_size, force, inherit, stack_n, stack_m, out_n, out_t):
+    """The object hierarchy culled to each convex region in turn, with plane masking: region
+    ``q`` is the intersection of planes ``region_planes[q, :region_size[q]]``; root ``j``
+    starts with mask ``force[q] | (masks[j] & inherit[q])``. Used for the tiles (``oh``) and for
+    any set of regions (shadow casters, mirror views: :func:`cull_regions`)."""
+    k = 0
+    tests = 0
+    cap = out_n.shape[0]
+    for q in range(region_planes.shape[0]):
+        sp = 0
+        for j in range(roots.shape[0] - 1, -1, -1):
+            stack_n[sp] = roots[j]
+            stack_m[sp] = force[q] | (masks[j] & inherit[q])
+            sp += 1
+        size = region_size[q]
+        while sp > 0:
+            sp -= 1
+            i = stack_n[sp]
+            m = stack_m[sp]
+            outside = False
+            for p in range(size):
+                if m & (1 << p):
+                    s, r = _sr(box, i, planes, region_planes[q, p])
+                    tests += 1
+                    if s < -r:
+                        outside = True
+                        break
+                    if s >= r:
+                        m &= ~(1 << p)
+            if outside:
+                continue
+            if m == 0 or child_count[i] == 0:
+                if k == cap:
+                    return -1, tests
+                out_n[k] = i
+                out_t[k] = q
+                k += 1
+                continue
+            for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
+                stack_n[sp] = children[c]
+                stack_m[sp] = m
+                sp += 1
+    return k, tests
+
+
+@njit(cache=True)
+def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit, stack,
+        out_n, out_t):
+    k = 0
+    tests = 0
+    cap = out_n.shape[0]
+    for j in range(roots.shape[0]):
+        root = roots[j]
+        behind = (masks[j] & near_bit) != 0
         for li in range(leaf_start[root], leaf_start[root] + leaf_count[root]):
             leaf = leaves[li]
             stack[0] = 0
@@ -269,116 +282,183 @@ def _fh(roots, leaves, leaf_start, leaf_count, c, a, h, rad, planes, fh_first, f
             while sp > 0:
                 sp -= 1
                 f = stack[sp]
-                if fh_tile[f] >= 0:
-                    if k == out_n.shape[0]:
-                        out_n = _grow(out_n)
-                        out_t = _grow(out_t)
+                if fh[f, _TILE] >= 0:
+                    if k == cap:
+                        return -1, tests
                     out_n[k] = leaf
-                    out_t[k] = fh_tile[f]
+                    out_t[k] = fh[f, _TILE]
                     k += 1
                     continue
-                sa, sb, nt = _states(c, a, h, rad, leaf, planes, fh_plane_a[f], fh_plane_b[f],
-                                     shared_split)
+                sa, sb, nt = _split(box, leaf, planes, fh, f, behind)
                 tests += nt
-                if sp + 2 > stack.shape[0]:
-                    stack = _grow(stack)
                 if sb != _OUT:
-                    stack[sp] = fh_second[f]
+                    stack[sp] = fh[f, _SECOND]
                     sp += 1
                 if sa != _OUT:
-                    stack[sp] = fh_first[f]
+                    stack[sp] = fh[f, _FIRST]
                     sp += 1
-    return out_n[:k], out_t[:k], tests
+    return k, tests
 
 
 @njit(cache=True)
-def _adaptive(roots, child_start, child_count, children, is_leaf, c, a, h, rad, planes,
-              fh_first, fh_second, fh_plane_a, fh_plane_b, fh_tile, shared_split):
-    """Algorithm 2 over an explicit stack of (object node, frustum node) pairs.
+def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh, fh_unfold,
+              tile_planes, view, pitch_x, pitch_y, near_bit, so, sf, sm, ts, tm, out_n, out_t):
+    """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring).
 
-    At an internal frustum node the object is tested against the planes bounding the two
-    children (one plane, negated, when there is no gap). Against each it is out, cut or full.
-    If neither plane cuts it, it moves down intact to each child it fills; if one does, a leaf
-    goes down to each child it is not out of, and an internal node unfolds into its children,
-    which are tested at the same frustum node. So an internal node reaches a tile only when its
-    bound lies wholly inside the tile frustum.
+    A stack entry is (object ``so``, frustum node ``sf``, mask ``sm``). At an internal frustum
+    node the object is tested against the planes bounding the two children. If neither cuts it,
+    it moves down intact to each child it fills (and the side plane the split gives that child
+    is known inside: its bits clear). If one cuts it, a leaf goes down each side it reaches,
+    its "cut" bit set for the plane that cut it. An internal node unfolds into its children,
+    tested at the same frustum node, when it would reach more than ``fh_unfold[f]`` tiles
+    (estimated from the angle its bounding sphere spans, ``view`` giving its depth, against the
+    tiles' angular pitch); otherwise it goes down both sides whole like a leaf. At a tile, an
+    object is tested against its "unknown" planes; with no plane left cut it is inside the
+    tile and is listed; a cut leaf is listed; a cut internal node is culled to this tile alone,
+    over the planes it is cut by (``oh`` with plane masking, on stack ``ts``/``tm``).
     """
-    out_n = np.empty(1024, np.int64)
-    out_t = np.empty(1024, np.int64)
-    so = np.empty(1024, np.int64)  # stack: object node
-    sf = np.empty(1024, np.int64)  # stack: frustum node
     k = 0
     tests = 0
+    cap = out_n.shape[0]
     sp = 0
-    while roots.shape[0] > so.shape[0]:
-        so = _grow(so)
-        sf = _grow(sf)
     for j in range(roots.shape[0] - 1, -1, -1):
         so[sp] = roots[j]
         sf[sp] = 0
+        sm[sp] = _BEHIND if masks[j] & near_bit else 0
         sp += 1
     while sp > 0:
         sp -= 1
         o = so[sp]
         f = sf[sp]
-        tile = fh_tile[f]
-        if tile >= 0:  # Alg. 2 lines 1-3: a frustum leaf; mark visible
-            if k == out_n.shape[0]:
-                out_n = _grow(out_n)
-                out_t = _grow(out_t)
+        m = sm[sp]
+        while True:  # follow the object down while it goes one way: no stack traffic
+            tile = fh[f, _TILE]
+            if tile >= 0:
+                break
+            sa, sb, nt = _split(box, o, planes, fh, f, (m & _BEHIND) != 0)
+            tests += nt
+            bit_a = fh[f, _SIDE_A]
+            bit_b = fh[f, _SIDE_B]
+            # the split gives each child a new side plane: forget what was known of the old one
+            ma = (m & ~(bit_a | (bit_a << 4))) | ((bit_a << 4) if sa == _CUT else 0)
+            mb = (m & ~(bit_b | (bit_b << 4))) | ((bit_b << 4) if sb == _CUT else 0)
+            if (sa == _CUT or sb == _CUT) and child_count[o] > 0:
+                depth = (view[0] * box[o, 0] + view[1] * box[o, 1] + view[2] * box[o, 2]
+                         + view[3])
+                angle = box[o, _R_SPHERE] / depth if depth > 0 else np.inf
+                reach = (2 * angle / pitch_x + 1) * (2 * angle / pitch_y + 1)
+                if reach > fh_unfold[f]:  # large for this frustum node: unfold here
+                    cm = (m & _UNKNOWN) | ((m >> 4) & _UNKNOWN)
+                    for c in range(child_start[o] + child_count[o] - 1, child_start[o] - 1,
+                                   -1):
+                        so[sp] = children[c]
+                        sf[sp] = f
+                        sm[sp] = cm
+                        sp += 1
+                    tile = -2
+                    break
+            # Down every side it reaches, whole: intact where it is inside, cut where it is
+            # cut (the plane's "cut" bit set), both sides or neither in an overlap or a gap.
+            if sa != _OUT:
+                if sb != _OUT:
+                    so[sp] = o
+                    sf[sp] = fh[f, _SECOND]
+                    sm[sp] = mb
+                    sp += 1
+                f = fh[f, _FIRST]
+                m = ma
+            elif sb != _OUT:
+                f = fh[f, _SECOND]
+                m = mb
+            else:
+                tile = -2
+                break
+        if tile < 0:
+            continue
+        unknown = m & _UNKNOWN
+        cut = (m >> 4) & _UNKNOWN
+        if unknown:
+            outside = False
+            for p in range(4):
+                if unknown & (1 << p):
+                    s, r = _sr(box, o, planes, tile_planes[tile, p])
+                    tests += 1
+                    if s < -r:
+                        outside = True
+                        break
+                    if s < r:
+                        cut |= 1 << p
+            if outside:
+                continue
+        if cut == 0 or child_count[o] == 0:
+            if k == cap:
+                return -1, tests
             out_n[k] = o
             out_t[k] = tile
             k += 1
             continue
-        sa, sb, nt = _states(c, a, h, rad, o, planes, fh_plane_a[f], fh_plane_b[f],
-                             shared_split)
-        tests += nt
-        first = fh_first[f]
-        second = fh_second[f]
-        if sp + 2 > so.shape[0]:
-            so = _grow(so)
-            sf = _grow(sf)
-        if sa != _CUT and sb != _CUT:  # on one side (or in both, or in a gap): intact
-            if sb == _FULL:
-                so[sp] = o
-                sf[sp] = second
-                sp += 1
-            if sa == _FULL:
-                so[sp] = o
-                sf[sp] = first
-                sp += 1
-            continue
-        if is_leaf[o]:  # a cut leaf goes down every side it reaches
-            if sb != _OUT:
-                so[sp] = o
-                sf[sp] = second
-                sp += 1
-            if sa != _OUT:
-                so[sp] = o
-                sf[sp] = first
-                sp += 1
-            continue
-        m0 = child_start[o]  # cut: unfold into the children, tested at this frustum node
-        m_count = child_count[o]
-        while sp + m_count > so.shape[0]:
-            so = _grow(so)
-            sf = _grow(sf)
-        for q in range(m0 + m_count - 1, m0 - 1, -1):
-            so[sp] = children[q]
-            sf[sp] = f
-            sp += 1
-    return out_n[:k], out_t[:k], tests
+        tp = 0  # cull o's subtree to this tile, over the planes o is cut by
+        for c in range(child_start[o] + child_count[o] - 1, child_start[o] - 1, -1):
+            ts[tp] = children[c]
+            tm[tp] = cut
+            tp += 1
+        while tp > 0:
+            tp -= 1
+            i = ts[tp]
+            mm = tm[tp]
+            outside = False
+            for p in range(4):
+                if mm & (1 << p):
+                    s, r = _sr(box, i, planes, tile_planes[tile, p])
+                    tests += 1
+                    if s < -r:
+                        outside = True
+                        break
+                    if s >= r:
+                        mm &= ~(1 << p)
+            if outside:
+                continue
+            if mm == 0 or child_count[i] == 0:
+                if k == cap:
+                    return -1, tests
+                out_n[k] = i
+                out_t[k] = tile
+                k += 1
+                continue
+            for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
+                ts[tp] = children[c]
+                tm[tp] = mm
+                tp += 1
+    return k, tests
+
+
+@njit(cache=True, inline="always")
+def _box_sr(pool, g, planes, p):
+    """``(s, r)`` of an axis-aligned box ``pool[g] = (centre, half extents)`` against plane ``p``."""
+    nx, ny, nz, d = planes[p, 0], planes[p, 1], planes[p, 2], planes[p, 3]
+    s = nx * pool[g, 0] + ny * pool[g, 1] + nz * pool[g, 2] + d
+    r = abs(nx) * pool[g, 3] + abs(ny) * pool[g, 4] + abs(nz) * pool[g, 5]
+    return s, r
 
 
 @njit(cache=True)
-def _group(members, count, c, a, h, rad, pool_box, pool_start, pool_members, n_pg, n_pm):
+def _grow(a):
+    out = np.empty((2 * a.shape[0],) + a.shape[1:], a.dtype)
+    out[:a.shape[0]] = a
+    return out
+
+
+@njit(cache=True)
+def _group(members, count, box, pool_box, pool_start, pool_members, n_pg, n_pm):
     """Append a pseudo-group of ``members[:count]`` to the pool, with its axis-aligned box.
 
-    ``pool_box[g]`` holds the centre and half extents (6 numbers). Returns the (possibly grown)
-    pool arrays and the new counts.
+    ``pool_box[g]`` holds the centre and half extents (6 numbers); group ``g``'s members are
+    ``pool_members[pool_start[g]:pool_start[g + 1]]``. Returns the (possibly grown) pool arrays
+    and the new counts.
     """
-    if n_pg + 1 >= pool_start.shape[0]:
-        pool_box = _grow2(pool_box)
+    if n_pg + 1 >= pool_box.shape[0]:
+        pool_box = _grow(pool_box)
+    if n_pg + 2 >= pool_start.shape[0]:
         pool_start = _grow(pool_start)
     while n_pm + count > pool_members.shape[0]:
         pool_members = _grow(pool_members)
@@ -388,10 +468,9 @@ def _group(members, count, c, a, h, rad, pool_box, pool_start, pool_members, n_p
         i = members[q]
         pool_members[n_pm + q] = i
         for j in range(3):
-            e = (abs(a[i, 0, j]) * h[i, 0] + abs(a[i, 1, j]) * h[i, 1]
-                 + abs(a[i, 2, j]) * h[i, 2] + rad[i])
-            lo[j] = min(lo[j], c[i, j] - e)
-            hi[j] = max(hi[j], c[i, j] + e)
+            e = (abs(box[i, 4 + j]) + abs(box[i, 7 + j]) + abs(box[i, 10 + j]) + box[i, 3])
+            lo[j] = min(lo[j], box[i, j] - e)
+            hi[j] = max(hi[j], box[i, j] + e)
     for j in range(3):
         mid = (lo[j] + hi[j]) / 2
         pool_box[n_pg, j] = mid
@@ -403,50 +482,56 @@ def _group(members, count, c, a, h, rad, pool_box, pool_start, pool_members, n_p
 
 
 @njit(cache=True)
-def _adaptive_pseudo(roots, child_start, child_count, children, is_leaf, c, a, h, rad, planes,
-                     fh_first, fh_second, fh_plane_a, fh_plane_b, fh_tile, shared_split):
-    """:func:`_adaptive` with pseudo-groups (paper section 4.2).
+def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, near_bit):
+    """The paper's Algorithm 2 as written, with pseudo-groups (section 4.2).
 
-    When an object unfolds, its members are classified at once and the ones wholly on one side
-    of the split are regrouped under a fresh axis-aligned box that moves down as one object.
-    The roots of the first-level cull enter the frustum hierarchy as one such group, so a flat
-    scene (one parent, thousands of leaves) benefits too. Object ids ``>= n`` name groups;
-    group ``g`` holds ``pool_members[pool_start[g]:pool_start[g + 1]]``, all scene nodes.
+    A cut object always unfolds; its members are classified at once and the ones wholly on one
+    side of the split are regrouped under a fresh axis-aligned box that moves down as one
+    object. The roots of the first-level cull enter the frustum hierarchy as one such group,
+    so a flat scene (one parent, thousands of leaves) benefits too. Object ids ``>= n`` name
+    groups. The pool of groups grows as needed (this variant is measured, not the default).
     """
-    n = c.shape[0]
+    n = box.shape[0]
     out_n = np.empty(1024, np.int64)
     out_t = np.empty(1024, np.int64)
-    so = np.empty(1024, np.int64)  # stack: object
-    sf = np.empty(1024, np.int64)  # stack: frustum node
+    so = np.empty(1024, np.int64)
+    sf = np.empty(1024, np.int64)
+    sb_ = np.empty(1024, np.uint8)  # 1: may reach behind the eye
     pool_box = np.empty((64, 6))
-    pool_start = np.zeros(65, np.int64)
+    pool_start = np.zeros(66, np.int64)
     pool_members = np.empty(256, np.int64)
     n_pg = 0
     n_pm = 0
-    firsts = np.empty(64, np.int64)  # members of an unfolding object wholly on each side
+    firsts = np.empty(64, np.int64)
     seconds = np.empty(64, np.int64)
     k = 0
     tests = 0
     sp = 0
+    behind_roots = False
+    for j in range(roots.shape[0]):
+        behind_roots |= (masks[j] & near_bit) != 0
     if roots.shape[0] > 1:
         pool_box, pool_start, pool_members, n_pg, n_pm = _group(
-            roots, roots.shape[0], c, a, h, rad, pool_box, pool_start, pool_members, n_pg, n_pm)
+            roots, roots.shape[0], box, pool_box, pool_start, pool_members, n_pg, n_pm)
         so[0] = n
         sf[0] = 0
+        sb_[0] = behind_roots
         sp = 1
     elif roots.shape[0] == 1:
         so[0] = roots[0]
         sf[0] = 0
+        sb_[0] = behind_roots
         sp = 1
     while sp > 0:
         sp -= 1
         o = so[sp]
         f = sf[sp]
+        behind = sb_[sp] != 0
         if o < n:
             m0, m_count = child_start[o], child_count[o]
         else:
             m0, m_count = pool_start[o - n], pool_start[o - n + 1] - pool_start[o - n]
-        tile = fh_tile[f]
+        tile = fh[f, _TILE]
         if tile >= 0:  # a frustum leaf: mark the object (or the group's members) visible
             count = 1 if o < n else m_count
             while k + count > out_n.shape[0]:
@@ -458,43 +543,38 @@ def _adaptive_pseudo(roots, child_start, child_count, children, is_leaf, c, a, h
                 k += 1
             continue
         if o < n:
-            s, r = _classify(c, a, h, rad, o, planes, fh_plane_a[f])
+            sa, sb, nt = _split(box, o, planes, fh, f, behind)
         else:
-            s, r = _box_sr(pool_box, o - n, planes, fh_plane_a[f])
-        sa = _state(s, r)
-        if shared_split:
-            sb = _state(-s, r)
-            tests += 1
-        else:
-            if o < n:
-                s, r = _classify(c, a, h, rad, o, planes, fh_plane_b[f])
+            s, r = _box_sr(pool_box, o - n, planes, fh[f, _PA])
+            sa, nt = _state(s, r), 1
+            if fh[f, _MODE] == _SHARED:
+                sb = _state(-s, r)
+            elif fh[f, _MODE] == _DISJOINT and sa == _FULL and not behind:
+                sb = _OUT
             else:
-                s, r = _box_sr(pool_box, o - n, planes, fh_plane_b[f])
-            sb = _state(s, r)
-            tests += 2
-        first = fh_first[f]
-        second = fh_second[f]
+                s, r = _box_sr(pool_box, o - n, planes, fh[f, _PB])
+                sb, nt = _state(s, r), 2
+        tests += nt
+        first = fh[f, _FIRST]
+        second = fh[f, _SECOND]
         while sp + 2 * m_count + 2 > so.shape[0]:
             so = _grow(so)
             sf = _grow(sf)
+            sb_ = _grow(sb_)
         if sa != _CUT and sb != _CUT:  # intact to each side it fills
             if sb == _FULL:
-                so[sp] = o
-                sf[sp] = second
+                so[sp], sf[sp], sb_[sp] = o, second, behind
                 sp += 1
             if sa == _FULL:
-                so[sp] = o
-                sf[sp] = first
+                so[sp], sf[sp], sb_[sp] = o, first, behind
                 sp += 1
             continue
-        if o < n and is_leaf[o]:
+        if o < n and child_count[o] == 0:
             if sb != _OUT:
-                so[sp] = o
-                sf[sp] = second
+                so[sp], sf[sp], sb_[sp] = o, second, behind
                 sp += 1
             if sa != _OUT:
-                so[sp] = o
-                sf[sp] = first
+                so[sp], sf[sp], sb_[sp] = o, first, behind
                 sp += 1
             continue
         # Cut: classify the members here; the ones wholly on one side are regrouped.
@@ -505,8 +585,7 @@ def _adaptive_pseudo(roots, child_start, child_count, children, is_leaf, c, a, h
         n_second = 0
         for q in range(m0, m0 + m_count):
             i = children[q] if o < n else pool_members[q]
-            ma, mb, nt = _states(c, a, h, rad, i, planes, fh_plane_a[f], fh_plane_b[f],
-                                 shared_split)
+            ma, mb, nt = _split(box, i, planes, fh, f, behind)
             tests += nt
             if ma == _FULL and mb == _OUT:
                 firsts[n_first] = i
@@ -516,69 +595,113 @@ def _adaptive_pseudo(roots, child_start, child_count, children, is_leaf, c, a, h
                 n_second += 1
             elif ma != _CUT and mb != _CUT:  # in both children (projector overlap) or neither
                 if mb == _FULL:
-                    so[sp] = i
-                    sf[sp] = second
+                    so[sp], sf[sp], sb_[sp] = i, second, behind
                     sp += 1
                 if ma == _FULL:
-                    so[sp] = i
-                    sf[sp] = first
+                    so[sp], sf[sp], sb_[sp] = i, first, behind
                     sp += 1
-            elif is_leaf[i]:
+            elif child_count[i] == 0:
                 if mb != _OUT:
-                    so[sp] = i
-                    sf[sp] = second
+                    so[sp], sf[sp], sb_[sp] = i, second, behind
                     sp += 1
                 if ma != _OUT:
-                    so[sp] = i
-                    sf[sp] = first
+                    so[sp], sf[sp], sb_[sp] = i, first, behind
                     sp += 1
             else:  # cut: unfold it here
-                while sp + child_count[i] + 2 * m_count > so.shape[0]:
+                while sp + child_count[i] + 2 * m_count + 2 > so.shape[0]:
                     so = _grow(so)
                     sf = _grow(sf)
+                    sb_ = _grow(sb_)
                 for qq in range(child_start[i], child_start[i] + child_count[i]):
-                    so[sp] = children[qq]
-                    sf[sp] = f
+                    so[sp], sf[sp], sb_[sp] = children[qq], f, behind
                     sp += 1
         for side in range(2):
             members = firsts if side == 0 else seconds
             count = n_first if side == 0 else n_second
             target = first if side == 0 else second
             if count == 1:
-                so[sp] = members[0]
-                sf[sp] = target
+                so[sp], sf[sp], sb_[sp] = members[0], target, behind
                 sp += 1
             elif count > 1:
                 pool_box, pool_start, pool_members, n_pg, n_pm = _group(
-                    members, count, c, a, h, rad, pool_box, pool_start, pool_members, n_pg, n_pm)
-                so[sp] = n + n_pg - 1
-                sf[sp] = target
+                    members, count, box, pool_box, pool_start, pool_members, n_pg, n_pm)
+                so[sp], sf[sp], sb_[sp] = n + n_pg - 1, target, behind
                 sp += 1
     return out_n[:k], out_t[:k], tests
 
 
 @njit(cache=True)
-def _grow2(a):
-    out = np.empty((2 * a.shape[0], a.shape[1]), a.dtype)
-    out[:a.shape[0]] = a
-    return out
-
-
-@njit(cache=True)
-def _by_tile(nodes, tiles, m):
-    """Counting sort of (node, tile) pairs into per-tile CSR ``(start (m + 1,), nodes)``."""
+def _by_region(nodes, regions, m):
+    """Counting sort of (node, region) pairs into CSR ``(start (m + 1,), nodes)``, each
+    region's nodes in increasing id (preorder) order. The traversals' stacks already emit each
+    region's nodes in preorder (children are pushed in reverse and a node's pairs are done before
+    its next sibling's); only pseudo-groups mix them, and only those regions get sorted."""
     start = np.zeros(m + 1, np.int64)
-    for t in tiles:
+    for t in regions:
         start[t + 1] += 1
     for t in range(m):
         start[t + 1] += start[t]
     fill = start[:-1].copy()
     out = np.empty(nodes.shape[0], np.int64)
     for j in range(nodes.shape[0]):
-        t = tiles[j]
+        t = regions[j]
         out[fill[t]] = nodes[j]
         fill[t] += 1
+    for t in range(m):
+        for j in range(start[t] + 1, start[t + 1]):
+            if out[j] < out[j - 1]:
+                out[start[t]:start[t + 1]].sort()
+                break
     return start, out
+
+
+@njit(cache=True)
+def _expand(start, nodes, leaf_start, leaf_count, leaves):
+    """Every region's leaves in CSR form, from its nodes (each a whole subtree). The nodes of a
+    region are disjoint subtrees in preorder, so their leaf runs come out sorted and unique."""
+    m = start.shape[0] - 1
+    out_start = np.zeros(m + 1, np.int64)
+    for t in range(m):
+        total = 0
+        for j in range(start[t], start[t + 1]):
+            total += leaf_count[nodes[j]]
+        out_start[t + 1] = out_start[t] + total
+    out = np.empty(out_start[m], np.int64)
+    w = 0
+    for t in range(m):
+        for j in range(start[t], start[t + 1]):
+            i = nodes[j]
+            for q in range(leaf_start[i], leaf_start[i] + leaf_count[i]):
+                out[w] = leaves[q]
+                w += 1
+    return out_start, out
+
+
+@njit(cache=True)
+def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
+    """Per region, the smallest and largest depth along unit ``forward`` from ``origin``
+    reached by its nodes' bounds (``lo_default``/``hi_default`` for an empty region)."""
+    m = start.shape[0] - 1
+    lo = np.full(m, lo_default)
+    hi = np.full(m, hi_default)
+    fx, fy, fz = forward[0], forward[1], forward[2]
+    for t in range(m):
+        if start[t + 1] == start[t]:
+            continue
+        a = np.inf
+        b = -np.inf
+        for j in range(start[t], start[t + 1]):
+            i = nodes[j]
+            c = ((box[i, 0] - origin[0]) * fx + (box[i, 1] - origin[1]) * fy
+                 + (box[i, 2] - origin[2]) * fz)
+            r = (abs(fx * box[i, 4] + fy * box[i, 5] + fz * box[i, 6])
+                 + abs(fx * box[i, 7] + fy * box[i, 8] + fz * box[i, 9])
+                 + abs(fx * box[i, 10] + fy * box[i, 11] + fz * box[i, 12]) + box[i, 3])
+            a = min(a, c - r)
+            b = max(b, c + r)
+        lo[t] = a
+        hi[t] = b
+    return lo, hi
 
 
 # --------------------------------------------------------------------------- public API
@@ -586,10 +709,9 @@ def _by_tile(nodes, tiles, m):
 
 @dataclass
 class Visibility:
-    """Per-tile lists of scene nodes, in CSR form: tile ``t`` sees ``nodes[start[t]:start[t+1]]``.
-
-    A listed internal node stands for its whole subtree (SPEC section 4).
-    """
+    """Per-tile lists of scene nodes, in CSR form: tile ``t`` sees ``nodes[start[t]:start[t+1]]``,
+    in increasing id order. A listed internal node stands for its whole subtree (SPEC section
+    4); a tile's nodes are disjoint subtrees."""
 
     scene: Scene
     start: np.ndarray
@@ -605,19 +727,19 @@ class Visibility:
 
     def tile_leaves(self, tile: int) -> np.ndarray:
         """Sorted leaf ids the tile must draw."""
-        return np.unique(self.scene.subtree_leaves(self.tile_nodes(tile)))
+        start, leaves = self.leaf_lists()
+        return leaves[start[tile]:start[tile + 1]]
 
     def leaf_lists(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every tile's sorted leaf ids at once, in CSR form ``(start (m + 1,), leaves)``."""
-        scene = self.scene
-        tiles = np.repeat(np.arange(self.tiles), np.diff(self.start))
-        leaf_start, leaf_count = scene.leaf_range
-        count = leaf_count[self.nodes]
-        offsets = np.repeat(leaf_start[self.nodes] - np.cumsum(count) + count, count)
-        leaves = scene.leaves[np.arange(int(count.sum())) + offsets]
-        key = np.unique(np.repeat(tiles, count) * len(scene) + leaves)
-        tile_of, leaves = np.divmod(key, len(scene))
-        return np.searchsorted(tile_of, np.arange(self.tiles + 1)), leaves
+        """Every tile's sorted leaf ids at once, in CSR form ``(start (m + 1,), leaves)``;
+        computed once (compiled: the nodes' leaf runs, concatenated)."""
+        cached = self.__dict__.get("_leaf_lists")
+        if cached is None:
+            scene = self.scene
+            leaf_start, leaf_count = scene.leaf_range
+            cached = self.__dict__["_leaf_lists"] = _expand(self.start, self.nodes, leaf_start,
+                                                            leaf_count, scene.leaves)
+        return cached
 
     def names(self, tile: int, leaves: bool = False) -> list[str]:
         """Node names for a tile; synthetic groups are replaced by the file nodes they hold."""
@@ -631,11 +753,65 @@ class Visibility:
         return [names[i] for i in np.sort(nodes)]
 
 
+class _Buffers:
+    """Stacks and outputs the kernels write into, kept from frame to frame."""
+
+    def __init__(self):
+        self.arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, size: int, dtype=np.int64) -> np.ndarray:
+        a = self.arrays.get(name)
+        if a is None or len(a) < size:
+            a = self.arrays[name] = np.empty(max(size, 1024), dtype)
+        return a
+
+    def run(self, kernel, *args):
+        """Call ``kernel(*args, out_n, out_t)``, doubling the outputs until they hold it all:
+        ``(nodes, regions, tests)``."""
+        while True:
+            out_n, out_t = self.get("out_n", 4096), self.get("out_t", 4096)
+            k, tests = kernel(*args, out_n, out_t)
+            if k >= 0:
+                return out_n[:k], out_t[:k], tests
+            self.arrays["out_n"] = np.empty(2 * len(out_n), np.int64)
+            self.arrays["out_t"] = np.empty(2 * len(out_t), np.int64)
+
+
+def packed(state: SceneState) -> np.ndarray:
+    """The state's bounds as packed records, recomputed only when they moved."""
+    cache = state.__dict__.get("_packed")
+    if cache is None or cache[0] != state.version:
+        cache = state.__dict__["_packed"] = (state.version, pack(state.bounds))
+    return cache[1]
+
+
+def _fh_table(wall) -> tuple[np.ndarray, np.ndarray]:
+    """The frustum hierarchy as one int64 table (columns ``_FIRST`` ... ``_SIDE_B``) and, per
+    node, the tile count above which ``adaptive`` unfolds a cut object there."""
+    fh = wall.hierarchy
+    n = len(fh)
+    table = np.zeros((n, 8), np.int64)
+    table[:, _FIRST], table[:, _SECOND] = fh.first, fh.second
+    table[:, _PA], table[:, _PB], table[:, _TILE] = fh.plane_a, fh.plane_b, fh.tile
+    inner = fh.tile < 0
+    x_split = np.zeros(n, bool)
+    x_split[inner] = fh.c0[fh.first[inner]] != fh.c0[fh.second[inner]]
+    gap = np.where(x_split, wall.gap[0], wall.gap[1])
+    table[:, _MODE] = np.where(gap == 0, _SHARED, np.where(gap > 0, _DISJOINT, _OVERLAP))
+    # the side plane each child gets from the split: the first child's R (or B), the second's
+    # L (or T); bits 0-3 are L, R, T, B
+    table[:, _SIDE_A] = np.where(x_split, 2, 8)
+    table[:, _SIDE_B] = np.where(x_split, 1, 4)
+    tiles = (fh.c1 - fh.c0) * (fh.r1 - fh.r0)
+    return table, UNFOLD_RATIO * np.log2(np.maximum(tiles, 1))
+
+
 class Culler:
     """Culls one scene state to one wall, frame after frame, by one method.
 
-    The wall's static tables (frustum hierarchy, per-tile plane indices) are built once; each
-    call to :meth:`cull` builds the frame's planes and runs the traversal.
+    The wall's static tables (frustum hierarchy, per-tile plane indices) are built once, and so
+    are the kernels' stacks and outputs; each call to :meth:`cull` builds the frame's planes and
+    runs the traversal.
     """
 
     def __init__(self, state: SceneState, wall, method: str = "adaptive",
@@ -647,76 +823,148 @@ class Culler:
         self.method = method
         self.pseudo_groups = pseudo_groups
         scene = state.scene
-        self._tree = (scene.child_start, scene.child_count, scene.children,
-                      scene.is_leaf.astype(np.uint8))
+        self._tree = (scene.child_start, scene.child_count, scene.children)
         lay = wall.layout
-        self._tile_planes = lay.tile_planes.astype(np.int64)
+        self._tile_planes = np.ascontiguousarray(lay.tile_planes, dtype=np.int64)
+        self._tile_sides = np.ascontiguousarray(self._tile_planes[:, :4])
         self._primary_planes = lay.primary_planes.astype(np.int64)
         r, col = np.divmod(np.arange(wall.tiles), wall.cols)
         border = ((col == 0) * 1 | (col == wall.cols - 1) * 2 | (r == 0) * 4
                   | (r == wall.rows - 1) * 8)
         self._inherit = (border | 48).astype(np.int64)
         self._force = (15 & ~border).astype(np.int64)
-        fh = wall.hierarchy
-        self._fh = (fh.first, fh.second, fh.plane_a, fh.plane_b, fh.tile)
-        self._shared_split = wall.gap == (0.0, 0.0)
+        self._size = np.full(wall.tiles, 6, np.int64)
+        self._fh, self._unfold = _fh_table(wall)
+        self._near_bit = 1 << 4  # the primary planes are L, R, T, B, near, far
         leaf_start, leaf_count = scene.leaf_range
         self._leaves = (scene.leaves, leaf_start, leaf_count)
+        height = int(scene.depth.max()) + wall.hierarchy.height + 2
+        self._depth_bound = height * max(int(scene.child_count.max()), 2)
+        self._buffers = _Buffers()
 
     def cull(self, frusta: Frusta) -> Visibility:
         t0 = time.perf_counter()
-        b = self.state.bounds
-        geo = (b.center, b.axes, b.half, b.radius)
+        box = packed(self.state)
         planes = frusta.planes
-        if self._shared_split:
+        if self.wall.gap[0] == 0.0 or self.wall.gap[1] == 0.0:
             # Equal and opposite split planes: one test decides both sides. Use the exact
             # negation so that rounding cannot make the two disagree.
             planes = _shared_planes(planes, self.wall)
-        roots, masks, primary_tests = _primary(*self._tree, *geo, planes, self._primary_planes)
+        buf = self._buffers
+        n = len(box)
+        stack = self._depth_bound + n  # the roots are at most all nodes
+        stack_n, stack_m = buf.get("stack_n", stack), buf.get("stack_m", stack)
+        roots, masks = buf.get("roots", n), buf.get("masks", n)
+        count, primary_tests = _primary(*self._tree, box, planes, self._primary_planes, roots,
+                                        masks, stack_n, stack_m)
+        roots, masks = roots[:count], masks[:count]
         if self.method == "naive":
-            nodes, tiles, tests = _naive(roots, masks, *self._leaves, *geo, planes,
-                                         self._tile_planes, self._force, self._inherit)
+            nodes, tiles, tests = buf.run(_naive, roots, masks, *self._leaves, box, planes,
+                                          self._tile_planes, self._force, self._inherit)
         elif self.method == "oh":
-            nodes, tiles, tests = _oh(roots, masks, *self._tree, *geo, planes,
-                                      self._tile_planes, self._force, self._inherit)
+            nodes, tiles, tests = buf.run(_oh, roots, masks, *self._tree, box, planes,
+                                          self._tile_planes, self._size, self._force,
+                                          self._inherit, stack_n, stack_m)
         elif self.method == "fh":
-            nodes, tiles, tests = _fh(roots, *self._leaves, *geo, planes, *self._fh,
-                                      self._shared_split)
+            nodes, tiles, tests = buf.run(_fh, roots, masks, *self._leaves, box, planes,
+                                          self._fh, self._near_bit, stack_n)
+        elif self.pseudo_groups:
+            nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, self._fh,
+                                          self._near_bit)
         else:
-            kernel = _adaptive_pseudo if self.pseudo_groups else _adaptive
-            nodes, tiles, tests = kernel(roots, *self._tree, *geo, planes, *self._fh,
-                                         self._shared_split)
-        start, ordered = _by_tile(nodes, tiles, self.wall.tiles)
+            frame = frusta.frame
+            forward = -frame.rotation[:, 2]  # the view direction: depth of a centre
+            view = np.array([*forward, -float(forward @ frame.eye_world)])
+            depth = self.wall.distance + frame.eye[2]
+            (w, h), (gx, gy) = self.wall.tile_size, self.wall.gap
+            nodes, tiles, tests = buf.run(
+                _adaptive, roots, masks, *self._tree, box, planes, self._fh, self._unfold,
+                self._tile_sides, view, (w + gx) / depth, (h + gy) / depth, self._near_bit,
+                stack_n, stack_m, buf.get("stack_o", stack), buf.get("tile_n", stack),
+                buf.get("tile_m", stack))
+        start, ordered = _by_region(nodes, tiles, self.wall.tiles)
         elapsed = time.perf_counter() - t0
         return Visibility(self.state.scene, start, ordered, {
-            "method": self.method, "roots": len(roots), "primary_tests": int(primary_tests),
+            "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
             "tests": int(tests), "pairs": len(nodes), "cull_ms": elapsed * 1e3,
         })
 
 
 def _shared_planes(planes: np.ndarray, wall) -> np.ndarray:
-    """With no gap, make each ``L[c+1]`` exactly ``-R[c]`` and ``T[r+1]`` exactly ``-B[r]``."""
+    """Where a gap is 0, make each ``L[c+1]`` exactly ``-R[c]`` (or ``T[r+1]`` exactly ``-B[r]``)."""
     lay = wall.layout
     planes = planes.copy()
-    c = np.arange(1, wall.cols)
-    planes[lay.L(c)] = -planes[lay.R(c - 1)]
-    r = np.arange(1, wall.rows)
-    planes[lay.T(r)] = -planes[lay.B(r - 1)]
+    if wall.gap[0] == 0.0:
+        c = np.arange(1, wall.cols)
+        planes[lay.L(c)] = -planes[lay.R(c - 1)]
+    if wall.gap[1] == 0.0:
+        r = np.arange(1, wall.rows)
+        planes[lay.T(r)] = -planes[lay.B(r - 1)]
     return planes
+
+
+@dataclass
+class Regions:
+    """The nodes of a scene in each of several convex regions, CSR: region ``q`` holds
+    ``nodes[start[q]:start[q+1]]`` (increasing ids; internal nodes stand for their subtrees)."""
+
+    scene: Scene
+    start: np.ndarray
+    nodes: np.ndarray
+    tests: int = 0
+
+    def region(self, q: int) -> np.ndarray:
+        return self.nodes[self.start[q]:self.start[q + 1]]
+
+    def leaf_lists(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every region's sorted leaf ids, CSR."""
+        leaf_start, leaf_count = self.scene.leaf_range
+        return _expand(self.start, self.nodes, leaf_start, leaf_count, self.scene.leaves)
+
+
+def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarray,
+                 region_size: np.ndarray | None = None) -> Regions:
+    """Cull the scene to many convex regions at once, each the intersection of some of
+    ``planes (P, 4)`` (inward unit normals): region ``q`` uses rows
+    ``region_planes[q, :region_size[q]]`` (at most 63). Nodes wholly inside a region stand for
+    their subtrees, as in a tile list. The object hierarchy is culled to each region in turn
+    with plane masking (the ``oh`` kernel): shadow casters and mirror views of every tile."""
+    planes = np.ascontiguousarray(planes, dtype=np.float64)
+    region_planes = np.ascontiguousarray(region_planes, dtype=np.int64)
+    count = len(region_planes)
+    if region_size is None:
+        region_size = np.full(count, region_planes.shape[1] if count else 0, np.int64)
+    region_size = np.ascontiguousarray(region_size, dtype=np.int64)
+    if count and not (0 < region_size.min() and region_size.max() <= 63):
+        raise InputError("a region needs 1 to 63 planes")
+    scene = state.scene
+    box = packed(state)
+    force = (np.int64(1) << region_size) - 1
+    buf = _Buffers()
+    stack = (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
+    nodes, which, tests = buf.run(
+        _oh, np.zeros(1, np.int64), np.zeros(1, np.int64), scene.child_start, scene.child_count,
+        scene.children, box, planes, region_planes, region_size, force,
+        np.zeros(count, np.int64), buf.get("stack_n", stack), buf.get("stack_m", stack))
+    start, ordered = _by_region(nodes, which, count)
+    return Regions(scene, start, ordered, int(tests))
 
 
 def cull_region(state: SceneState, planes: np.ndarray) -> np.ndarray:
     """Nodes of the scene that meet the convex region ``planes (k, 4)`` (inward unit normals,
-    ``k <= 63``): internal nodes wholly inside stand for their subtrees, as in a tile list.
-    Used for shadow casters and mirror views."""
+    ``k <= 63``): internal nodes wholly inside stand for their subtrees, as in a tile list."""
     planes = np.ascontiguousarray(planes, dtype=np.float64)
     if not 0 < len(planes) <= 63:
         raise InputError(f"a region needs 1 to 63 planes, got {len(planes)}")
-    scene, b = state.scene, state.bounds
-    roots, _, _ = _primary(scene.child_start, scene.child_count, scene.children,
-                           scene.is_leaf.astype(np.uint8), b.center, b.axes, b.half, b.radius,
-                           planes, np.arange(len(planes), dtype=np.int64))
-    return roots
+    return cull_regions(state, planes, np.arange(len(planes))[None]).nodes
+
+
+def depth_ranges(state: SceneState, start: np.ndarray, nodes: np.ndarray, forward: np.ndarray,
+                 origin: np.ndarray, empty: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Per region of a CSR node list, the depth range ``(lo, hi)`` along unit ``forward`` from
+    ``origin`` that its nodes' bounds span; ``empty`` for a region with no node."""
+    return _depth_ranges(start, nodes, packed(state), np.asarray(forward, np.float64),
+                         np.asarray(origin, np.float64), float(empty[0]), float(empty[1]))
 
 
 def cull(state: SceneState, frusta: Frusta, method: str = "adaptive",

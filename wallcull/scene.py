@@ -224,6 +224,7 @@ class SceneState:
         self.exact = self.bounds.copy()
         self.local = scene.local.copy()
         self.world = scene.world.copy()
+        self.version = 0  # counts moves: what caches of the bounds key on
 
     def move(self, updates: Mapping[str, Any], refit_mode: str | None = None) -> np.ndarray:
         """Set the local transforms of named nodes; returns the ids of the refit ancestors.
@@ -254,6 +255,7 @@ class SceneState:
             sound = False
         if not sound:
             (self.local, self.world), self.bounds, self.exact = saved
+            self.version += 1
             raise InputError("the updates collapse or overflow world transforms in float64")
         return up
 
@@ -308,6 +310,7 @@ class SceneState:
             above[parent[level[above[level]]]] = True
         up = np.flatnonzero(above)
         refit(scene, self.bounds, up, mode)
+        self.version += 1
         return up
 
     def _refit_from_points(self, nodes: np.ndarray) -> None:

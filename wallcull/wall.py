@@ -24,6 +24,7 @@ from functools import cached_property
 from typing import Any, Mapping
 
 import numpy as np
+from numba import njit
 
 from .errors import InputError
 
@@ -314,30 +315,42 @@ class PlaneLayout:
 
 def display_planes(wall: Wall, eye: np.ndarray) -> np.ndarray:
     """The frame's plane table in display space, ``(PlaneLayout.count, 4)``, unit normals inward."""
-    ex, ey, ez = eye
-    depth = wall.distance + ez  # eye to wall plane, > near > 0 for a valid frame
-    X0, X1 = wall.col_edges[:, 0] - ex, wall.col_edges[:, 1] - ex
-    Y0, Y1 = wall.row_edges[:, 0] - ey, wall.row_edges[:, 1] - ey
-    zc, zr = np.zeros(wall.cols), np.zeros(wall.rows)
-    dc, dr = np.full(wall.cols, depth), np.full(wall.rows, depth)
-    normals = np.concatenate([
-        np.stack([dc, zc, X0], axis=1),  # L[c]: inside is to the right of x0
-        np.stack([-dc, zc, -X1], axis=1),  # R[c]: inside is to the left of x1
-        np.stack([zr, -dr, -Y1], axis=1),  # T[r]: inside is below y1
-        np.stack([zr, dr, Y0], axis=1),  # B[r]: inside is above y0
-        [[0.0, 0.0, -1.0], [0.0, 0.0, 1.0]],  # near, far
-    ])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    d = -normals @ eye
-    d[-2] = ez - wall.near
-    d[-1] = wall.far - ez
-    return np.concatenate([normals, d[:, None]], axis=1)
+    return _plane_table(wall.col_edges, wall.row_edges, np.asarray(eye, dtype=np.float64),
+                        wall.distance, wall.near, wall.far, np.eye(3), np.zeros(3))
 
 
-def transform_planes(planes: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Planes ``(k, 4)`` under ``p' = R p + t``."""
-    n = planes[:, :3] @ rotation.T
-    return np.concatenate([n, (planes[:, 3] - n @ translation)[:, None]], axis=1)
+@njit(cache=True)
+def _plane_table(col_edges, row_edges, eye, distance, near, far, rotation, translation):
+    """The plane table of a frame (see the module docstring), moved by ``p' = R p + t``: per
+    frame a few dozen planes, so one compiled loop rather than dozens of small numpy calls."""
+    cols, rows = col_edges.shape[0], row_edges.shape[0]
+    ex, ey, ez = eye[0], eye[1], eye[2]
+    depth = distance + ez  # eye to wall plane, > near > 0 for a valid frame
+    out = np.empty((2 * (cols + rows) + 2, 4))
+    k = 0
+    for side in range(4):  # L[c], R[c], T[r], B[r]
+        for j in range(cols if side < 2 else rows):
+            if side == 0:  # inside is to the right of x0
+                nx, ny, nz = depth, 0.0, col_edges[j, 0] - ex
+            elif side == 1:  # inside is to the left of x1
+                nx, ny, nz = -depth, 0.0, -(col_edges[j, 1] - ex)
+            elif side == 2:  # inside is below y1
+                nx, ny, nz = 0.0, -depth, -(row_edges[j, 1] - ey)
+            else:  # inside is above y0
+                nx, ny, nz = 0.0, depth, row_edges[j, 0] - ey
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            out[k, 0], out[k, 1], out[k, 2] = nx / norm, ny / norm, nz / norm
+            out[k, 3] = -(out[k, 0] * ex + out[k, 1] * ey + out[k, 2] * ez)
+            k += 1
+    out[k, 0], out[k, 1], out[k, 2], out[k, 3] = 0.0, 0.0, -1.0, ez - near  # near
+    out[k + 1, 0], out[k + 1, 1], out[k + 1, 2], out[k + 1, 3] = 0.0, 0.0, 1.0, far - ez  # far
+    for k in range(out.shape[0]):  # n' = R n, d' = d - n' . t
+        x = rotation[0, 0] * out[k, 0] + rotation[0, 1] * out[k, 1] + rotation[0, 2] * out[k, 2]
+        y = rotation[1, 0] * out[k, 0] + rotation[1, 1] * out[k, 1] + rotation[1, 2] * out[k, 2]
+        z = rotation[2, 0] * out[k, 0] + rotation[2, 1] * out[k, 1] + rotation[2, 2] * out[k, 2]
+        out[k, 0], out[k, 1], out[k, 2] = x, y, z
+        out[k, 3] -= x * translation[0] + y * translation[1] + z * translation[2]
+    return out
 
 
 @dataclass(frozen=True)
@@ -350,7 +363,8 @@ class Frusta:
 
     @classmethod
     def build(cls, wall: Wall, frame: Frame) -> "Frusta":
-        planes = transform_planes(display_planes(wall, frame.eye), frame.rotation, frame.position)
+        planes = _plane_table(wall.col_edges, wall.row_edges, frame.eye, wall.distance,
+                              wall.near, wall.far, frame.rotation, frame.position)
         return cls(wall, frame, planes)
 
     @property
