@@ -294,3 +294,24 @@ def test_regions_hold_the_leaves_whose_bounds_meet_them():
         assert np.array_equal(np.unique(scene.subtree_leaves(
             cull_region(state, rows))), expect)
     assert 0 < len(leaves) < 4 * len(leaf)  # not vacuous
+
+
+def test_regions_split_among_threads_give_the_same_lists(powerplant, monkeypatch):
+    from wallcull.cull import cull_regions
+
+    state = SceneState(powerplant)
+    rng = np.random.default_rng(1)
+    center = state.bounds.center[0]
+    planes = rng.normal(size=(120, 4))
+    planes[:, :3] /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    planes[:, 3] = -planes[:, :3] @ center + rng.uniform(-10, 30, 120)
+    region_planes = np.arange(120).reshape(40, 3)
+    got = []
+    for threads in ("1", "2", "3"):
+        monkeypatch.setenv("WALLCULL_THREADS", threads)
+        r = cull_regions(state, planes, region_planes, work=np.arange(41) ** 2)
+        got.append((r.start, r.nodes, r.tests))
+    for start, nodes, tests in got[1:]:
+        assert np.array_equal(start, got[0][0]) and np.array_equal(nodes, got[0][1])
+        assert tests == got[0][2]
+    assert len(got[0][1]) > 40

@@ -113,7 +113,7 @@ def fitted(scene, raw_settings, frame=FRAME):
 def test_nothing_declared_nothing_computed(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("fitting code ran for a scene that declares nothing")
-    monkeypatch.setattr(fitmod, "shadow_frustum", boom)
+    monkeypatch.setattr(fitmod, "shadow_set", boom)
     monkeypatch.setattr(fitmod.MirrorSight, "of", boom)
     _, result = fitted(lit_scene(), {})
     assert all(set(t) == {"view", "projection", "near", "far"} for t in result.fits)

@@ -345,3 +345,82 @@ def test_bad_input():
         fit_frustum([0, 0, 0], [[0, 0, np.nan]], 10, 10)
     with pytest.raises(ValueError):
         fit_frustum([0, 0, 0], [[0, 0, -1]], 0, 10)
+
+
+# ------------------------------------------------------------------- many fits at once
+
+
+@st.composite
+def box_sets(draw):
+    """Random oriented boxes (some flat, some points) around a centre, and a light outside
+    or inside their spread."""
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 60))
+    center = rng.normal(size=(n, 3)) * rng.uniform(0.5, 5.0)
+    axes = np.stack([random_rotation(rng) for _ in range(n)])
+    half = rng.uniform(0, 1, (n, 3)) * (rng.random((n, 3)) > 0.1)  # some flat, some points
+    radius = rng.uniform(0, 0.2, n) * (rng.random(n) > 0.5)
+    light = rng.normal(size=3)
+    light *= rng.uniform(0.0 if draw(st.booleans()) else 8.0, 30.0) / np.linalg.norm(light)
+    offset = rng.uniform(-1e3, 1e3, 3)
+    return center + offset, axes, half, radius, light + offset
+
+
+@settings(max_examples=60, deadline=None)
+@given(box_sets(), st.sampled_from(["sphere", "greedy", "refined"]))
+def test_fits_of_boxes_are_the_fits_of_their_corners(boxes, effort):
+    """fit_boxes works per box (support functions, a filter of boxes whose image lies inside
+    the hull); the result is the fit of all the corners, or, where the light is inside the
+    boxes' sphere (a cone sample, whose axis it takes from the boxes' centres), a fit with the
+    same guarantees."""
+    from wallcull.bounds import Bounds
+    from wallcull.lowilie import OK, fit_boxes
+
+    center, axes, half, radius, light = boxes
+    bounds = Bounds("obb", center, axes, half, radius)
+    n = len(center)
+    start = np.array([0, n, n, n // 2 + n])  # all, none, the first half again
+    nodes = np.concatenate([np.arange(n), np.arange(n // 2)])
+    out = fit_boxes(light, bounds, start, nodes, 1920, 1080, effort)
+    assert out["status"][1] == 1  # EMPTY
+    for q, chosen in ((0, np.arange(n)), (2, np.arange(n // 2))):
+        if not len(chosen):
+            continue
+        corners = bounds.take(chosen).world_corners().reshape(-1, 3)
+        try:
+            ref = fit_frustum(light, corners, 1920, 1080, effort=effort)
+        except FitError:
+            assert out["status"][q] != OK
+            continue
+        assert out["status"][q] == OK
+        view, projection = out["view"][q], out["projection"][q]
+        r = view[:3, :3]
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        ndc = ((corners - light) @ r.T) @ projection[:3, :3].T + projection[:3, 3]
+        w = -((corners - light) @ r.T)[:, 2]
+        assert (w > 0).all()
+        assert np.abs(ndc[:, :2] / w[:, None]).max() <= 1 + 1e-9
+        if ref.sample == "sphere":
+            np.testing.assert_allclose(view, ref.view, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(projection, ref.projection, rtol=1e-9, atol=1e-9)
+            assert out["coverage"][q] == pytest.approx(ref.coverage, abs=1e-12)
+
+
+def test_fit_boxes_splits_among_threads_without_changing_a_bit(monkeypatch):
+    from wallcull.bounds import Bounds
+    from wallcull.lowilie import fit_boxes
+
+    rng = np.random.default_rng(3)
+    n = 400
+    bounds = Bounds("obb", rng.normal(size=(n, 3)) * 10, np.tile(np.eye(3), (n, 1, 1)),
+                    rng.uniform(0, 1, (n, 3)), np.zeros(n))
+    start = np.sort(np.r_[0, rng.integers(0, n, 63), n])
+    light = np.array([0.0, 60.0, 0.0])
+    results = []
+    for threads in ("1", "2", "5"):
+        monkeypatch.setenv("WALLCULL_THREADS", threads)
+        results.append(fit_boxes(light, bounds, start, np.arange(n), 2048, 2048))
+    for other in results[1:]:
+        for key in results[0]:
+            np.testing.assert_array_equal(results[0][key], other[key])

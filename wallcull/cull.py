@@ -52,12 +52,14 @@ allocated, grown or reference-counted inside a traversal loop.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 from numba import njit
 
+from . import workers
 from .bounds import Bounds
 from .errors import InputError
 from .scene import Scene, SceneState
@@ -219,7 +221,7 @@ def _naive(roots, masks, leaves, leaf_start, leaf_count, box, planes, tile_plane
     return k, tests
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _oh(roots, masks, child_start, child_count, children, box, planes, region_planes,
         region_size, force, inherit, stack_n, stack_m, out_n, out_t):
     """The object hierarchy culled to each convex region in turn, with plane masking: region
@@ -679,21 +681,23 @@ def _expand(start, nodes, leaf_start, leaf_count, leaves):
 
 @njit(cache=True)
 def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
-    """Per region, the smallest and largest depth along unit ``forward`` from ``origin``
-    reached by its nodes' bounds (``lo_default``/``hi_default`` for an empty region)."""
+    """Per region, the smallest and largest depth along unit ``forward[q]`` from ``origin[q]``
+    reached by its nodes' bounds (``lo_default``/``hi_default`` for an empty region); one row
+    of ``forward``/``origin`` serves every region."""
     m = start.shape[0] - 1
     lo = np.full(m, lo_default)
     hi = np.full(m, hi_default)
-    fx, fy, fz = forward[0], forward[1], forward[2]
     for t in range(m):
         if start[t + 1] == start[t]:
             continue
+        q = t if forward.shape[0] > 1 else 0
+        fx, fy, fz = forward[q, 0], forward[q, 1], forward[q, 2]
+        ox, oy, oz = origin[q, 0], origin[q, 1], origin[q, 2]
         a = np.inf
         b = -np.inf
         for j in range(start[t], start[t + 1]):
             i = nodes[j]
-            c = ((box[i, 0] - origin[0]) * fx + (box[i, 1] - origin[1]) * fy
-                 + (box[i, 2] - origin[2]) * fz)
+            c = (box[i, 0] - ox) * fx + (box[i, 1] - oy) * fy + (box[i, 2] - oz) * fz
             r = (abs(fx * box[i, 4] + fy * box[i, 5] + fz * box[i, 6])
                  + abs(fx * box[i, 7] + fy * box[i, 8] + fz * box[i, 9])
                  + abs(fx * box[i, 10] + fy * box[i, 11] + fz * box[i, 12]) + box[i, 3])
@@ -702,6 +706,21 @@ def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
         lo[t] = a
         hi[t] = b
     return lo, hi
+
+
+@njit(cache=True)
+def _farthest(start, nodes, box, origin):
+    """Per region, an upper bound on the distance from ``origin`` to its nodes' bounds (the
+    distance to a centre plus the radius of the sphere around the bound); 0 for none."""
+    m = start.shape[0] - 1
+    out = np.zeros(m)
+    for t in range(m):
+        for j in range(start[t], start[t + 1]):
+            i = nodes[j]
+            d = math.sqrt((box[i, 0] - origin[0]) ** 2 + (box[i, 1] - origin[1]) ** 2
+                          + (box[i, 2] - origin[2]) ** 2) + box[i, _R_SPHERE]
+            out[t] = max(out[t], d)
+    return out
 
 
 # --------------------------------------------------------------------------- public API
@@ -843,20 +862,40 @@ class Culler:
         self._buffers = _Buffers()
 
     def cull(self, frusta: Frusta) -> Visibility:
+        """The frame's per-tile node lists."""
         t0 = time.perf_counter()
+        frame = frusta.frame
+        forward = -frame.rotation[:, 2]  # the view direction
+        vis = self.cull_planes(frusta.planes, forward, frame.eye_world, frame.eye[2])
+        vis.stats["cull_ms"] = (time.perf_counter() - t0) * 1e3
+        return vis
+
+    def cull_planes(self, planes: np.ndarray, forward: np.ndarray, eye: np.ndarray,
+                    eye_z: float, extra: np.ndarray | None = None) -> Visibility:
+        """Per-tile node lists for any plane table laid out as the wall's
+        (:class:`~wallcull.wall.PlaneLayout`), seen from ``eye`` looking along ``forward``
+        (world) with the eye at display ``z = eye_z``, and optionally ``extra`` planes
+        ``(k, 4)`` that bound every tile (culled against once, with the primary frustum's).
+        A mirror's view of the wall is the frame's table reflected, with the mirror's plane
+        and outline as ``extra``."""
         box = packed(self.state)
-        planes = frusta.planes
         if self.wall.gap[0] == 0.0 or self.wall.gap[1] == 0.0:
             # Equal and opposite split planes: one test decides both sides. Use the exact
             # negation so that rounding cannot make the two disagree.
             planes = _shared_planes(planes, self.wall)
+        primary = self._primary_planes
+        if extra is not None and len(extra):
+            primary = np.concatenate([primary, len(planes) + np.arange(len(extra))])
+            planes = np.concatenate([planes, extra])
+        if len(primary) > 63:
+            raise InputError(f"at most 63 planes bound a view, got {len(primary)}")
         buf = self._buffers
         n = len(box)
         stack = self._depth_bound + n  # the roots are at most all nodes
         stack_n, stack_m = buf.get("stack_n", stack), buf.get("stack_m", stack)
         roots, masks = buf.get("roots", n), buf.get("masks", n)
-        count, primary_tests = _primary(*self._tree, box, planes, self._primary_planes, roots,
-                                        masks, stack_n, stack_m)
+        count, primary_tests = _primary(*self._tree, box, planes, primary, roots, masks,
+                                        stack_n, stack_m)
         roots, masks = roots[:count], masks[:count]
         if self.method == "naive":
             nodes, tiles, tests = buf.run(_naive, roots, masks, *self._leaves, box, planes,
@@ -872,10 +911,8 @@ class Culler:
             nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, self._fh,
                                           self._near_bit)
         else:
-            frame = frusta.frame
-            forward = -frame.rotation[:, 2]  # the view direction: depth of a centre
-            view = np.array([*forward, -float(forward @ frame.eye_world)])
-            depth = self.wall.distance + frame.eye[2]
+            view = np.array([*forward, -float(forward @ eye)])  # depth of a centre
+            depth = self.wall.distance + eye_z
             (w, h), (gx, gy) = self.wall.tile_size, self.wall.gap
             nodes, tiles, tests = buf.run(
                 _adaptive, roots, masks, *self._tree, box, planes, self._fh, self._unfold,
@@ -883,11 +920,9 @@ class Culler:
                 stack_n, stack_m, buf.get("stack_o", stack), buf.get("tile_n", stack),
                 buf.get("tile_m", stack))
         start, ordered = _by_region(nodes, tiles, self.wall.tiles)
-        elapsed = time.perf_counter() - t0
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
-            "tests": int(tests), "pairs": len(nodes), "cull_ms": elapsed * 1e3,
-        })
+            "tests": int(tests), "pairs": len(nodes)})
 
 
 def _shared_planes(planes: np.ndarray, wall) -> np.ndarray:
@@ -923,12 +958,15 @@ class Regions:
 
 
 def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarray,
-                 region_size: np.ndarray | None = None) -> Regions:
+                 region_size: np.ndarray | None = None, work: np.ndarray | None = None
+                 ) -> Regions:
     """Cull the scene to many convex regions at once, each the intersection of some of
     ``planes (P, 4)`` (inward unit normals): region ``q`` uses rows
     ``region_planes[q, :region_size[q]]`` (at most 63). Nodes wholly inside a region stand for
     their subtrees, as in a tile list. The object hierarchy is culled to each region in turn
-    with plane masking (the ``oh`` kernel): shadow casters and mirror views of every tile."""
+    with plane masking (the ``oh`` kernel): shadow casters and mirror views of every tile.
+    The regions are split among threads (:mod:`wallcull.workers`), by ``work`` (cumulative,
+    ``(R + 1,)``: an estimate of each region's cost) when given."""
     planes = np.ascontiguousarray(planes, dtype=np.float64)
     region_planes = np.ascontiguousarray(region_planes, dtype=np.int64)
     count = len(region_planes)
@@ -940,14 +978,24 @@ def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarra
     scene = state.scene
     box = packed(state)
     force = (np.int64(1) << region_size) - 1
-    buf = _Buffers()
     stack = (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
-    nodes, which, tests = buf.run(
-        _oh, np.zeros(1, np.int64), np.zeros(1, np.int64), scene.child_start, scene.child_count,
-        scene.children, box, planes, region_planes, region_size, force,
-        np.zeros(count, np.int64), buf.get("stack_n", stack), buf.get("stack_m", stack))
-    start, ordered = _by_region(nodes, which, count)
-    return Regions(scene, start, ordered, int(tests))
+    root = np.zeros(1, np.int64)
+    ranges = workers.chunks(count, work)
+    pool = state.__dict__.setdefault("_region_buffers", [])  # kept: outputs grow once
+    pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
+
+    def chunk(k, a, b):  # regions [a, b), on buffers of their own
+        buf = pool[k]
+        nodes, which, tests = buf.run(
+            _oh, root, root, scene.child_start, scene.child_count, scene.children, box, planes,
+            region_planes[a:b], region_size[a:b], force[a:b], np.zeros(b - a, np.int64),
+            buf.get("stack_n", stack), buf.get("stack_m", stack))
+        return nodes, which + a, tests
+
+    parts = workers.run(chunk, ranges) if count else [(np.zeros(0, np.int64),) * 2 + (0,)]
+    start, ordered = _by_region(np.concatenate([p[0] for p in parts]),
+                                np.concatenate([p[1] for p in parts]), count)
+    return Regions(scene, start, ordered, int(sum(p[2] for p in parts)))
 
 
 def cull_region(state: SceneState, planes: np.ndarray) -> np.ndarray:
@@ -961,10 +1009,21 @@ def cull_region(state: SceneState, planes: np.ndarray) -> np.ndarray:
 
 def depth_ranges(state: SceneState, start: np.ndarray, nodes: np.ndarray, forward: np.ndarray,
                  origin: np.ndarray, empty: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Per region of a CSR node list, the depth range ``(lo, hi)`` along unit ``forward`` from
-    ``origin`` that its nodes' bounds span; ``empty`` for a region with no node."""
-    return _depth_ranges(start, nodes, packed(state), np.asarray(forward, np.float64),
-                         np.asarray(origin, np.float64), float(empty[0]), float(empty[1]))
+    """Per region of a CSR node list, the depth range ``(lo, hi)`` along unit ``forward[q]``
+    from ``origin[q]`` (``(R, 3)`` each, or ``(1, 3)`` for all) that its nodes' bounds span;
+    ``empty`` for a region with no node. Compiled, next to the traversal: a wall's tight depth
+    ranges and its shadow frusta's nearest casters."""
+    return _depth_ranges(start, nodes, packed(state),
+                         np.ascontiguousarray(forward, np.float64).reshape(-1, 3),
+                         np.ascontiguousarray(origin, np.float64).reshape(-1, 3),
+                         float(empty[0]), float(empty[1]))
+
+
+def farthest(state: SceneState, start: np.ndarray, nodes: np.ndarray,
+             origin: np.ndarray) -> np.ndarray:
+    """Per region of a CSR node list, an upper bound on how far from ``origin`` its nodes'
+    bounds reach (a cube-map shadow's far plane)."""
+    return _farthest(start, nodes, packed(state), np.asarray(origin, np.float64))
 
 
 def cull(state: SceneState, frusta: Frusta, method: str = "adaptive",

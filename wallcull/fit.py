@@ -18,23 +18,26 @@ Per tile and frame:
   near plane at the mirror, and the leaves culled against the reflected frustum (bounded by the
   mirror's outline when it has one).
 
-Lists are leaf ids, as in packets. A scene without lights or mirrors never reaches the code
-for them.
+Every tile of a frame is fitted at once: one compiled Low-Ilie pass per light over all tiles
+(:func:`wallcull.lowilie.fit_boxes`), and one object-hierarchy pass over every tile's caster
+region or mirror view (:func:`wallcull.cull.cull_regions`). The results stay arrays
+(:class:`Fits`, :class:`ShadowSet`, :class:`MirrorSet`) that read as per-tile dicts. Lists are
+leaf ids, as in packets. A scene without lights or mirrors never reaches the code for them.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 
+from . import lowilie
 from . import settings as cfg
-from .cull import Visibility, cull_region
-from .lowilie import FitError, fit_frustum
-from .projection import (ClipPlaneError, frustum_planes, look_at, oblique_near, rigid_inverse,
-                         view_matrix)
+from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
+from .projection import look_at, oblique_near_many, rigid_inverse, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, Wall
 
@@ -47,11 +50,14 @@ DEPTH_MARGIN = 1e-6
 class FitOptions:
     depth: str = "tight"  # "tight": fitted to the visible bounds; "wall": the wall's near/far
     reversed_z: bool = False
-    refine: bool = True  # refine Low-Ilie quadrilaterals beyond the paper's greedy ones
+    shadow_fit: str = "refined"  # lowilie.EFFORTS: "sphere", "greedy" or "refined"
 
     def __post_init__(self):
         if self.depth not in ("tight", "wall"):
             raise ValueError(f"depth must be 'tight' or 'wall', got {self.depth!r}")
+        if self.shadow_fit not in lowilie.EFFORTS:
+            raise ValueError(f"shadow_fit must be one of {', '.join(lowilie.EFFORTS)}, "
+                             f"got {self.shadow_fit!r}")
 
 
 def tile_projections(wall: Wall, frame: Frame, near: np.ndarray, far: np.ndarray,
@@ -87,153 +93,170 @@ def depth_ranges(state: SceneState, wall: Wall, frame: Frame,
                  visibility: Visibility) -> tuple[np.ndarray, np.ndarray]:
     """Per-tile ``(near, far)``: the eye-space depths the tile's listed bounds span, clamped to
     the wall's. A tile that shows nothing keeps the wall's range."""
-    b = state.bounds
     forward = -frame.rotation[:, 2]  # the view direction in the world
-    nodes = visibility.nodes
-    rel = b.center[nodes] - frame.to_world(frame.eye)
-    center = rel @ forward
-    reach = b.reach(nodes, forward)
+    lo, hi = node_depths(state, visibility.start, visibility.nodes, forward[None],
+                         frame.eye_world[None], (np.nan, np.nan))
     near = np.full(wall.tiles, wall.near)
     far = np.full(wall.tiles, wall.far)
-    counts = np.diff(visibility.start)
-    full = counts > 0
+    full = np.isfinite(lo)
     if full.any():
-        starts = visibility.start[:-1][full]
-        lo = np.minimum.reduceat(center - reach, starts)
-        hi = np.maximum.reduceat(center + reach, starts)
-        margin = DEPTH_MARGIN * np.abs(hi) + np.finfo(float).eps * np.abs(center).max()
+        lo, hi = lo[full], hi[full]
+        margin = DEPTH_MARGIN * np.abs(hi) + np.finfo(float).eps * np.maximum(np.abs(lo),
+                                                                              np.abs(hi))
         near[full] = np.clip(lo - margin, wall.near, wall.far)
         far[full] = np.clip(hi + margin, wall.near, wall.far)
         far = np.maximum(far, near * (1 + 1e-9) + 1e-300)  # a flat range still has two planes
     return near, far
 
 
+def _csr_rows(start: np.ndarray, items: np.ndarray, t: int) -> list[int]:
+    return items[start[t]:start[t + 1]].tolist()
+
+
+# --------------------------------------------------------------------------- shadows
+
+NONE, FRUSTUM, CUBE = 0, 1, 2
+
+#: OpenGL cube-map face order: +x, -x, +y, -y, +z, -z, with the usual up vectors.
+_CUBE_LOOKS = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
+_CUBE_UPS = ((0, -1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1), (0, -1, 0), (0, -1, 0))
+
+
 @dataclass
-class Fits(Sequence):
-    """One frame's fitted frusta: arrays, read as a sequence of per-tile JSON-ready dicts
-    (``fits[t]``: ``view``, ``projection``, ``near``, ``far`` and any ``shadows``/``mirrors``).
-    Kept as arrays, a 64 x 64 wall's frame takes half a megabyte, not ten."""
+class ShadowSet:
+    """One light's shadow frusta for every tile of a frame. Tile ``t`` has a Low-Ilie frustum
+    (``kind[t] == FRUSTUM``: ``view[t]``, ``projection[t]``), a cube map (``CUBE``: the six
+    ``cube_views`` and ``projection[t]``) or nothing (``NONE``: it shows nothing the light
+    reaches); its casters are the leaves ``casters[casters_start[t]:casters_start[t + 1]]``."""
 
-    view: np.ndarray  # (4, 4), shared by every tile
-    projection: np.ndarray  # (tiles, 4, 4)
-    near: np.ndarray  # (tiles,)
-    far: np.ndarray  # (tiles,)
-    extras: dict = field(default_factory=dict)  # tile -> {"shadows": [...], "mirrors": [...]}
+    light: cfg.Light
+    kind: np.ndarray  # (T,) NONE, FRUSTUM or CUBE
+    view: np.ndarray  # (T, 4, 4)
+    projection: np.ndarray  # (T, 4, 4)
+    near: np.ndarray  # (T,)
+    far: np.ndarray  # (T,)
+    coverage: np.ndarray  # (T,)
+    casters_start: np.ndarray  # (T + 1,)
+    casters: np.ndarray  # leaf ids
+    cube_views: np.ndarray | None  # (6, 4, 4) when a tile has a cube map
 
-    def __len__(self) -> int:
-        return len(self.projection)
+    def entry(self, t: int) -> dict | None:
+        """Tile ``t``'s record, JSON-ready, or None."""
+        kind = self.kind[t]
+        if kind == NONE:
+            return None
+        out = {"light": self.light.name}
+        if kind == CUBE:
+            out.update(cube=True, views=self.cube_views.tolist())
+        else:
+            out["view"] = self.view[t].tolist()
+        out.update(projection=self.projection[t].tolist(), near=float(self.near[t]),
+                   far=float(self.far[t]))
+        if kind == FRUSTUM:
+            out["coverage"] = float(self.coverage[t])
+        out["casters"] = _csr_rows(self.casters_start, self.casters, t)
+        return out
 
-    def __getitem__(self, tile: int) -> dict:
-        if not 0 <= tile < len(self):
-            raise IndexError(tile)
-        return {"view": self.view_rows, "projection": self.projection[tile].tolist(),
-                "near": float(self.near[tile]), "far": float(self.far[tile]),
-                **self.extras.get(tile, {})}
+
+def shadow_set(state: SceneState, light: cfg.Light, visibility: Visibility,
+               effort: str = "refined") -> ShadowSet:
+    """The light's frustum for every tile: fitted around the bounds of what the tile shows
+    (the shadow receivers), with the casters that can shade them. Casters anywhere between the
+    light and the receivers shade them: they are culled against the frustum's side and far
+    planes (not its near plane), and the near plane is then pulled in to the nearest caster.
+    A tile whose receivers no single frustum from the light holds (the light is among them)
+    gets a cube map, with the casters in the cube around the light."""
+    bounds = state.bounds
+    spot = None
+    if light.kind == "spot":
+        spot = (light.direction, math.cos(math.radians(light.angle)))
+    fits = lowilie.fit_boxes(light.position, bounds, visibility.start, visibility.nodes,
+                             *light.resolution, effort, spot)
+    status = fits["status"]
+    tiles = len(status)
+    kind = np.where(status == lowilie.OK, FRUSTUM,
+                    np.where((status == lowilie.EMPTY) | (status == lowilie.UNLIT), NONE, CUBE))
+    view, projection = fits["view"], fits["projection"]
+    near, far = fits["near"], fits["far"]
+    cubes = np.flatnonzero(kind == CUBE)  # the light among the receivers: a cube map
+    if len(cubes):
+        far[cubes] = farthest(state, visibility.start, visibility.nodes,
+                              light.position)[cubes] * (1 + 1e-6)
+        near[cubes] = far[cubes] * 1e-4
+        projection[cubes] = 0.0
+        projection[cubes, 0, 0] = projection[cubes, 1, 1] = 1.0
+        projection[cubes, 3, 2] = -1.0
+    # One culling pass for every tile's caster region: the fitted frustum's side and far
+    # planes (rows of projection @ view, Gribb-Hartmann), or the cube around the light.
+    shaded = np.flatnonzero(kind != NONE)
+    frustum_tiles = kind[shaded] == FRUSTUM
+    pv = projection[shaded] @ view[shaded]
+    rows = np.stack([pv[:, 3] + pv[:, 0], pv[:, 3] - pv[:, 0], pv[:, 3] + pv[:, 1],
+                     pv[:, 3] - pv[:, 1], pv[:, 3] - pv[:, 2], np.zeros_like(pv[:, 3])], axis=1)
+    rows /= np.maximum(np.linalg.norm(rows[..., :3], axis=2, keepdims=True), 1e-300)
+    box = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    radius = far[shaded][~frustum_tiles, None]
+    rows[~frustum_tiles, :, :3] = box
+    rows[~frustum_tiles, :, 3] = radius - box @ light.position
+    receivers = np.diff(visibility.start)[shaded]  # what a region's cull costs, roughly
+    regions = cull_regions(state, rows.reshape(-1, 4),
+                           np.arange(6 * len(shaded)).reshape(-1, 6),
+                           np.where(frustum_tiles, 5, 6),
+                           np.concatenate([[0], np.cumsum(receivers)]))
+    # near: the nearest caster, along each frustum's view axis
+    forward = -view[shaded, 2, :3]
+    lo, _ = node_depths(state, regions.start, regions.nodes, forward,
+                        np.broadcast_to(light.position, forward.shape).copy(), (np.nan, np.nan))
+    fitted = shaded[frustum_tiles]
+    f = far[fitted]
+    nearest = np.where(np.isnan(lo[frustum_tiles]), f * 0.5, lo[frustum_tiles])
+    near[fitted] = np.maximum(nearest * (1 - 1e-6), f * 1e-6)
+    n, f = near[shaded], far[shaded]  # the depth rows, from each (new) near and far
+    projection[shaded, 2, 2] = -(f + n) / (f - n)
+    projection[shaded, 2, 3] = -2 * f * n / (f - n)
+    start, leaves = regions.leaf_lists()
+    counts = np.zeros(tiles, np.int64)
+    counts[shaded] = np.diff(start)
+    casters_start = np.concatenate([[0], np.cumsum(counts)])
+    cube_views = _cube_views(tuple(light.position)) if (kind == CUBE).any() else None
+    return ShadowSet(light, kind, view, projection, near, far, fits["coverage"], casters_start,
+                     leaves, cube_views)
+
+
+@lru_cache(maxsize=64)
+def _cube_views(position: tuple) -> np.ndarray:
+    """The six 90 degree face views of a cube map at ``position`` (a light's: cached)."""
+    at = np.array(position)
+    return np.array([look_at(at, at + np.array(d, float), u) for d, u in zip(_CUBE_LOOKS,
+                                                                                 _CUBE_UPS)])
+
+
+# --------------------------------------------------------------------------- mirrors
+
+
+@dataclass
+class MirrorSet:
+    """One mirror as every tile of a frame sees it: the reflected view (shared), each tile's
+    projection with the oblique near plane, and the leaves culled against each tile's reflected
+    frustum. Tiles with ``shown[t]`` false see nothing in it."""
+
+    mirror: cfg.Mirror
+    view: np.ndarray  # (4, 4), det -1
+    shown: np.ndarray  # (T,) bool
+    projection: np.ndarray  # (T, 4, 4)
+    visible_start: np.ndarray  # (T + 1,)
+    visible: np.ndarray  # leaf ids
 
     @cached_property
     def view_rows(self) -> list:
         return self.view.tolist()
 
-
-def fit_frame(wall: Wall, frame: Frame, visibility: Visibility | None = None,
-              state: SceneState | None = None, scene_settings: cfg.Settings | None = None,
-              options: FitOptions = FitOptions()) -> Fits:
-    """One frame's fitted frusta (see the module docstring)."""
-    view = view_matrix(frame)
-    if options.depth == "tight" and visibility is not None:
-        near, far = depth_ranges(state, wall, frame, visibility)
-    else:
-        near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
-    projections = tile_projections(wall, frame, near, far, options.reversed_z)
-    out = Fits(view, projections, near, far)
-    if scene_settings is None or scene_settings.empty or visibility is None:
-        return out  # nothing declared: nothing computed, nothing sent
-    for light in scene_settings.lights:
-        for t in range(wall.tiles):
-            shadow = shadow_frustum(state, light, visibility.tile_nodes(t), options)
-            if shadow is not None:
-                out.extras.setdefault(t, {}).setdefault("shadows", []).append(shadow)
-    frusta = Frusta.build(wall, frame) if scene_settings.mirrors else None
-    for mirror in scene_settings.mirrors:
-        seen_from = MirrorSight.of(mirror, frame, view)
-        if seen_from is None:
-            continue  # the eye is behind the mirror (or on it): no tile sees anything in it
-        for t in range(wall.tiles):
-            seen = seen_from.tile(state, frusta.tile(t), projections[t])
-            if seen is not None:
-                out.extras.setdefault(t, {}).setdefault("mirrors", []).append(seen)
-    return out
-
-
-# --------------------------------------------------------------------------- shadows
-
-
-def _leaves(state: SceneState, nodes: np.ndarray) -> list[int]:
-    return np.unique(state.scene.subtree_leaves(nodes)).tolist()
-
-
-def shadow_frustum(state: SceneState, light: cfg.Light, receivers: np.ndarray,
-                   options: FitOptions) -> dict | None:
-    """The light's frustum for one tile: fitted around the bounds of what the tile shows (the
-    shadow receivers), with the casters that can shade them. None when the tile shows nothing
-    the light reaches."""
-    if not len(receivers):
-        return None
-    corners = state.bounds.take(receivers).world_corners().reshape(-1, 3)
-    if light.kind == "spot" and not cfg.spot_contains(light, corners).any() and \
-            not ((state.bounds.center[receivers] - light.position) @ light.direction > 0).any():
-        return None  # every receiver lies behind the spot light: nothing there is lit
-    width, height = light.resolution
-    try:
-        fit = fit_frustum(light.position, corners, width, height, refine=options.refine)
-    except FitError:
-        return cube_shadow(state, light, corners)
-    view, projection = fit.view, fit.projection.copy()
-    # Casters anywhere between the light and the receivers shade them: keep the side planes
-    # and the far plane, drop the near one, then pull the near plane in to the nearest caster.
-    planes = frustum_planes(projection @ view)[[0, 1, 2, 3, 5]]
-    casters = cull_region(state, planes)
-    near = _nearest_depth(state, casters, view, fit.far)
-    far = fit.far
-    projection[2, 2] = -(far + near) / (far - near)
-    projection[2, 3] = -2 * far * near / (far - near)
-    return {"light": light.name, "view": view.tolist(), "projection": projection.tolist(),
-            "near": near, "far": far, "coverage": float(fit.coverage),
-            "casters": _leaves(state, casters)}
-
-
-def _nearest_depth(state: SceneState, nodes: np.ndarray, view: np.ndarray, far: float) -> float:
-    """The smallest eye-space depth of the nodes' bounds, kept a sliver above zero."""
-    b = state.bounds
-    forward = -view[2, :3]
-    depth = (b.center[nodes] @ forward + (-view[2, 3]))
-    reach = b.reach(nodes, forward)
-    nearest = float((depth - reach).min()) if len(nodes) else far * 0.5
-    return max(nearest * (1 - 1e-6), far * 1e-6)
-
-
-def cube_shadow(state: SceneState, light: cfg.Light, corners: np.ndarray) -> dict:
-    """The six 90-degree faces of a cube map around a light its receivers surround."""
-    far = float(np.linalg.norm(corners - light.position, axis=1).max()) * (1 + 1e-6)
-    near = far * 1e-4
-    projection = np.zeros((4, 4))
-    projection[0, 0] = projection[1, 1] = 1.0
-    projection[2, 2] = -(far + near) / (far - near)
-    projection[2, 3] = -2 * far * near / (far - near)
-    projection[3, 2] = -1.0
-    # OpenGL cube-map face order: +x, -x, +y, -y, +z, -z, with the usual up vectors
-    looks = ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))
-    ups = ((0, -1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1), (0, -1, 0), (0, -1, 0))
-    faces = [look_at(light.position, light.position + np.array(d, float), u).tolist()
-             for d, u in zip(looks, ups)]
-    lo, hi = light.position - far, light.position + far
-    box = np.array([[1, 0, 0, -lo[0]], [-1, 0, 0, hi[0]], [0, 1, 0, -lo[1]],
-                    [0, -1, 0, hi[1]], [0, 0, 1, -lo[2]], [0, 0, -1, hi[2]]], dtype=float)
-    return {"light": light.name, "cube": True, "views": faces, "projection": projection.tolist(),
-            "near": near, "far": far, "casters": _leaves(state, cull_region(state, box))}
-
-
-# --------------------------------------------------------------------------- mirrors
+    def entry(self, t: int) -> dict | None:
+        if not self.shown[t]:
+            return None
+        return {"mirror": self.mirror.name, "view": self.view_rows,
+                "projection": self.projection[t].tolist(), "front_face": "cw",
+                "visible": _csr_rows(self.visible_start, self.visible, t)}
 
 
 @dataclass
@@ -259,24 +282,27 @@ class MirrorSight:
         clip = rigid_inverse(view).T @ (-plane)
         return cls(mirror, view @ refl, clip, np.concatenate(outline))
 
-    def tile(self, state: SceneState, tile_planes: np.ndarray,
-             projection: np.ndarray) -> dict | None:
-        """The reflected view of one tile (its frustum's planes and projection), or None when
-        the tile sees nothing in the mirror."""
-        # Seen in the mirror, in world space: the tile frustum reflected (a plane P applied to
+    def tiles(self, culler: Culler, frusta: Frusta, projections: np.ndarray) -> MirrorSet:
+        """The reflected view of every tile (its frustum's planes and projection)."""
+        # Seen in the mirror, in world space: the tile frusta reflected (a plane P applied to
         # reflected points, P . (R p), is the plane P R), in front of the mirror, within the
-        # pyramid from the reflected eye through the outline.
-        region = np.concatenate([tile_planes @ self.mirror.reflection, self.outline])
-        nodes = cull_region(state, region)
-        if not len(nodes):
-            return None
-        try:
-            oblique = oblique_near(projection, self.clip)
-        except ClipPlaneError:
-            return None
-        return {"mirror": self.mirror.name, "view": self.view.tolist(),
-                "projection": oblique.tolist(), "front_face": "cw",
-                "visible": _leaves(state, nodes)}
+        # pyramid from the reflected eye through the outline. The reflected table keeps the
+        # wall's layout, so the wall's own culling (frustum hierarchy included) does it, with
+        # the mirror's planes bounding every tile.
+        refl = self.mirror.reflection
+        frame = frusta.frame
+        vis = culler.cull_planes(frusta.planes @ refl, refl[:3, :3] @ -frame.rotation[:, 2],
+                                 (refl @ np.append(frame.eye_world, 1.0))[:3], frame.eye[2],
+                                 self.outline)
+        start, leaves = vis.leaf_lists()
+        shown = np.diff(start) > 0
+        oblique = projections.copy()
+        oblique[shown], refused = oblique_near_many(projections[shown], self.clip)
+        shown[shown] = refused == 0
+        counts = np.where(shown, np.diff(start), 0)
+        keep = np.repeat(shown, np.diff(start))
+        return MirrorSet(self.mirror, self.view, shown, oblique,
+                         np.concatenate([[0], np.cumsum(counts)]), leaves[keep])
 
 
 def _pyramid(apex: np.ndarray, polygon: np.ndarray) -> np.ndarray:
@@ -291,3 +317,65 @@ def _pyramid(apex: np.ndarray, polygon: np.ndarray) -> np.ndarray:
     normals[flip] *= -1
     d[flip] *= -1
     return np.concatenate([normals, d[:, None]], axis=1)
+
+
+# --------------------------------------------------------------------------- a frame
+
+
+@dataclass
+class Fits(Sequence):
+    """One frame's fitted frusta: arrays, read as a sequence of per-tile JSON-ready dicts
+    (``fits[t]``: ``view``, ``projection``, ``near``, ``far`` and any ``shadows``/``mirrors``).
+    Kept as arrays, a 64 x 64 wall's frame takes half a megabyte, not ten."""
+
+    view: np.ndarray  # (4, 4), shared by every tile
+    projection: np.ndarray  # (tiles, 4, 4)
+    near: np.ndarray  # (tiles,)
+    far: np.ndarray  # (tiles,)
+    shadows: list[ShadowSet] = field(default_factory=list)
+    mirrors: list[MirrorSet] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.projection)
+
+    def __getitem__(self, tile: int) -> dict:
+        if not 0 <= tile < len(self):
+            raise IndexError(tile)
+        out = {"view": self.view_rows, "projection": self.projection[tile].tolist(),
+               "near": float(self.near[tile]), "far": float(self.far[tile])}
+        for key, sets in (("shadows", self.shadows), ("mirrors", self.mirrors)):
+            entries = [e for e in (s.entry(tile) for s in sets) if e is not None]
+            if entries:
+                out[key] = entries
+        return out
+
+    @cached_property
+    def view_rows(self) -> list:
+        return self.view.tolist()
+
+
+def fit_frame(wall: Wall, frame: Frame, visibility: Visibility | None = None,
+              state: SceneState | None = None, scene_settings: cfg.Settings | None = None,
+              options: FitOptions = FitOptions(), frusta: Frusta | None = None,
+              culler: Culler | None = None) -> Fits:
+    """One frame's fitted frusta (see the module docstring). ``culler`` (the frame's own, or
+    one for ``state`` and ``wall``) culls what mirrors show."""
+    view = view_matrix(frame)
+    if options.depth == "tight" and visibility is not None:
+        near, far = depth_ranges(state, wall, frame, visibility)
+    else:
+        near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
+    projections = tile_projections(wall, frame, near, far, options.reversed_z)
+    out = Fits(view, projections, near, far)
+    if scene_settings is None or scene_settings.empty or visibility is None:
+        return out  # nothing declared: nothing computed, nothing sent
+    for light in scene_settings.lights:
+        out.shadows.append(shadow_set(state, light, visibility, options.shadow_fit))
+    for mirror in scene_settings.mirrors:
+        sight = MirrorSight.of(mirror, frame, view)
+        if sight is None:
+            continue  # the eye is behind the mirror (or on it): no tile sees anything in it
+        frusta = frusta or Frusta.build(wall, frame)
+        culler = culler or Culler(state, wall)
+        out.mirrors.append(sight.tiles(culler, frusta, projections))
+    return out

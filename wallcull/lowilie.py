@@ -39,11 +39,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from numba import njit
+
+from . import workers
 from .projection import frustum, look_at
-from .quad import bounding_quad, quad_area, refine_quad
+from .quad import COLLINEAR, OCTANTS, _greedy, _hull, _polygon_area, _refine
 
 __all__ = ["FitError", "FrustumFit", "fit_frustum", "float32_error", "bench_fit",
-           "MAX_HALF_ANGLE_DEG", "SPHERE_PAD"]
+           "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "fit_boxes"]
 
 #: The widest sample frustum, half-angle in degrees. Beyond it (or when no cone around the
 #: points' mean direction holds them all) :func:`fit_frustum` raises :class:`FitError`.
@@ -105,94 +108,639 @@ class FrustumFit:
         return self.eye + self.corner_rays
 
 
-# ----------------------------------------------------------------------------- small helpers
+# ------------------------------------------------------------------------- the compiled fit
+#
+# One fit is a few dozen small steps; as numpy calls they cost ~0.4 ms, compiled ~10-20 us, so
+# every tile of a wall can have one per light each frame. :func:`_fit_core` is the whole of
+# :func:`fit_frustum` below the argument checks; :func:`fit_boxes` runs it for many point sets
+# (a wall's tiles) in one call.
+
+#: Fitting effort (``--shadow-fit``): the symmetric bounding-sphere frustum only, the paper's
+#: greedy quad, or the greedy quad refined (the better of the two by coverage).
+EFFORTS = ("sphere", "greedy", "refined")
+
+# statuses of _fit_core
+OK, EMPTY, UNLIT, SURROUNDS, COINCIDES, HORIZON, MIRRORED, BAD_DEPTH = range(8)
+
+# info[] slots of _fit_core
+_NEAR, _FAR, _COVERAGE, _SAMPLE_COVERAGE, _TX, _TY, _NS, _FS, _SAMPLE, _DEGENERATE, \
+    _REFINED, _MEAN_DEPTH = range(12)
+INFO_SIZE = 12
 
 
-def _column_bounds(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Column-wise min and max of ``(m, k)``; numpy's axis-0 reductions of narrow arrays are
-    ~20x slower than per-column ones."""
-    lo = np.array([a[:, j].min() for j in range(a.shape[1])])
-    hi = np.array([a[:, j].max() for j in range(a.shape[1])])
-    return lo, hi
+@njit(cache=True)
+def _look(axis):
+    """Rows ``side, up, -axis`` of :func:`look_at` toward ``axis`` (unit), up world +y unless
+    ``axis`` is within ~8 degrees of it, then world -z."""
+    ux, uy, uz = (0.0, 1.0, 0.0) if abs(axis[1]) < 0.99 else (0.0, 0.0, -1.0)
+    sx = axis[1] * uz - axis[2] * uy
+    sy = axis[2] * ux - axis[0] * uz
+    sz = axis[0] * uy - axis[1] * ux
+    norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+    sx, sy, sz = sx / norm, sy / norm, sz / norm
+    rot = np.empty((3, 3))
+    rot[0, 0], rot[0, 1], rot[0, 2] = sx, sy, sz
+    rot[1, 0] = sy * axis[2] - sz * axis[1]
+    rot[1, 1] = sz * axis[0] - sx * axis[2]
+    rot[1, 2] = sx * axis[1] - sy * axis[0]
+    rot[2, 0], rot[2, 1], rot[2, 2] = -axis[0], -axis[1], -axis[2]
+    return rot
 
 
-def _up_for(axis: np.ndarray) -> np.ndarray:
-    """World +y, unless the view axis is within ~8 degrees of it; then world -z."""
-    return np.array([0.0, 1.0, 0.0]) if abs(axis[1]) < 0.99 else np.array([0.0, 0.0, -1.0])
-
-
-def _depth_range(center_depth: float, radius: float, depths: np.ndarray) -> tuple[float, float]:
-    """Eq. (17) with the near clamp: ``n = max(c - r, NEAR_FRACTION * min depth)``,
-    ``f = c + r``."""
-    near = max(center_depth - radius, NEAR_FRACTION * float(depths.min()))
-    return near, center_depth + radius
-
-
-def _normalizer(p: np.ndarray) -> np.ndarray:
-    """Hartley's similarity ``(3, 3)`` for 4 points ``(4, 2)``: centroid to the origin, mean
-    distance sqrt(2). (Plain floats: numpy's per-call overhead dominates at this size.)"""
-    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = p.tolist()
-    cx, cy = 0.25 * (x0 + x1 + x2 + x3), 0.25 * (y0 + y1 + y2 + y3)
-    mean = 0.25 * (math.hypot(x0 - cx, y0 - cy) + math.hypot(x1 - cx, y1 - cy)
-                   + math.hypot(x2 - cx, y2 - cy) + math.hypot(x3 - cx, y3 - cy))
-    s = math.sqrt(2.0) / mean
-    return np.array([[s, 0.0, -s * cx], [0.0, s, -s * cy], [0.0, 0.0, 1.0]])
-
-
-def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """3x3 ``H`` with ``dst ~ H src`` for 4 point pairs ``(4, 2)``: the DLT (the null vector of
-    the 8x9 system, by SVD) on Hartley-normalized points, then denormalized."""
-    ts, td = _normalizer(src), _normalizer(dst)
-    s = src * ts[0, 0] + ts[:2, 2]
-    d = dst * td[0, 0] + td[:2, 2]
-    a = np.zeros((8, 9))
-    a[0::2, 0:2] = s
-    a[0::2, 2] = 1.0
-    a[1::2, 3:5] = s
-    a[1::2, 5] = 1.0
-    a[0::2, 6:8] = -d[:, :1] * s
-    a[0::2, 8] = -d[:, 0]
-    a[1::2, 6:8] = -d[:, 1:] * s
-    a[1::2, 8] = -d[:, 1]
-    h = np.linalg.svd(a)[2][-1].reshape(3, 3)
-    return np.linalg.solve(td, h @ ts)  # H = Td^-1 Hn Ts
-
-
-def _mapped_area(h: np.ndarray, u: np.ndarray, v: np.ndarray) -> float:
-    """Area of the polygon with vertices ``(u, v)`` (each ``(m,)``) mapped by homography ``h``."""
-    w = h[2, 0] * u + h[2, 1] * v + h[2, 2]
-    x = (h[0, 0] * u + h[0, 1] * v + h[0, 2]) / w
-    y = (h[1, 0] * u + h[1, 1] * v + h[1, 2]) / w
-    return abs(0.5 * float(x[:-1] @ y[1:] - x[1:] @ y[:-1] + x[-1] * y[0] - x[0] * y[-1]))
-
-
-def _assign_corners(quad: np.ndarray, width: float, height: float) -> np.ndarray:
+@njit(cache=True)
+def _assign_corners(quad, width, height):
     """Viewport corner ``(4, 2)`` for each quad corner: the longest edge and its opposite go to
     the viewport's longer sides, in CCW order (orientation preserved), choosing of the two such
     assignments the one that turns the image least."""
-    edges = quad[[1, 2, 3, 0]] - quad
-    i = int(np.argmax((edges * edges).sum(axis=1)))
+    i, longest = 0, -1.0
+    for k in range(4):
+        j = (k + 1) % 4
+        ex, ey = quad[j, 0] - quad[k, 0], quad[j, 1] - quad[k, 1]
+        if ex * ex + ey * ey > longest:
+            i, longest = k, ex * ex + ey * ey
+    j = (i + 1) % 4
+    ex, ey = quad[j, 0] - quad[i, 0], quad[j, 1] - quad[i, 1]
     if width >= height:  # bottom side runs +x from corner 0, top side runs -x from corner 2
-        start = 0 if edges[i, 0] >= 0 else 2
+        start = 0 if ex >= 0 else 2
     else:  # right side runs +y from corner 1, left side runs -y from corner 3
-        start = 1 if edges[i, 1] >= 0 else 3
-    return _CORNERS[(start - i + np.arange(4)) % 4]
+        start = 1 if ey >= 0 else 3
+    out = np.empty((4, 2))
+    for k in range(4):
+        out[k] = _CORNERS[(start - i + k) % 4]
+    return out
 
 
-def _rq(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``p = k @ r`` with ``k`` upper triangular and ``r`` orthonormal, via Householder QR (the
-    rows of ``r`` are orthonormal to rounding whatever the conditioning of ``k``)."""
-    q, u = np.linalg.qr(p[::-1].T)
-    k = u.T[::-1, ::-1]
-    r = q.T[::-1]
-    return k, r
+@njit(cache=True)
+def _from_square(q):
+    """The projective map of the unit square's corners (0,0), (1,0), (1,1), (0,1) onto the
+    four points ``q`` (Heckbert's closed form), ``(3, 3)``."""
+    x0, y0, x1, y1, x2, y2, x3, y3 = (q[0, 0], q[0, 1], q[1, 0], q[1, 1], q[2, 0], q[2, 1],
+                                      q[3, 0], q[3, 1])
+    sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
+    h = np.empty((3, 3))
+    if sx == 0.0 and sy == 0.0:  # a parallelogram: affine
+        g = hh = 0.0
+    else:
+        dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
+        den = dx1 * dy2 - dx2 * dy1
+        g = (sx * dy2 - dx2 * sy) / den
+        hh = (dx1 * sy - sx * dy1) / den
+    h[0, 0], h[0, 1], h[0, 2] = x1 - x0 + g * x1, x3 - x0 + hh * x3, x0
+    h[1, 0], h[1, 1], h[1, 2] = y1 - y0 + g * y1, y3 - y0 + hh * y3, y0
+    h[2, 0], h[2, 1], h[2, 2] = g, hh, 1.0
+    return h
+
+
+@njit(cache=True)
+def _adjugate(m):
+    """The adjugate of a 3x3 matrix: its inverse up to scale, which is all a homography needs."""
+    a = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            r0, r1 = (j + 1) % 3, (j + 2) % 3
+            c0, c1 = (i + 1) % 3, (i + 2) % 3
+            a[i, j] = m[r0, c0] * m[r1, c1] - m[r0, c1] * m[r1, c0]
+    return a
+
+
+@njit(cache=True)
+def _homography(src, dst):
+    """3x3 ``H`` with ``dst ~ H src`` for 4 point pairs ``(4, 2)``: through the unit square in
+    closed form, ``H = S_dst adj(S_src)``, with ``src`` first moved to its centroid and scaled
+    to a mean distance of sqrt(2) (Hartley's normalization), so that small or distant quads keep
+    their digits."""
+    cx = 0.25 * (src[0, 0] + src[1, 0] + src[2, 0] + src[3, 0])
+    cy = 0.25 * (src[0, 1] + src[1, 1] + src[2, 1] + src[3, 1])
+    mean = 0.0
+    for k in range(4):
+        mean += 0.25 * math.hypot(src[k, 0] - cx, src[k, 1] - cy)
+    scale = math.sqrt(2.0) / mean
+    norm = np.empty((4, 2))
+    for k in range(4):
+        norm[k, 0], norm[k, 1] = (src[k, 0] - cx) * scale, (src[k, 1] - cy) * scale
+    t = np.array([[scale, 0.0, -scale * cx], [0.0, scale, -scale * cy], [0.0, 0.0, 1.0]])
+    return _from_square(dst) @ _adjugate(_from_square(norm)) @ t
+
+
+@njit(cache=True)
+def _mapped_area(h, poly):
+    """Area of the polygon ``(m, 2)`` mapped by homography ``h``."""
+    m = poly.shape[0]
+    x, y = np.empty(m), np.empty(m)
+    for k in range(m):
+        u, v = poly[k, 0], poly[k, 1]
+        w = h[2, 0] * u + h[2, 1] * v + h[2, 2]
+        x[k] = (h[0, 0] * u + h[0, 1] * v + h[0, 2]) / w
+        y[k] = (h[1, 0] * u + h[1, 1] * v + h[1, 2]) / w
+    area = 0.0
+    for k in range(m):
+        j = k + 1 if k + 1 < m else 0
+        area += x[k] * y[j] - x[j] * y[k]
+    return abs(0.5 * area)
+
+
+@njit(cache=True)
+def _segment_rectangle(hull, aspect):
+    """CCW rectangle ``(4, 2)`` around a (nearly) collinear point set: its long axis along the
+    principal direction, padded by 1e-6 of its length; its width the larger of the points'
+    spread across and ``length / max(aspect, 1 / aspect)``."""
+    n = hull.shape[0]
+    cx, cy = 0.0, 0.0
+    for k in range(n):
+        cx += hull[k, 0] / n
+        cy += hull[k, 1] / n
+    a = b = c = 0.0
+    for k in range(n):
+        dx, dy = hull[k, 0] - cx, hull[k, 1] - cy
+        a += dx * dx
+        b += dx * dy
+        c += dy * dy
+    theta = 0.5 * math.atan2(2 * b, a - c)  # the principal axis of the scatter
+    ux, uy = math.cos(theta), math.sin(theta)
+    vx, vy = -uy, ux
+    tlo = slo = np.inf
+    thi = shi = -np.inf
+    for k in range(n):
+        dx, dy = hull[k, 0] - cx, hull[k, 1] - cy
+        t, s_ = dx * ux + dy * uy, dx * vx + dy * vy
+        tlo, thi, slo, shi = min(tlo, t), max(thi, t), min(slo, s_), max(shi, s_)
+    length = (thi - tlo) * (1 + 2e-6)
+    width = max((shi - slo) * (1 + 2e-6), length / max(aspect, 1.0 / aspect))
+    mx = cx + ux * 0.5 * (thi + tlo) + vx * 0.5 * (shi + slo)
+    my = cy + uy * 0.5 * (thi + tlo) + vy * 0.5 * (shi + slo)
+    hux, huy, hvx, hvy = 0.5 * length * ux, 0.5 * length * uy, 0.5 * width * vx, 0.5 * width * vy
+    out = np.empty((4, 2))
+    out[0, 0], out[0, 1] = mx - hux - hvx, my - huy - hvy
+    out[1, 0], out[1, 1] = mx + hux - hvx, my + huy - hvy
+    out[2, 0], out[2, 1] = mx + hux + hvx, my + huy + hvy
+    out[3, 0], out[3, 1] = mx - hux + hvx, my - huy + hvy
+    return out
+
+
+@njit(cache=True)
+def _rq(p):
+    """``p = k @ r`` with ``k`` upper triangular and ``r`` orthonormal, via Householder QR of
+    the reversed transpose (the rows of ``r`` are orthonormal to rounding whatever the
+    conditioning of ``k``)."""
+    q, u = np.linalg.qr(np.ascontiguousarray(p[::-1].T))
+    return np.ascontiguousarray(u.T[::-1, ::-1]), np.ascontiguousarray(q.T[::-1])
+
+
+@njit(cache=True)
+def _box_images(rel, g, u, disc, rot_s, axis, points):
+    """The sample images of the corners that can be on the hull of all boxes' corners, ``(k,
+    2)``. The boxes with the most extreme image centres in 8 directions give an octagon of
+    real corner images, inside the hull; a box whose image disc lies farther inside it than the
+    hull's collinearity tolerance cannot add a hull vertex and is skipped."""
+    n = u.shape[0]
+    pick = np.zeros(8, np.int64)
+    best = np.full(8, -np.inf)
+    for i in range(n):
+        for k in range(8):
+            key = -(OCTANTS[k, 0] * u[i, 0] + OCTANTS[k, 1] * u[i, 1])  # min x, min x + y, ...
+            if key > best[k]:
+                best[k] = key
+                pick[k] = i
+    out = np.empty((points, 2))
+    corner = np.empty((8, 3))
+    k = 0
+    for j in range(8):  # the extreme boxes' corners: real points inside the hull
+        i = pick[j]
+        if disc[i] < 0:  # already taken
+            continue
+        for q in range(_corners_of(rel, g, i, corner, 0)):
+            _image(corner, q, rot_s, axis, out, k)
+            k += 1
+        disc[i] = -1.0
+    inner = _octagon(out[:k])
+    lox, hix, loy, hiy = np.inf, -np.inf, np.inf, -np.inf
+    for i in range(n):
+        lox, hix = min(lox, u[i, 0] - disc[i]), max(hix, u[i, 0] + disc[i])
+        loy, hiy = min(loy, u[i, 1] - disc[i]), max(hiy, u[i, 1] + disc[i])
+    margin = 2 * COLLINEAR * math.hypot(hix - lox, hiy - loy) if np.isfinite(hix) else np.inf
+    for i in range(n):
+        if disc[i] < 0:
+            continue
+        if disc[i] < np.inf and _well_inside(inner, u[i, 0], u[i, 1], disc[i] + margin):
+            continue
+        for q in range(_corners_of(rel, g, i, corner, 0)):
+            _image(corner, q, rot_s, axis, out, k)
+            k += 1
+    return out[:k]
+
+
+@njit(cache=True, inline="always")
+def _image(p, q, rot_s, axis, out, k):
+    """The sample image of eye-relative point ``p[q]`` into ``out[k]``."""
+    x, y, z = p[q, 0], p[q, 1], p[q, 2]
+    depth = axis[0] * x + axis[1] * y + axis[2] * z
+    out[k, 0] = (rot_s[0, 0] * x + rot_s[0, 1] * y + rot_s[0, 2] * z) / depth
+    out[k, 1] = (rot_s[1, 0] * x + rot_s[1, 1] * y + rot_s[1, 2] * z) / depth
+
+
+@njit(cache=True)
+def _octagon(points):
+    """Edges ``(8, 3)`` (inward unit normal, offset) of the polygon of the points extreme in
+    x, x + y, y, y - x, ... (CCW); zero rows for edges of no length."""
+    ext = np.zeros(8, np.int64)
+    best = np.full(8, np.inf)
+    for i in range(points.shape[0]):
+        for k in range(8):
+            key = OCTANTS[k, 0] * points[i, 0] + OCTANTS[k, 1] * points[i, 1]
+            if key < best[k]:
+                best[k] = key
+                ext[k] = i
+    edges = np.zeros((8, 3))
+    for k in range(8):
+        a, b = ext[k], ext[(k + 1) % 8]
+        ex, ey = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
+        length = math.hypot(ex, ey)
+        if length > 0.0:
+            edges[k, 0], edges[k, 1] = -ey / length, ex / length
+            edges[k, 2] = edges[k, 0] * points[a, 0] + edges[k, 1] * points[a, 1]
+    return edges
+
+
+@njit(cache=True)
+def _well_inside(edges, x, y, margin):
+    """Whether the disc of radius ``margin`` at (x, y) lies inside the octagon ``edges`` (a
+    degenerate octagon, of fewer than three edges, holds nothing)."""
+    count = 0
+    for k in range(8):
+        if edges[k, 0] == 0.0 and edges[k, 1] == 0.0:
+            continue
+        count += 1
+        if edges[k, 0] * x + edges[k, 1] * y - edges[k, 2] <= margin:
+            return False
+    return count >= 3
+
+
+@njit(cache=True)
+def _support(g, i, nx, ny, nz):
+    """Half-width of box ``i`` (rows of ``g[i]``: its half-extent vectors) along ``n``."""
+    return (abs(nx * g[i, 0, 0] + ny * g[i, 0, 1] + nz * g[i, 0, 2])
+            + abs(nx * g[i, 1, 0] + ny * g[i, 1, 1] + nz * g[i, 1, 2])
+            + abs(nx * g[i, 2, 0] + ny * g[i, 2, 1] + nz * g[i, 2, 2]))
+
+
+@njit(cache=True)
+def _corners_of(rel, g, i, out, k):
+    """Write box ``i``'s corners (eye-relative) into ``out[k:]``; returns the new ``k`` (one
+    point for a box of no extent)."""
+    if g[i, 0, 0] == 0.0 and g[i, 0, 1] == 0.0 and g[i, 0, 2] == 0.0 and g[i, 1, 0] == 0.0 \
+            and g[i, 1, 1] == 0.0 and g[i, 1, 2] == 0.0 and g[i, 2, 0] == 0.0 \
+            and g[i, 2, 1] == 0.0 and g[i, 2, 2] == 0.0:
+        out[k, 0], out[k, 1], out[k, 2] = rel[i, 0], rel[i, 1], rel[i, 2]
+        return k + 1
+    for sx in (-1.0, 1.0):
+        for sy in (-1.0, 1.0):
+            for sz in (-1.0, 1.0):
+                for b in range(3):
+                    out[k, b] = rel[i, b] + sx * g[i, 0, b] + sy * g[i, 1, b] + sz * g[i, 2, b]
+                k += 1
+    return k
+
+
+@njit(cache=True)
+def _fit_core(eye, centers, g, width, height, near_in, far_in, effort, view, projection,
+              quad_out, target_out, rays_out, axis_out, info):
+    """The Low-Ilie fit of :func:`fit_frustum` around the corners of boxes ``centers (n, 3)``,
+    ``g (n, 3, 3)`` (each box's three half-extent vectors, orthogonal; all zero for a point),
+    from ``eye``: writes the view and projection ``(4, 4)``, the quad and its viewport corners
+    ``(4, 2)``, the corner rays ``(4, 3)``, the sample axis and ``info`` (the ``_NEAR`` ...
+    slots); returns a status (``OK`` or why not). ``near_in``/``far_in``: NaN to fit them.
+    ``effort``: 0 sphere, 1 greedy, 2 refined.
+
+    The result is the fit of all the corners, but most of the work is per box: extents and
+    depths come from each box's support function, and a box whose image lies well inside the
+    hull of a few extreme boxes' corners never has its corners projected."""
+    n = centers.shape[0]
+    rel = np.empty((n, 3))
+    reach = np.empty(n)  # distance from a box's centre to its corners
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    points = 0
+    for i in range(n):
+        for j in range(3):
+            rel[i, j] = centers[i, j] - eye[j]  # eye-relative: full precision far away
+            e = abs(g[i, 0, j]) + abs(g[i, 1, j]) + abs(g[i, 2, j])
+            lo[j] = min(lo[j], rel[i, j] - e)
+            hi[j] = max(hi[j], rel[i, j] + e)
+        r2 = 0.0
+        for a in range(3):
+            r2 += g[i, a, 0] ** 2 + g[i, a, 1] ** 2 + g[i, a, 2] ** 2
+        reach[i] = math.sqrt(r2)
+        points += 1 if reach[i] == 0.0 else 8
+    center = 0.5 * (lo + hi)
+    dist_c = math.sqrt(center[0] ** 2 + center[1] ** 2 + center[2] ** 2)
+    corner = np.empty((8, 3))
+    # The farthest corner from the centre, exactly. A box's farthest corner from a point lies
+    # between sqrt(d^2 + reach^2) and d + reach (d: the distance to the box's centre; its
+    # corners are symmetric about it), so only boxes whose upper bound beats every lower
+    # bound are opened.
+    away = np.empty(n)
+    r2 = 0.0
+    for i in range(n):
+        d2 = ((rel[i, 0] - center[0]) ** 2 + (rel[i, 1] - center[1]) ** 2
+              + (rel[i, 2] - center[2]) ** 2)
+        away[i] = math.sqrt(d2) + reach[i]
+        r2 = max(r2, d2 + reach[i] ** 2)
+    for i in range(n):
+        if away[i] ** 2 <= r2:
+            continue
+        for q in range(_corners_of(rel, g, i, corner, 0)):
+            r2 = max(r2, (corner[q, 0] - center[0]) ** 2 + (corner[q, 1] - center[1]) ** 2
+                     + (corner[q, 2] - center[2]) ** 2)
+    radius = math.sqrt(r2) * (1.0 + SPHERE_PAD)
+    depth_radius = max(radius, DEPTH_PAD * dist_c)
+    max_half = math.radians(MAX_HALF_ANGLE_DEG)
+
+    # 1. the sample frustum
+    axis = np.empty(3)
+    if dist_c > radius and radius / dist_c <= math.sin(max_half):
+        info[_SAMPLE] = 0.0  # sphere
+        axis[:] = center / dist_c
+        half = max(math.asin(radius / dist_c), MIN_HALF_ANGLE)
+    else:
+        info[_SAMPLE] = 1.0  # cone: the eye is inside the bounding sphere
+        # The axis: the mean unit direction to the boxes' centres (their corners, for points).
+        ax = ay = az = 0.0
+        shortest = np.inf
+        for i in range(n):
+            length = math.sqrt(rel[i, 0] ** 2 + rel[i, 1] ** 2 + rel[i, 2] ** 2)
+            shortest = min(shortest, length - reach[i])
+            if length > 0:
+                weight = (1.0 if reach[i] == 0.0 else 8.0) / points
+                ax += rel[i, 0] / length * weight
+                ay += rel[i, 1] / length * weight
+                az += rel[i, 2] / length * weight
+        norm = math.sqrt(ax * ax + ay * ay + az * az)
+        if shortest <= 1e-12 * (radius + dist_c):  # a box reaches the eye: check its corners
+            for i in range(n):
+                length = math.sqrt(rel[i, 0] ** 2 + rel[i, 1] ** 2 + rel[i, 2] ** 2)
+                if length - reach[i] > 1e-12 * (radius + dist_c):
+                    continue
+                for q in range(_corners_of(rel, g, i, corner, 0)):
+                    if not math.sqrt(corner[q, 0] ** 2 + corner[q, 1] ** 2 + corner[q, 2] ** 2) \
+                            > 1e-12 * (radius + dist_c):
+                        return COINCIDES
+        if not norm > 0:
+            return SURROUNDS
+        ax, ay, az = ax / norm, ay / norm, az / norm
+        # The widest corner, exactly. A box's corners lie within asin(reach / length) of its
+        # centre's direction, so the cosine of their angle to the axis is at least
+        # cos(angle + spread): only boxes whose bound is below the widest so far are opened,
+        # the box with the lowest bound first.
+        bound = np.empty(n)
+        lowest = 0
+        for i in range(n):
+            length = math.sqrt(rel[i, 0] ** 2 + rel[i, 1] ** 2 + rel[i, 2] ** 2)
+            cos_a = max(-1.0, min(1.0, (rel[i, 0] * ax + rel[i, 1] * ay + rel[i, 2] * az)
+                                  / length))
+            sin_a, sin_s = math.sqrt(1 - cos_a * cos_a), reach[i] / length
+            cos_s = math.sqrt(max(0.0, 1 - sin_s * sin_s))
+            if sin_s >= 1.0 or sin_a * cos_s + cos_a * sin_s < 0:  # a + s beyond 180 degrees
+                bound[i] = -1.0
+            else:  # cos(a + s) = cos a cos s - sin a sin s
+                bound[i] = cos_a * cos_s - sin_a * sin_s
+            if bound[i] < bound[lowest]:
+                lowest = i
+        cos_half = np.inf
+        for j in range(-1, n):
+            i = lowest if j < 0 else j
+            if bound[i] >= cos_half or (j == lowest):
+                continue
+            for q in range(_corners_of(rel, g, i, corner, 0)):
+                length = math.sqrt(corner[q, 0] ** 2 + corner[q, 1] ** 2 + corner[q, 2] ** 2)
+                cos_half = min(cos_half, (corner[q, 0] * ax + corner[q, 1] * ay
+                                          + corner[q, 2] * az) / length)
+        if not cos_half >= math.cos(max_half):
+            return SURROUNDS
+        axis[0], axis[1], axis[2] = ax, ay, az
+        half = max(math.acos(min(cos_half, 1.0)), MIN_HALF_ANGLE)
+    axis_out[:] = axis
+    rot_s = _look(axis)
+    # the boxes seen from the eye: the depth of each centre, its image, and a disc around the
+    # image that holds the box's image (|d image| <= reach sqrt(1 + |u|^2) / (depth - reach))
+    u = np.empty((n, 2))
+    disc = np.empty(n)
+    shallowest = np.inf
+    mean_depth = 0.0
+    for i in range(n):
+        x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
+        depth = axis[0] * x + axis[1] * y + axis[2] * z
+        shallowest = min(shallowest, depth - _support(g, i, axis[0], axis[1], axis[2]))
+        mean_depth += depth * (1 if reach[i] == 0.0 else 8) / points
+        u[i, 0] = (rot_s[0, 0] * x + rot_s[0, 1] * y + rot_s[0, 2] * z) / depth
+        u[i, 1] = (rot_s[1, 0] * x + rot_s[1, 1] * y + rot_s[1, 2] * z) / depth
+        disc[i] = reach[i] * math.sqrt(1 + u[i, 0] ** 2 + u[i, 1] ** 2) / (depth - reach[i]) \
+            if depth > reach[i] else np.inf
+    img = _box_images(rel, g, u, disc, rot_s, axis, points)
+    center_depth = axis[0] * center[0] + axis[1] * center[1] + axis[2] * center[2]
+    n_s = max(center_depth - depth_radius, NEAR_FRACTION * shallowest)
+    f_s = center_depth + depth_radius
+    aspect = width / height
+    t = math.tan(half)
+    tx, ty = t * max(aspect, 1.0), t * max(1.0 / aspect, 1.0)  # shorter side touches the sphere
+    info[_TX], info[_TY], info[_NS], info[_FS] = tx, ty, n_s, f_s
+    info[_MEAN_DEPTH] = mean_depth
+
+    # 2. the sample image: hull and quads
+    hull = img[_hull(img)]
+    nh = hull.shape[0]
+    hull_area = abs(_polygon_area(hull)) if nh >= 3 else 0.0
+    info[_SAMPLE_COVERAGE] = hull_area / (tx * ty) / 4.0
+    diameter = 0.0
+    for k in range(nh):
+        diameter = max(diameter, math.hypot(hull[k, 0] - hull[0, 0], hull[k, 1] - hull[0, 1]))
+    info[_DEGENERATE] = 0.0
+    info[_REFINED] = 0.0
+    corners = np.empty((4, 2))
+    for k in range(4):
+        corners[k, 0], corners[k, 1] = _CORNERS[k, 0] * tx, _CORNERS[k, 1] * ty
+    if effort == 0 or nh < 3 or hull_area <= FLAT * diameter ** 2:
+        if effort == 0:
+            quad = corners
+        elif diameter <= 1e-12 * t:
+            info[_DEGENERATE] = 2.0  # point
+            quad = corners
+        else:
+            info[_DEGENERATE] = 1.0  # segment
+            quad = _segment_rectangle(hull, aspect)
+        target = _assign_corners(quad, width, height) if effort else _CORNERS.copy()
+        h = _homography(quad, target)
+        coverage = _mapped_area(h, hull) / 4.0 if nh >= 3 else 0.0
+    else:
+        quad = _greedy(hull)
+        target = _assign_corners(quad, width, height)
+        h = _homography(quad, target)
+        coverage = _mapped_area(h, hull) / 4.0
+        if effort == 2 and nh >= 5:
+            refined, _ = _refine(hull, quad, 10_000)
+            if _polygon_area(refined) < _polygon_area(quad):
+                r_target = _assign_corners(refined, width, height)
+                r_h = _homography(refined, r_target)
+                r_coverage = _mapped_area(r_h, hull) / 4.0
+                if r_coverage > coverage:
+                    quad, target, h, coverage = refined, r_target, r_h, r_coverage
+                    info[_REFINED] = 1.0
+    info[_COVERAGE] = coverage
+
+    # 3. P: world direction -> homogeneous NDC; the sample eye has (u, v, 1) ~ (x, y, -z)
+    flip = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            flip[i, j] = rot_s[i, j] * (-1.0 if i == 2 else 1.0)
+    p = h @ flip
+    w0 = quad[0, 0] * h[2, 0] + quad[0, 1] * h[2, 1] + h[2, 2]
+    for k in range(4):
+        w = quad[k, 0] * h[2, 0] + quad[k, 1] * h[2, 1] + h[2, 2]
+        if not (w * w0 > 0):
+            return HORIZON  # the quad's corners straddle the horizon of the warp
+    if w0 < 0:
+        p = -p
+    k_, r = _rq(p)
+    for j in range(3):  # want k00 > 0, k11 > 0, k22 < 0
+        sign = (1.0 if k_[j, j] >= 0 else -1.0) * (-1.0 if j == 2 else 1.0)
+        for i in range(3):
+            k_[i, j] *= sign
+            r[j, i] *= sign
+    det = (r[0, 0] * (r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1])
+           - r[0, 1] * (r[1, 0] * r[2, 2] - r[1, 2] * r[2, 0])
+           + r[0, 2] * (r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]))
+    if det < 0:
+        return MIRRORED  # the corner assignment mirrored the image
+    k_ /= -k_[2, 2]
+    if effort == 0:  # the sample frustum itself
+        r = rot_s
+
+    # 4. the matrices
+    view[:, :] = 0.0
+    view[3, 3] = 1.0
+    view[:3, :3] = r
+    for i in range(3):
+        view[i, 3] = -(r[i, 0] * eye[0] + r[i, 1] * eye[1] + r[i, 2] * eye[2])
+    shallowest = np.inf
+    for i in range(n):
+        shallowest = min(shallowest, -(r[2, 0] * rel[i, 0] + r[2, 1] * rel[i, 1]
+                                       + r[2, 2] * rel[i, 2]) - _support(g, i, r[2, 0],
+                                                                          r[2, 1], r[2, 2]))
+    center_depth = -(r[2, 0] * center[0] + r[2, 1] * center[1] + r[2, 2] * center[2])
+    near = max(center_depth - depth_radius, NEAR_FRACTION * shallowest)
+    far = center_depth + depth_radius
+    if not math.isnan(near_in):
+        near = near_in
+    if not math.isnan(far_in):
+        far = far_in
+    if not 0 < near < far:
+        return BAD_DEPTH
+    info[_NEAR], info[_FAR] = near, far
+    projection[:, :] = 0.0
+    if effort == 0:
+        projection[0, 0], projection[1, 1] = 1.0 / tx, 1.0 / ty
+    else:
+        projection[0, 0], projection[0, 1], projection[0, 2] = k_[0, 0], k_[0, 1], k_[0, 2]
+        projection[1, 1], projection[1, 2] = k_[1, 1], k_[1, 2]
+    projection[2, 2] = -(far + near) / (far - near)
+    projection[2, 3] = -2.0 * far * near / (far - near)
+    projection[3, 2] = -1.0
+    # the corner rays (sample eye (u, v, -1) -> world), scaled to the points' mean sample depth
+    for k in range(4):
+        for j in range(3):
+            rays_out[k, j] = (quad[k, 0] * rot_s[0, j] + quad[k, 1] * rot_s[1, j]
+                              - rot_s[2, j]) * mean_depth
+        quad_out[k, 0], quad_out[k, 1] = quad[k, 0] / tx, quad[k, 1] / ty
+        target_out[k, 0], target_out[k, 1] = target[k, 0], target[k, 1]
+    return OK
+
+
+@njit(cache=True, nogil=True)
+def _fit_boxes(eye, center, axes, half, radius, start, nodes, width, height, effort, spot,
+               spot_dir, spot_cos, views, projections, near, far, coverage, status):
+    """:func:`_fit_core` for many sets of boxes at once: set ``q`` is the boxes enclosing the
+    rounded boxes ``nodes[start[q]:start[q + 1]]`` (a tile's receivers). With ``spot``, a set
+    none of whose corners the cone (``spot_dir``, ``spot_cos``) reaches and none of whose
+    centres lies in front of the light is ``UNLIT``."""
+    most = 0
+    for q in range(start.shape[0] - 1):
+        most = max(most, start[q + 1] - start[q])
+    c = np.empty((most, 3))
+    g = np.empty((most, 3, 3))
+    corner = np.empty((8, 3))
+    quad, target, rays, axis = np.empty((4, 2)), np.empty((4, 2)), np.empty((4, 3)), np.empty(3)
+    info = np.zeros(INFO_SIZE)
+    for q in range(start.shape[0] - 1):
+        count = start[q + 1] - start[q]
+        if count == 0:
+            status[q] = EMPTY
+            continue
+        lit = not spot
+        for j in range(count):
+            i = nodes[start[q] + j]
+            for a in range(3):
+                c[j, a] = center[i, a]
+                for b in range(3):
+                    g[j, a, b] = axes[i, a, b] * (half[i, a] + radius[i])
+            if not lit:
+                lit = ((center[i, 0] - eye[0]) * spot_dir[0] + (center[i, 1] - eye[1])
+                       * spot_dir[1] + (center[i, 2] - eye[2]) * spot_dir[2]) > 0
+            if not lit:
+                for k in range(_corners_of(c, g, j, corner, 0)):
+                    dx, dy, dz = corner[k, 0] - eye[0], corner[k, 1] - eye[1], corner[k, 2] - eye[2]
+                    along = dx * spot_dir[0] + dy * spot_dir[1] + dz * spot_dir[2]
+                    lit = lit or along >= math.sqrt(dx * dx + dy * dy + dz * dz) * spot_cos
+        if not lit:
+            status[q] = UNLIT  # every receiver lies behind the spot light: nothing there is lit
+            continue
+        status[q] = _fit_core(eye, c[:count], g[:count], width, height, np.nan, np.nan, effort,
+                              views[q], projections[q], quad, target, rays, axis, info)
+        near[q], far[q], coverage[q] = info[_NEAR], info[_FAR], info[_COVERAGE]
+
+
+def fit_boxes(eye, bounds, start: np.ndarray, nodes: np.ndarray, width: int, height: int,
+              effort: str = "refined", spot: tuple | None = None) -> dict:
+    """Low-Ilie fits from ``eye`` around many sets of bounds at once (a wall's tiles, each
+    around the bounds of what it shows): set ``q`` is ``bounds`` rows
+    ``nodes[start[q]:start[q + 1]]``, fitted around the corners of the boxes that enclose
+    them. ``spot``: ``(direction, cos_angle)`` of a spot light, whose sets wholly behind it are
+    ``UNLIT``. Returns arrays: ``status (Q,)`` (``OK``, ``EMPTY``, ``UNLIT``, or why no single
+    frustum fits), ``view``, ``projection (Q, 4, 4)``, ``near``, ``far``, ``coverage (Q,)``."""
+    if effort not in EFFORTS:
+        raise ValueError(f"effort must be one of {', '.join(EFFORTS)}, got {effort!r}")
+    count = len(start) - 1
+    out = {"status": np.zeros(count, np.int64), "view": np.zeros((count, 4, 4)),
+           "projection": np.zeros((count, 4, 4)), "near": np.zeros(count),
+           "far": np.zeros(count), "coverage": np.zeros(count)}
+    direction, cos_angle = spot if spot is not None else (np.zeros(3), 1.0)
+    eye = np.asarray(eye, np.float64)
+    direction = np.asarray(direction, np.float64)
+
+    def chunk(k, a, b):  # sets [a, b): their outputs are views of the frame's arrays
+        _fit_boxes(eye, bounds.center, bounds.axes, bounds.half, bounds.radius, start[a:b + 1],
+                   nodes, float(width), float(height), EFFORTS.index(effort), spot is not None,
+                   direction, float(cos_angle), out["view"][a:b], out["projection"][a:b],
+                   out["near"][a:b], out["far"][a:b], out["coverage"][a:b], out["status"][a:b])
+
+    workers.run(chunk, workers.chunks(count, start))
+    return out
+
+
+_STATUS_ERRORS = {
+    SURROUNDS: (FitError, "the points surround the eye (the eye is inside their bounding sphere "
+                          f"and they span more than a {2 * MAX_HALF_ANGLE_DEG:g} degree cone): no "
+                          "single perspective frustum from there contains them"),
+    COINCIDES: (FitError, "a point coincides with the eye: no frustum from there contains it"),
+    HORIZON: (RuntimeError, "fit_frustum: the quad's corners straddle the horizon of the warp"),
+    MIRRORED: (RuntimeError, "fit_frustum: the corner assignment mirrored the image"),
+}
 
 
 # ------------------------------------------------------------------------------------ the fit
 
 
 def fit_frustum(eye, points, width: int, height: int, near: float | None = None,
-                far: float | None = None, refine: bool = True) -> FrustumFit:
+                far: float | None = None, refine: bool = True,
+                effort: str | None = None) -> FrustumFit:
     """Fit a view and projection from ``eye`` ``(3,)`` to ``points`` ``(m, 3)`` (world space)
     for a ``width`` x ``height`` viewport (pixels; only the aspect matters).
 
@@ -224,141 +772,48 @@ def fit_frustum(eye, points, width: int, height: int, near: float | None = None,
     point (``degenerate == "point"``). Hulls of 3 points
     use the paper's parallelogram, hulls of 4 points themselves (coverage 1).
 
-    ``refine=True`` computes both the greedy and the refined quad and keeps the one whose fitted
+    **Effort** (:data:`EFFORTS`): ``"refined"`` (the default; ``refine=False`` means
+    ``"greedy"``) computes both the greedy and the refined quad and keeps the one whose fitted
     frustum covers more of the viewport: the refined quad is never larger, but a smaller quad
     does not guarantee a larger image (the paper's section 6; the warp is not uniform).
+    ``"greedy"`` keeps the paper's quad; ``"sphere"`` returns the sample frustum itself.
     """
     eye = np.asarray(eye, dtype=np.float64).reshape(3)
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) == 0:
         raise ValueError("fit_frustum needs at least one point")
     if not (np.isfinite(eye).all() and np.isfinite(pts).all()):
         raise ValueError("eye and points must be finite")
     if not (width > 0 and height > 0):
         raise ValueError(f"viewport must have a positive size, got {width} x {height}")
-    rel = pts - eye  # eye-relative: keeps full precision far from the origin
-    lo, hi = _column_bounds(rel)
-    center = 0.5 * (lo + hi)
-    dist_c = float(np.linalg.norm(center))
-    radius = float(np.sqrt(((rel - center) ** 2).sum(axis=1).max())) * (1.0 + SPHERE_PAD)
-    depth_radius = max(radius, DEPTH_PAD * dist_c)
-    max_half = math.radians(MAX_HALF_ANGLE_DEG)
-
-    # 1. the sample frustum
-    if dist_c > radius and radius / dist_c <= math.sin(max_half):
-        sample, axis = "sphere", center / dist_c
-        half = max(math.asin(radius / dist_c), MIN_HALF_ANGLE)
-    else:
-        sample = "cone"
-        lengths = np.sqrt((rel ** 2).sum(axis=1))
-        if not lengths.min() > 1e-12 * (radius + dist_c):
-            raise FitError("a point coincides with the eye: no frustum from there contains it")
-        units = rel / lengths[:, None]
-        axis = units.mean(axis=0)
-        norm = float(np.linalg.norm(axis))
-        cos_half = float((units @ axis).min()) / norm if norm > 0 else -1.0
-        if not cos_half >= math.cos(max_half):
-            raise FitError(
-                "the points surround the eye (the eye is inside their bounding sphere and they "
-                f"span more than a {2 * MAX_HALF_ANGLE_DEG:g} degree cone): no single "
-                "perspective frustum from there contains them")
-        axis = axis / norm
-        half = max(math.acos(min(cos_half, 1.0)), MIN_HALF_ANGLE)
-    sample_view = look_at(eye, eye + axis, _up_for(axis))
-    rot_s = sample_view[:3, :3]
-    eye_s = rel @ rot_s.T  # sample eye space
-    depth_s = -eye_s[:, 2]
-    n_s, f_s = _depth_range(float(axis @ center), depth_radius, depth_s)
-    aspect = width / height
-    t = math.tan(half)
-    tx, ty = t * max(aspect, 1.0), t * max(1.0 / aspect, 1.0)  # shorter side touches the sphere
-    sample_projection = frustum(-tx * n_s, tx * n_s, -ty * n_s, ty * n_s, n_s, f_s)
-
-    # 2. the sample image in isotropic tangent-plane coordinates (x / -z, y / -z)
-    img = eye_s[:, :2] / depth_s[:, None]
-    hull_idx, greedy = bounding_quad(img, refine=False)
-    hull = img[hull_idx]
-    scale = np.array([tx, ty])
-    sample_coverage = abs(quad_area(hull)) / (tx * ty) / 4.0 if len(hull) >= 3 else 0.0
-
-    degenerate = None
-    candidates = [(greedy, False)]
-    diameter = float(np.sqrt(((hull - hull[0]) ** 2).sum(axis=1).max())) if len(hull) > 1 else 0.0
-    if len(hull) < 3 or abs(quad_area(hull)) <= FLAT * diameter ** 2:
-        if diameter <= 1e-12 * t:
-            degenerate = "point"
-            candidates = [(_CORNERS * scale, False)]
-        else:
-            degenerate = "segment"
-            candidates = [(_segment_rectangle(hull, aspect), False)]
-    elif refine and len(hull) >= 5:
-        refined = refine_quad(hull, greedy)
-        if quad_area(refined) < quad_area(greedy):
-            candidates.append((refined, True))
-
-    # 3. correspondences and the projective map, per candidate quad; keep the best coverage
-    best = None
-    u, v = hull[:, 0].copy(), hull[:, 1].copy()
-    for quad, is_refined in candidates:
-        target = _assign_corners(quad, width, height)
-        h = _homography(quad, target)
-        coverage = _mapped_area(h, u, v) / 4.0 if len(hull) >= 3 else 0.0
-        if best is None or coverage > best[0]:
-            best = (coverage, quad, target, h, is_refined)
-    coverage, quad, target, h, is_refined = best
-
-    # 4. P: world direction -> homogeneous NDC; the sample eye has (u, v, 1) ~ (x, y, -z)
-    p = h @ (np.diag([1.0, 1.0, -1.0]) @ rot_s)
-    w = quad @ h[2, :2] + h[2, 2]
-    if not (np.all(w > 0) or np.all(w < 0)):
-        raise RuntimeError("fit_frustum: the quad's corners straddle the horizon of the warp")
-    if w[0] < 0:
-        p = -p
-    k, r = _rq(p)
-    signs = np.sign(np.diag(k)) * np.array([1.0, 1.0, -1.0])  # want k00 > 0, k11 > 0, k22 < 0
-    k, r = k * signs, signs[:, None] * r
-    if np.linalg.det(r) < 0:
-        raise RuntimeError("fit_frustum: the corner assignment mirrored the image")
-    k = k / -k[2, 2]
-
-    # 5. the matrices
-    view = np.eye(4)
-    view[:3, :3] = r
-    view[:3, 3] = -r @ eye
-    depths = -(rel @ r[2])
-    if near is None or far is None:
-        near_f, far_f = _depth_range(-float(r[2] @ center), depth_radius, depths)
-        near = near_f if near is None else float(near)
-        far = far_f if far is None else float(far)
-    if not 0 < near < far:
+    effort = effort or ("refined" if refine else "greedy")
+    if effort not in EFFORTS:
+        raise ValueError(f"effort must be one of {', '.join(EFFORTS)}, got {effort!r}")
+    view, projection = np.empty((4, 4)), np.empty((4, 4))
+    quad, target, rays, axis = np.empty((4, 2)), np.empty((4, 2)), np.empty((4, 3)), np.empty(3)
+    info = np.zeros(INFO_SIZE)
+    status = _fit_core(eye, pts, np.zeros((len(pts), 3, 3)), float(width), float(height),
+                       np.nan if near is None else float(near),
+                       np.nan if far is None else float(far), EFFORTS.index(effort), view,
+                       projection, quad, target, rays, axis, info)
+    if status in _STATUS_ERRORS:
+        kind, message = _STATUS_ERRORS[status]
+        raise kind(message)
+    if status == BAD_DEPTH:
         raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
-    projection = np.zeros((4, 4))
-    projection[0, :3] = k[0]
-    projection[1, 1:3] = k[1, 1:]
-    projection[2, 2] = -(far + near) / (far - near)
-    projection[2, 3] = -2.0 * far * near / (far - near)
-    projection[3, 2] = -1.0
-
-    # the corner rays (sample eye (u, v, -1) -> world), scaled to the points' mean sample depth
-    rays = (quad @ rot_s[:2] - rot_s[2]) * float(depth_s.mean())
-    return FrustumFit(view, projection, quad / scale, float(coverage), sample_view,
-                      sample_projection, float(sample_coverage), float(near), float(far),
-                      eye, rays, target.copy(), sample, degenerate, is_refined)
+    tx, ty, n_s, f_s = info[_TX], info[_TY], info[_NS], info[_FS]
+    sample_view = look_at(eye, eye + axis, _up_for(axis))
+    sample_projection = frustum(-tx * n_s, tx * n_s, -ty * n_s, ty * n_s, n_s, f_s)
+    return FrustumFit(view, projection, quad, float(info[_COVERAGE]), sample_view,
+                      sample_projection, float(info[_SAMPLE_COVERAGE]), float(info[_NEAR]),
+                      float(info[_FAR]), eye, rays, target,
+                      "cone" if info[_SAMPLE] else "sphere",
+                      (None, "segment", "point")[int(info[_DEGENERATE])], bool(info[_REFINED]))
 
 
-def _segment_rectangle(hull: np.ndarray, aspect: float) -> np.ndarray:
-    """CCW rectangle ``(4, 2)`` around a (nearly) collinear point set: its long axis along the
-    principal direction, padded by 1e-6 of its length; its width the larger of the points'
-    spread across and ``length / max(aspect, 1 / aspect)``."""
-    c = hull.mean(axis=0)
-    _, _, vt = np.linalg.svd(hull - c)
-    u, v = vt[0], np.array([-vt[0, 1], vt[0, 0]])
-    t, s = (hull - c) @ u, (hull - c) @ v
-    length = float(t.max() - t.min()) * (1 + 2e-6)
-    width = max(float(s.max() - s.min()) * (1 + 2e-6), length / max(aspect, 1.0 / aspect))
-    mid = c + u * 0.5 * (t.max() + t.min()) + v * 0.5 * (s.max() + s.min())
-    hu, hv = 0.5 * length * u, 0.5 * width * v
-    return np.array([mid - hu - hv, mid + hu - hv, mid + hu + hv, mid - hu + hv])
+def _up_for(axis: np.ndarray) -> np.ndarray:
+    """World +y, unless the view axis is within ~8 degrees of it; then world -z."""
+    return np.array([0.0, 1.0, 0.0]) if abs(axis[1]) < 0.99 else np.array([0.0, 0.0, -1.0])
 
 
 # ------------------------------------------------------------------------------ diagnostics

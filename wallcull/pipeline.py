@@ -58,7 +58,7 @@ class Session:
         result = FrameResult(frame, frusta, visibility, {"cull_ms": (t1 - t0) * 1e3})
         if self.fit_options is not None:
             result.fits = fit_frame(self.wall, frame, visibility, self.state, self.settings,
-                                    self.fit_options)
+                                    self.fit_options, frusta, self.culler)
             result.timings["fit_ms"] = (time.perf_counter() - t1) * 1e3
         return result
 

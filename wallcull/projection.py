@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 __all__ = [
     "ClipPlaneError",
@@ -33,6 +34,7 @@ __all__ = [
     "tile_view_projection",
     "frustum_planes",
     "oblique_near",
+    "oblique_near_many",
     "transform_points",
 ]
 
@@ -306,28 +308,110 @@ def oblique_near(projection: np.ndarray, clip_plane, rtol: float = 1e-6) -> np.n
     the pass is the right answer in every one of these cases, and only the caller can skip it.
     """
     m = np.asarray(projection, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError("oblique_near needs a perspective projection with row 4 = (0, 0, -1, 0)")
+    out, reason = oblique_near_many(m[None], clip_plane, rtol)
+    if reason[0]:
+        raise ClipPlaneError(*_CLIP_REFUSALS[int(reason[0])])
+    return out[0]
+
+
+#: Why :func:`oblique_near_many` refused a matrix (its ``reason`` codes 1-3).
+_CLIP_REFUSALS = {
+    1: ("through_camera", "the clip plane passes too close to the camera"),
+    2: ("camera_visible", "the camera is on the visible (positive) side of the clip plane"),
+    3: ("clips_everything", "the clip plane clips the whole view frustum"),
+}
+
+
+def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`oblique_near` for many projections ``(k, 4, 4)`` and one eye-space plane (a
+    mirror seen by every tile of a wall): ``(matrices (k, 4, 4), reason (k,))``, ``reason`` 0
+    where the matrix was made, else 1 (through the camera), 2 (camera on the visible side) or
+    3 (clips everything), as :class:`ClipPlaneError`'s reasons; those rows are left as they
+    were."""
+    m = np.asarray(projections, dtype=np.float64)
     c = np.asarray(clip_plane, dtype=np.float64).reshape(4)
-    if m.shape != (4, 4) or not np.allclose(m[3], (0.0, 0.0, -1.0, 0.0), rtol=0, atol=1e-12):
+    if m.ndim != 3 or m.shape[1:] != (4, 4) or \
+            not np.allclose(m[:, 3], (0.0, 0.0, -1.0, 0.0), rtol=0, atol=1e-12):
         raise ValueError("oblique_near needs a perspective projection with row 4 = (0, 0, -1, 0)")
     normal = np.linalg.norm(c[:3])
     if not (np.isfinite(c).all() and normal > 0):
         raise ValueError(f"clip plane {c.tolist()} has no normal")
-    near_plane = m[3] + m[2]
-    near = abs(near_plane[3]) / np.linalg.norm(near_plane[:3])
-    distance = c[3] / normal  # signed distance of the camera (eye-space origin) from the plane
-    if abs(distance) <= rtol * near:
-        raise ClipPlaneError(
-            "through_camera",
-            f"clip plane passes within {abs(distance):.3g} of the camera (tolerance "
-            f"{rtol:g} x near = {rtol * near:.3g})")
-    if distance > 0:
-        raise ClipPlaneError(
-            "camera_visible", "the camera is on the visible (positive) side of the clip plane")
-    c_clip = np.linalg.solve(m.T, c)  # C' = M^-T C
-    q = np.linalg.solve(m, np.array([np.sign(c_clip[0]), np.sign(c_clip[1]), 1.0, 1.0]))
-    cq = c @ q
-    if not cq > 0:
-        raise ClipPlaneError("clips_everything", "the clip plane clips the whole view frustum")
     out = m.copy()
-    out[2] = (2.0 * (m[3] @ q) / cq) * c - m[3]
-    return out
+    reason = np.zeros(len(m), np.int64)
+    _oblique(m, c, rtol, out, reason)
+    return out, reason
+
+
+@njit(cache=True)
+def _inverse4(m):
+    """Inverse of a 4x4 matrix by cofactors (no pivoting needed for projections: they are
+    well conditioned in the sense that matters here, and LAPACK's call overhead is 50x the
+    arithmetic)."""
+    inv = np.empty((4, 4))
+    a = m.ravel()
+    s0 = a[0] * a[5] - a[4] * a[1]
+    s1 = a[0] * a[6] - a[4] * a[2]
+    s2 = a[0] * a[7] - a[4] * a[3]
+    s3 = a[1] * a[6] - a[5] * a[2]
+    s4 = a[1] * a[7] - a[5] * a[3]
+    s5 = a[2] * a[7] - a[6] * a[3]
+    c5 = a[10] * a[15] - a[14] * a[11]
+    c4 = a[9] * a[15] - a[13] * a[11]
+    c3 = a[9] * a[14] - a[13] * a[10]
+    c2 = a[8] * a[15] - a[12] * a[11]
+    c1 = a[8] * a[14] - a[12] * a[10]
+    c0 = a[8] * a[13] - a[12] * a[9]
+    det = s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+    d = 1.0 / det
+    inv[0, 0] = (a[5] * c5 - a[6] * c4 + a[7] * c3) * d
+    inv[0, 1] = (-a[1] * c5 + a[2] * c4 - a[3] * c3) * d
+    inv[0, 2] = (a[13] * s5 - a[14] * s4 + a[15] * s3) * d
+    inv[0, 3] = (-a[9] * s5 + a[10] * s4 - a[11] * s3) * d
+    inv[1, 0] = (-a[4] * c5 + a[6] * c2 - a[7] * c1) * d
+    inv[1, 1] = (a[0] * c5 - a[2] * c2 + a[3] * c1) * d
+    inv[1, 2] = (-a[12] * s5 + a[14] * s2 - a[15] * s1) * d
+    inv[1, 3] = (a[8] * s5 - a[10] * s2 + a[11] * s1) * d
+    inv[2, 0] = (a[4] * c4 - a[5] * c2 + a[7] * c0) * d
+    inv[2, 1] = (-a[0] * c4 + a[1] * c2 - a[3] * c0) * d
+    inv[2, 2] = (a[12] * s4 - a[13] * s2 + a[15] * s0) * d
+    inv[2, 3] = (-a[8] * s4 + a[9] * s2 - a[11] * s0) * d
+    inv[3, 0] = (-a[4] * c3 + a[5] * c1 - a[6] * c0) * d
+    inv[3, 1] = (a[0] * c3 - a[1] * c1 + a[2] * c0) * d
+    inv[3, 2] = (-a[12] * s3 + a[13] * s1 - a[14] * s0) * d
+    inv[3, 3] = (a[8] * s3 - a[9] * s1 + a[10] * s0) * d
+    return inv
+
+
+@njit(cache=True)
+def _oblique(m, c, rtol, out, reason):
+    """The body of :func:`oblique_near_many`: row 3 of ``out[k]`` replaced, or ``reason[k]``
+    set (1 through the camera, 2 camera visible, 3 clips everything)."""
+    normal = math.sqrt(c[0] ** 2 + c[1] ** 2 + c[2] ** 2)
+    distance = c[3] / normal  # signed distance of the camera (eye-space origin) from the plane
+    corner = np.empty(4)
+    for k in range(m.shape[0]):
+        near_plane = m[k, 3] + m[k, 2]
+        near = abs(near_plane[3]) / math.sqrt(near_plane[0] ** 2 + near_plane[1] ** 2
+                                                 + near_plane[2] ** 2)
+        if abs(distance) <= rtol * near:
+            reason[k] = 1
+            continue
+        if distance > 0:
+            reason[k] = 2
+            continue
+        inv = _inverse4(m[k])
+        c_clip = inv.T @ c  # C' = M^-T C
+        corner[0] = 1.0 if c_clip[0] > 0 else (-1.0 if c_clip[0] < 0 else 0.0)
+        corner[1] = 1.0 if c_clip[1] > 0 else (-1.0 if c_clip[1] < 0 else 0.0)
+        corner[2] = corner[3] = 1.0
+        q = inv @ corner  # Q = M^-1 (sgn C'x, sgn C'y, 1, 1)
+        cq = c @ q
+        if not cq > 0:
+            reason[k] = 3
+            continue
+        scale = 2.0 * (m[k, 3] @ q) / cq
+        for j in range(4):
+            out[k, 2, j] = scale * c[j] - m[k, 3, j]

@@ -51,6 +51,12 @@ __all__ = [
 #: hull edges are never shorter than that and turns never vanishingly small.
 COLLINEAR = 1e-12
 
+#: The directions whose extreme points make the octagon of the Akl-Toussaint filter: the
+#: minima of x, x + y, y, y - x, -x, ... in turn, which are the octagon's vertices in CCW
+#: order from the leftmost.
+OCTANTS = np.array([[1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [-1.0, 1.0], [-1.0, 0.0],
+                    [-1.0, -1.0], [0.0, -1.0], [1.0, -1.0]])
+
 #: Two lines whose directions' cross product is at most this fraction of the product of their
 #: lengths are treated as parallel: they do not intersect (no division by ~0).
 PARALLEL = 1e-12
@@ -158,11 +164,64 @@ def hull_indices(points) -> np.ndarray:
         raise ValueError(f"need points of shape (m, 2) with m >= 1, got {points.shape}")
     if not np.isfinite(points).all():
         raise ValueError("points must be finite")
-    order = np.lexsort((points[:, 1], points[:, 0]))
-    idx = _monotone_chain(points, order, COLLINEAR * _diameter(points))
-    if len(idx) == 2 and (points[idx[0]] == points[idx[1]]).all():
+    return _hull(points)
+
+
+@njit(cache=True)
+def _hull(points):
+    """:func:`hull_indices`, compiled (for callers that are compiled too)."""
+    x, y = points[:, 0], points[:, 1]
+    diameter = math.hypot(x.max() - x.min(), y.max() - y.min())
+    eps = COLLINEAR * diameter
+    keep = _candidates(points, eps)
+    by_y = np.argsort(y[keep], kind="mergesort")
+    order = keep[by_y][np.argsort(x[keep][by_y], kind="mergesort")]  # x, then y: lexsort
+    idx = _monotone_chain(points, order, eps)
+    if idx.shape[0] == 2 and points[idx[0], 0] == points[idx[1], 0] \
+            and points[idx[0], 1] == points[idx[1], 1]:
         idx = idx[:1]
     return idx
+
+
+@njit(cache=True)
+def _candidates(points, eps):
+    """Indices of the points that can be hull vertices (Akl-Toussaint): a point farther than
+    ``2 eps`` inside the octagon of the extreme points in x, y, x + y and x - y is not one, and
+    is dropped before the sort. The octagon's vertices are input points, so the hull and the
+    chain's collinearity decisions (within ``eps``) are the same as over all points."""
+    m = points.shape[0]
+    if m <= 16:
+        return np.arange(m)
+    ext = np.zeros(8, np.int64)  # the octagon's vertices (see OCTANTS)
+    best = np.full(8, np.inf)
+    for i in range(m):
+        px, py = points[i, 0], points[i, 1]
+        for k in range(8):
+            key = OCTANTS[k, 0] * px + OCTANTS[k, 1] * py
+            if key < best[k]:
+                best[k] = key
+                ext[k] = i
+    # each edge a -> b as an inward normal and offset, the offset moved in by 2 eps
+    nx, ny, off = np.zeros(8), np.zeros(8), np.full(8, -np.inf)
+    for k in range(8):
+        a, b = ext[k], ext[(k + 1) % 8]
+        ex, ey = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
+        length = math.hypot(ex, ey)
+        if length > 0.0:
+            nx[k], ny[k] = -ey / length, ex / length
+            off[k] = nx[k] * points[a, 0] + ny[k] * points[a, 1] + 2 * eps
+    if not np.isfinite(off).any():  # all points coincide: no inside to drop
+        return np.arange(m)
+    out = np.empty(m, np.int64)
+    n = 0
+    for i in range(m):
+        px, py = points[i, 0], points[i, 1]
+        for k in range(8):
+            if nx[k] * px + ny[k] * py <= off[k]:  # not well inside: a candidate
+                out[n] = i
+                n += 1
+                break
+    return out[:n]
 
 
 def convex_hull_2d(points) -> np.ndarray:
@@ -177,9 +236,7 @@ def convex_hull_2d(points) -> np.ndarray:
 
 def quad_area(poly) -> float:
     """Signed area of a polygon ``(n, 2)`` (shoelace), positive when CCW."""
-    poly = np.asarray(poly, dtype=np.float64)
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(np.dot(x[:-1], y[1:]) - np.dot(x[1:], y[:-1]) + x[-1] * y[0] - x[0] * y[-1])
+    return float(_polygon_area(np.ascontiguousarray(poly, dtype=np.float64).reshape(-1, 2)))
 
 
 def _diameter(points: np.ndarray) -> float:
@@ -352,20 +409,44 @@ def _greedy_kernel(hull):
     return out
 
 
-def _degenerate_quad(hull: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _degenerate_quad(hull):
     """Zero-area (4, 2) 'quad' of a 1- or 2-vertex hull: ``[a, a, a, a]`` or ``[a, b, b, a]``."""
-    if len(hull) == 1:
-        return np.repeat(hull, 4, axis=0)
-    return hull[[0, 1, 1, 0]].copy()
+    out = np.empty((4, 2))
+    b = hull.shape[0] - 1
+    for k, i in enumerate((0, b, b, 0)):
+        out[k, 0], out[k, 1] = hull[i, 0], hull[i, 1]
+    return out
 
 
-def _triangle_parallelogram(tri: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _triangle_parallelogram(tri):
     """The paper's answer for a triangle: the parallelogram with the longest edge as diagonal
     and three corners on the triangle's; twice the triangle's area."""
-    lengths = np.linalg.norm(np.roll(tri, -1, axis=0) - tri, axis=1)
-    i = int(np.argmax(lengths))
+    i, longest = 0, -1.0
+    for k in range(3):
+        j = (k + 1) % 3
+        length = math.hypot(tri[j, 0] - tri[k, 0], tri[j, 1] - tri[k, 1])
+        if length > longest:
+            i, longest = k, length
     a, b, c = tri[i], tri[(i + 1) % 3], tri[(i + 2) % 3]
-    return np.array([a, a + b - c, b, c])  # the fourth corner mirrors c across the diagonal
+    out = np.empty((4, 2))
+    out[0], out[2], out[3] = a, b, c
+    out[1] = a + b - c  # the fourth corner mirrors c across the diagonal
+    return out
+
+
+@njit(cache=True)
+def _greedy(hull):
+    """:func:`greedy_quad`, compiled."""
+    n = hull.shape[0]
+    if n <= 2:
+        return _degenerate_quad(hull)
+    if n == 3:
+        return _triangle_parallelogram(hull)
+    if n == 4:
+        return hull.copy()
+    return _greedy_kernel(hull)
 
 
 def _as_hull(hull) -> np.ndarray:
@@ -390,15 +471,7 @@ def greedy_quad(hull) -> np.ndarray:
     diagonal, area twice the triangle's). ``n <= 2`` (coincident or collinear points): a
     zero-area quad ``[a, a, a, a]`` or ``[a, b, b, a]``, which :func:`contains` accepts.
     """
-    hull = _as_hull(hull)
-    n = len(hull)
-    if n <= 2:
-        return _degenerate_quad(hull)
-    if n == 3:
-        return _triangle_parallelogram(hull)
-    if n == 4:
-        return hull.copy()
-    return _greedy_kernel(hull)
+    return _greedy(_as_hull(hull))
 
 
 # ------------------------------------------------------------------------- side optimization
@@ -655,24 +728,50 @@ def refine_quad(hull, quad, max_steps: int = 10_000) -> np.ndarray:
     infimum is the triangle itself, a degenerate quad that no frustum can map to a rectangle,
     so the paper's parallelogram is kept on purpose) and zero-area quads.
     """
-    hull = _as_hull(hull)
-    quad = np.ascontiguousarray(quad, dtype=np.float64).reshape(4, 2)
-    if len(hull) < 4 or not quad_area(quad) > 0:
-        return quad.copy()
-    dr = quad[[1, 2, 3, 0]] - quad
+    out, outside = _refine(_as_hull(hull), np.ascontiguousarray(quad, np.float64).reshape(4, 2),
+                           max_steps)
+    if outside:
+        raise ValueError("refine_quad: the quad does not contain the hull")
+    return out
+
+
+@njit(cache=True)
+def _polygon_area(poly):
+    """Signed shoelace area of ``(n, 2)``, compiled (see :func:`quad_area`)."""
+    n = poly.shape[0]
+    area = 0.0
+    for k in range(n):
+        j = k + 1 if k + 1 < n else 0
+        area += poly[k, 0] * poly[j, 1] - poly[j, 0] * poly[k, 1]
+    return 0.5 * area
+
+
+@njit(cache=True)
+def _refine(hull, quad, max_steps):
+    """:func:`refine_quad`, compiled: ``(quad, outside)``, ``outside`` when ``quad`` does not
+    contain the hull (then the quad comes back unchanged)."""
+    if hull.shape[0] < 4 or not _polygon_area(quad) > 0:
+        return quad.copy(), False
+    dr = np.empty((4, 2))
+    for k in range(4):
+        j = (k + 1) % 4
+        dr[k, 0], dr[k, 1] = quad[j, 0] - quad[k, 0], quad[j, 1] - quad[k, 1]
     convex, outside, contact = _slide_sides(hull, quad, dr)
     if not convex:
-        return quad.copy()  # not strictly convex (a side of zero length): nothing to refine
+        return quad.copy(), False  # not strictly convex (a side of zero length): no refining
     if outside > 1e-9:
-        raise ValueError("refine_quad: the quad does not contain the hull")
-    if len(hull) == 4:
-        return hull.copy()  # the optimum
-    pt = hull[contact]
+        return quad.copy(), True
+    if hull.shape[0] == 4:
+        return hull.copy(), False  # the optimum
+    pt = np.empty((4, 2))
+    for k in range(4):
+        pt[k, 0], pt[k, 1] = hull[contact[k], 0], hull[contact[k], 1]
     _refine_kernel(hull, pt, dr, contact, max_steps)
-    out = _corners(pt, dr)
-    if not quad_area(out) <= quad_area(quad):  # rounding at the very last ulp
-        return quad.copy()
-    return out
+    out = np.empty((4, 2))
+    _quad_area_lines(pt, dr, out)
+    if not _polygon_area(out) <= _polygon_area(quad):  # rounding at the very last ulp
+        return quad.copy(), False
+    return out, False
 
 
 @njit(cache=True)

@@ -1,0 +1,60 @@
+"""Threads for the per-tile kernels: the shadow fits and the region culls of a frame split into
+chunks of tiles, each chunk a compiled kernel that releases the GIL.
+
+Every tile's fit and caster cull is independent of the others', so a frame's can run on all of
+a server's cores at once. ``WALLCULL_THREADS`` (default: the number of cores, at most 8) sets
+how many; ``1`` runs everything in the calling thread. Work below ``MIN_CHUNK`` items per
+thread is not split: handing it over costs more than it saves.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Sequence
+
+import numpy as np
+
+#: Items (tiles or regions) a thread is given at least.
+MIN_CHUNK = 8
+
+
+def count() -> int:
+    """Threads the kernels may use: ``WALLCULL_THREADS``, else the cores (at most 8)."""
+    value = os.environ.get("WALLCULL_THREADS")
+    if value:
+        try:
+            return max(1, int(value))
+        except ValueError:
+            pass
+    return max(1, min(8, os.cpu_count() or 1))
+
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def chunks(items: int, work: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """``[start, stop)`` ranges splitting ``items`` into at most :func:`count` parts of at
+    least ``MIN_CHUNK`` items each, of equal ``work`` (its cumulative sum, ``(items + 1,)``,
+    for example a CSR ``start`` array) when given, else of equal size."""
+    parts = max(1, min(count(), items // MIN_CHUNK))
+    if work is None or parts == 1 or work[-1] <= work[0]:
+        edges = [round(items * k / parts) for k in range(parts + 1)]
+    else:
+        goal = work[0] + (work[-1] - work[0]) * np.arange(1, parts) / parts
+        edges = [0, *np.searchsorted(work, goal).tolist(), items]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int]]) -> list:
+    """``task(k, start, stop)`` for every range ``k``, the first in this thread and the others
+    in the pool; results in order."""
+    global _pool, _pool_size
+    if len(ranges) <= 1:
+        return [task(k, *r) for k, r in enumerate(ranges)]
+    if _pool is None or _pool_size < len(ranges) - 1:
+        _pool_size = len(ranges) - 1
+        _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="wallcull-kernel")
+    futures = [_pool.submit(task, k, *r) for k, r in enumerate(ranges) if k]
+    return [task(0, *ranges[0])] + [f.result() for f in futures]
