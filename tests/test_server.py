@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import json
+import pathlib
 import math
 import os
 import socket
@@ -1275,3 +1276,28 @@ def test_the_server_keeps_answering_while_a_frame_is_culled(monkeypatch):
             return order
 
     assert asyncio.run(scenario()) == [("health", 200), ("frame", 200)]
+
+
+def test_a_wall_can_declare_its_own_lights_and_mirrors(client):
+    """``settings`` on POST /walls replaces the scene's own (the power plant declares none),
+    ``shadow_fit`` picks the fitting effort; bad settings are refused before any frame."""
+    lights = json.loads((pathlib.Path(__file__).parent.parent / "examples" /
+                         "powerplant-lights.json").read_text())
+    frame = {"position": [0.0, 60.0, 160.0], "orientation": [0.9659258, -0.2588190, 0.0, 0.0]}
+    plain, lit = new_wall(client, "powerplant"), new_wall(client, "powerplant", settings=lights,
+                                                           shadow_fit="greedy")
+    info = client.get(f"/walls/{lit}").json()
+    assert info["settings"] == lights and info["shadow_fit"] == "greedy"
+    packets = {}
+    for wid in (plain, lit):
+        packets[wid] = post_frame(client, wid, frame, packets=True)["packets"]
+    assert not any("shadows" in p or "mirrors" in p for p in packets[plain])
+    shaded = [p for p in packets[lit] if "shadows" in p]
+    assert shaded and all(s["light"] == "roof_lamp" for p in shaded for s in p["shadows"])
+    assert any("mirrors" in p for p in packets[lit])
+    for bad in ({"lights": [{"name": "x"}]}, {"mirrors": [{"normal": [0, 0, 0]}]}, {"sun": 1}):
+        r = client.post("/walls", json={"wall": WALL, "scene": "powerplant", "settings": bad},
+                        headers=AUTH)
+        assert r.status_code == 422, (bad, r.text)
+    for wid in (plain, lit):
+        client.delete(f"/walls/{wid}", headers=AUTH)

@@ -11,15 +11,18 @@ import platform
 import resource
 import time
 from contextlib import nullcontext
+from dataclasses import replace
 
 import numpy as np
 
-from . import oracle
+from . import oracle, workers
 from .cull import METHODS
 from .errors import InputError
-from .fit import FitOptions
+from .encode import frame_packets
+from .fit import FRUSTUM, FitOptions
 from .paths import scene_path
 from .pipeline import Session
+from .protocol import FrameRecord, History
 from .scene import Scene
 from .wall import Wall
 
@@ -80,16 +83,33 @@ class Motion:
         return out
 
 
+STAGES = ("cull", "leaves", "fit", "encode", "total")
+
+
 def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
                 pseudo_groups: bool = False, progress=None, motion: Motion | None = None,
-                refit: str | None = None, fit: FitOptions | None = None) -> dict:
+                refit: str | None = None, fit: FitOptions | None = None,
+                stages: bool = False) -> dict:
     """Cull every frame with one method; per-frame times and counters. With ``motion``, the
     moving nodes are updated and refit before each frame, and that time is reported apart;
-    with ``fit``, the fitted frusta are timed too, and the depth precision they buy."""
-    session = Session(scene, wall, method, bounds, pseudo_groups, fit)
-    for frame in frames[:WARMUP_FRAMES]:
-        session.frame(frame)
-    times, refits, tests, pairs, fits, ratios = [], [], [], [], [], []
+    with ``fit``, the fitted frusta are timed too, and the depth precision they buy. With
+    ``stages``, the whole frame as the server makes it (the fitted frusta with ``fit`` or the
+    server's defaults): ``cull``, ``leaves`` (the per-tile leaf lists), ``fit``, ``encode``
+    (every tile's msgpack packet, a delta against the previous frame as a streaming node gets
+    it) and their ``total``."""
+    session = Session(scene, wall, method, bounds, pseudo_groups,
+                      fit or (FitOptions() if stages else None))
+    history, tiles, packet_bytes = History(4), np.arange(wall.tiles), []
+    none = np.zeros(0, np.int64)
+    for k, frame in enumerate(frames[:WARMUP_FRAMES]):  # every stage once: compiled, cached
+        result = session.frame(frame)
+        if stages:
+            history.add(FrameRecord(k, 0.0, *result.leaves, result.fits, none, none,
+                                    np.zeros((0, 4, 4))))
+            frame_packets(history, k, tiles, k - 1 if k else None)
+    history = History(4)
+    times, refits, tests, pairs, fits, ratios, coverages = [], [], [], [], [], [], []
+    stage_ms = {name: [] for name in STAGES}
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
@@ -103,16 +123,28 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             fits.append(result.timings["fit_ms"])
             shown = np.diff(result.visibility.start) > 0
             ratios.extend(np.log2(result.fits.far[shown] / result.fits.near[shown]))
+            fitted = [s.coverage[s.kind == FRUSTUM] for s in result.fits.shadows]
+            coverages.extend(np.concatenate(fitted).tolist() if fitted else [])
+        if stages:
+            history.add(FrameRecord(k, time.time(), *result.leaves, result.fits, none, none,
+                                    np.zeros((0, 4, 4))))
+            t0 = time.perf_counter()
+            sent = frame_packets(history, k, tiles, k - 1 if k else None)
+            encode_ms = (time.perf_counter() - t0) * 1e3
+            packet_bytes.append(sent.nbytes)
+            timings = {**result.timings, "encode_ms": encode_ms}
+            for name in STAGES[:-1]:
+                stage_ms[name].append(timings[f"{name}_ms"])
+            stage_ms["total"].append(sum(timings[f"{name}_ms"] for name in STAGES[:-1]))
         stats = result.visibility.stats
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])
         if progress:
             progress.advance(task)
     # leaves reported per frame, from the last frame (the lists, not their timing)
-    last = result.visibility
     out = {**summarize(times), "tests_per_frame": float(np.mean(tests)),
            "nodes_per_frame": float(np.mean(pairs)),
-           "leaf_pairs_last_frame": sum(len(last.tile_leaves(t)) for t in range(wall.tiles))}
+           "leaf_pairs_last_frame": int(len(result.leaves[1]))}
     if refits:
         out["refit_median_ms"] = float(np.median(refits))
         out["refit_p99_ms"] = float(np.percentile(refits, 99))
@@ -123,6 +155,13 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
                     "fit_p99_ms": float(np.percentile(fits, 99)),
                     "depth_log2_far_over_near": {"wall": wall_bits, "fitted_mean": tight_bits,
                                                  "bits_gained": wall_bits - tight_bits}})
+        if coverages:
+            out["shadow_coverage_mean"] = float(np.mean(coverages))
+    if stages:
+        out["stages"] = {name: {"median_ms": float(np.median(v)),
+                                "p99_ms": float(np.percentile(v, 99))}
+                         for name, v in stage_ms.items()}
+        out["stages"]["packet_bytes_per_frame"] = float(np.median(packet_bytes))
     return out
 
 
@@ -159,8 +198,10 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
         hierarchy: str = "auto", moving: float = 0.0, refit: str | None = None,
         fit: FitOptions | None = None, settings: dict | None = None,
-        progress: bool = True) -> dict:
-    """The whole benchmark; returns the ``bench --json`` document."""
+        progress: bool = True, shadow_fits: tuple = ()) -> dict:
+    """The whole benchmark; returns the ``bench --json`` document. ``shadow_fits``: fitting
+    efforts (:data:`wallcull.lowilie.EFFORTS`) to compare, fit time against shadow-map
+    coverage, with the main method."""
     from . import scene as scene_mod
 
     for m in methods:
@@ -180,9 +221,19 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     with bar as p:
         for kind in bounds:
             by_bounds[kind] = {m: time_method(scene, wall, path_frames, m, kind, pseudo_groups,
-                                              p, motion, refit, fit) for m in methods}
+                                              p, motion, refit, fit, stages=True)
+                               for m in methods}
         acc = (accuracy(scene, wall, path_frames[:accuracy_frames], methods, bounds, p, motion,
                         refit) if accuracy_frames else None)
+        main = "adaptive" if "adaptive" in methods else methods[0]
+        efforts = {}
+        for effort in shadow_fits:
+            options = replace(fit or FitOptions(), shadow_fit=effort)
+            timed = time_method(scene, wall, path_frames, main, bounds[0], pseudo_groups, p,
+                                motion, refit, options)
+            efforts[effort] = {"fit_median_ms": timed["fit_median_ms"],
+                               "fit_p99_ms": timed["fit_p99_ms"],
+                               "coverage_mean": timed.get("shadow_coverage_mean")}
     result = {
         "scene": {"name": scene.name, **scene.stats, "load_s": t1 - t0,
                   "preprocess_s": t2 - t1, "peak_rss_mb_after_load": rss},
@@ -191,10 +242,13 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         "moving": moving, "refit": refit, "fit": fit is not None,
         "settings": {"lights": len(scene.settings.get("lights", [])),
                      "mirrors": len(scene.settings.get("mirrors", []))},
-        "machine": machine(), "peak_rss_mb": peak_rss_mb(),
+        "machine": machine(), "threads": workers.count(), "peak_rss_mb": peak_rss_mb(),
     }
+    if efforts:
+        result["shadow_fit"] = efforts
     if len(bounds) > 1:
         result["by_bounds"] = by_bounds
+    result["stages"] = {"method": main, **result["methods"][main]["stages"]}
     if "adaptive" in methods and "oh" in methods:
         result["adaptive_speedup_vs_oh"] = (result["methods"]["oh"]["median_ms"]
                                             / result["methods"]["adaptive"]["median_ms"])

@@ -53,7 +53,8 @@ def cmd_cull(args) -> int:
     frame_spec = read_json(args.frame, "--frame")
     scene = _load(args)
     session = Session(scene, wall, args.method, args.bounds, args.pseudo_groups,
-                      FitOptions(depth=args.depth, reversed_z=args.reversed_z))
+                      FitOptions(depth=args.depth, reversed_z=args.reversed_z,
+                                 shadow_fit=args.shadow_fit))
     session.frame(frame_spec)  # the first call compiles the kernels; time the second
     result = session.frame(frame_spec)
     tiles = tile_records(result, leaves=args.leaves)
@@ -83,15 +84,21 @@ def cmd_bench(args) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bounds = [b.strip() for b in args.bounds.split(",") if b.strip()]
     from .fit import FitOptions
+    from .lowilie import EFFORTS
     from .settings import read
 
+    efforts = [e.strip() for e in args.shadow_fit.split(",") if e.strip()]
+    for effort in efforts:
+        if effort not in EFFORTS:
+            raise InputError(f"unknown shadow fit {effort!r}; choose from {', '.join(EFFORTS)}")
+    fit = FitOptions(reversed_z=args.reversed_z, shadow_fit=efforts[0]) if args.fit else None
     result = bench.run(args.scene, wall, frames=args.frames, methods=methods, bounds=bounds,
                        path=args.path, pseudo_groups=args.pseudo_groups,
                        accuracy_frames=args.accuracy, hierarchy=args.hierarchy,
                        moving=args.moving, refit=args.refit,
-                       fit=FitOptions(reversed_z=args.reversed_z) if args.fit else None,
-                       settings=read(args.settings) if args.settings else None,
-                       progress=not args.json)
+                       fit=fit, settings=read(args.settings) if args.settings else None,
+                       progress=not args.json,
+                       shadow_fits=tuple(efforts) if len(efforts) > 1 else ())
     if args.json:
         print(json.dumps(result))
         return 0
@@ -210,6 +217,7 @@ def cmd_scenes(args) -> int:
 def parser() -> argparse.ArgumentParser:
     from .bounds import KINDS
     from .cull import METHODS
+    from .lowilie import EFFORTS
     from .paths import PATHS
     from .scene import BRANCHING
 
@@ -237,6 +245,9 @@ def parser() -> argparse.ArgumentParser:
                    help="near/far per tile: fitted to what it shows, or the wall's")
     q.add_argument("--reversed-z", action="store_true",
                    help="projections with depth in [0, 1], near at 1 (glClipControl)")
+    q.add_argument("--shadow-fit", choices=EFFORTS, default="refined",
+                   help="shadow frusta: the bounding-sphere frustum, the paper's greedy quad, or "
+                        "the refined quad (default)")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_cull)
 
@@ -258,6 +269,9 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--fit", action="store_true",
                    help="also time the fitted frusta (depth ranges, shadows, mirrors)")
     q.add_argument("--reversed-z", action="store_true", help="with --fit: reversed-Z projections")
+    q.add_argument("--shadow-fit", default="refined", metavar="EFFORT[,EFFORT...]",
+                   help="with --fit: shadow-frustum fitting, sphere|greedy|refined; several "
+                        "compare their fit time and shadow-map coverage")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_bench)
 

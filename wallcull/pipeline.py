@@ -1,6 +1,7 @@
 """One wall, one scene, frame after frame: the pipeline of DESIGN.md.
 
-``scene ──load──▶ SceneState ── wall + frame ──▶ Frusta ──cull──▶ Visibility``
+``scene ──load──▶ SceneState ── wall + frame ──▶ Frusta ──cull──▶ Visibility ──▶ leaf lists
+──fit──▶ Fits``; :mod:`wallcull.encode` turns the last two into packets.
 
 The command line, the benchmark and the server all drive a :class:`Session`, so a number the
 benchmark measures is the number the server delivers.
@@ -26,8 +27,13 @@ class FrameResult:
     frame: Frame
     frusta: Frusta
     visibility: Visibility
-    timings: dict = field(default_factory=dict)  # ms per stage
+    timings: dict = field(default_factory=dict)  # ms per stage: cull, leaves, fit
     fits: Fits | None = None  # when the session fits
+
+    @property
+    def leaves(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every tile's sorted leaf ids, CSR ``(start, leaves)``: what packets carry."""
+        return self.visibility.leaf_lists()
 
 
 class Session:
@@ -35,12 +41,15 @@ class Session:
     frame also gets its fitted frusta (:mod:`wallcull.fit`)."""
 
     def __init__(self, scene: Scene, wall: Wall, method: str = "adaptive", bounds: str = "obb",
-                 pseudo_groups: bool = False, fit: FitOptions | None = None):
+                 pseudo_groups: bool = False, fit: FitOptions | None = None,
+                 settings: Mapping[str, Any] | None = None):
         self.scene = scene
         self.wall = wall
         self.state = SceneState(scene, bounds)
         self.culler = Culler(self.state, wall, method, pseudo_groups)
-        self.settings = cfg.parse(scene.settings)
+        # what the scene asks for (lights, mirrors): its own, or ``settings`` for this wall
+        self.raw_settings = dict(scene.settings if settings is None else settings)
+        self.settings = cfg.parse(self.raw_settings)
         self.fit_options = fit
 
     @property
@@ -55,11 +64,14 @@ class Session:
         frusta = Frusta.build(self.wall, frame)
         visibility = self.culler.cull(frusta)
         t1 = time.perf_counter()
-        result = FrameResult(frame, frusta, visibility, {"cull_ms": (t1 - t0) * 1e3})
+        visibility.leaf_lists()  # compiled, next to the traversal; cached on the visibility
+        t2 = time.perf_counter()
+        result = FrameResult(frame, frusta, visibility, {"cull_ms": (t1 - t0) * 1e3,
+                                                         "leaves_ms": (t2 - t1) * 1e3})
         if self.fit_options is not None:
             result.fits = fit_frame(self.wall, frame, visibility, self.state, self.settings,
                                     self.fit_options, frusta, self.culler)
-            result.timings["fit_ms"] = (time.perf_counter() - t1) * 1e3
+            result.timings["fit_ms"] = (time.perf_counter() - t2) * 1e3
         return result
 
     def move(self, updates: Mapping[str, Any], refit: str | None = None) -> np.ndarray:

@@ -31,6 +31,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+from numba import njit
 
 from .errors import InputError
 
@@ -132,30 +133,42 @@ class History:
 def tile_deltas(record: FrameRecord, prior: FrameRecord):
     """Every tile's delta of ``record`` against ``prior`` at once, in CSR form
     ``(added, added_start, removed, removed_start)``, cached on ``record``: the streams ask for
-    every tile against the same base, and one pass over (tile, leaf) keys costs about what two
-    ``setdiff1d`` of one tile do."""
+    every tile against the same base. One compiled merge of each tile's two sorted lists."""
     cache = record.__dict__.setdefault("_deltas", {})
     if prior.number not in cache:
-        tiles = len(record.start) - 1
-        n = int(max(record.leaves.max(initial=-1), prior.leaves.max(initial=-1))) + 1
-        kc = np.repeat(np.arange(tiles), np.diff(record.start)) * n + record.leaves
-        kp = np.repeat(np.arange(tiles), np.diff(prior.start)) * n + prior.leaves
-        if tiles * n <= 1 << 24:
-            seen = np.zeros(tiles * n, dtype=bool)
-            seen[kp] = True
-            added = kc[~seen[kc]]
-            seen[:] = False
-            seen[kc] = True
-            removed = kp[~seen[kp]]
-        else:  # very large walls: sorted merges instead of a mask
-            added = kc[~np.isin(kc, kp, assume_unique=True)]
-            removed = kp[~np.isin(kp, kc, assume_unique=True)]
-        edges = np.arange(tiles + 1)
-        cache[prior.number] = (added % n, np.searchsorted(added // n, edges),
-                               removed % n, np.searchsorted(removed // n, edges))
+        cache[prior.number] = _merge_deltas(record.start, record.leaves, prior.start,
+                                            prior.leaves)
         while len(cache) > 4:
             cache.pop(next(iter(cache)))
     return cache[prior.number]
+
+
+@njit(cache=True)
+def _merge_deltas(start, leaves, prior_start, prior_leaves):
+    tiles = start.shape[0] - 1
+    added = np.empty(leaves.shape[0], np.int64)
+    removed = np.empty(prior_leaves.shape[0], np.int64)
+    added_start = np.zeros(tiles + 1, np.int64)
+    removed_start = np.zeros(tiles + 1, np.int64)
+    na = nr = 0
+    for t in range(tiles):
+        i, j = start[t], prior_start[t]
+        i_end, j_end = start[t + 1], prior_start[t + 1]
+        while i < i_end or j < j_end:
+            if j >= j_end or (i < i_end and leaves[i] < prior_leaves[j]):
+                added[na] = leaves[i]
+                na += 1
+                i += 1
+            elif i >= i_end or prior_leaves[j] < leaves[i]:
+                removed[nr] = prior_leaves[j]
+                nr += 1
+                j += 1
+            else:
+                i += 1
+                j += 1
+        added_start[t + 1] = na
+        removed_start[t + 1] = nr
+    return added[:na], added_start, removed[:nr], removed_start
 
 
 def packet(history: History, number: int, tile: int, base: int | None) -> dict:
@@ -165,29 +178,45 @@ def packet(history: History, number: int, tile: int, base: int | None) -> dict:
     current = record.tile(tile)
     out: dict[str, Any] = {"frame": number, "tile": tile, "time": record.time}
     prior = history.get(base) if base is not None and base < number else None
+    added = None
     if prior is None:
         out["base"] = None
         out["visible"] = current.tolist()
-        send = current
     else:
         added_all, a_start, removed_all, r_start = tile_deltas(record, prior)
         added = added_all[a_start[tile]:a_start[tile + 1]]
         out["base"] = base
         out["added"] = added.tolist()
         out["removed"] = removed_all[r_start[tile]:r_start[tile + 1]].tolist()
-        if len(record.posed):  # else nothing ever moved: no transforms to send
-            send = np.union1d(added, np.intersect1d(
-                current, history.changed_since(base, number), assume_unique=True))
-        else:
-            send = added
     out["count"] = len(current)
-    if len(record.posed) and len(send):
-        hit = np.isin(record.posed, send, assume_unique=True)
-        if hit.any():
-            out["transforms"] = {"ids": record.posed[hit].tolist(),
-                                 "matrices": record.posed_world[hit].reshape(-1, 16).tolist()}
+    moved = transforms(history, record, tile, out["base"], added)
+    if moved is not None:
+        out["transforms"] = moved
     out.update(record.fits[tile])
     return out
+
+
+def transforms(history: History, record: FrameRecord, tile: int, base: int | None,
+               added: np.ndarray | None) -> dict | None:
+    """The world transforms a tile's packet carries (moved leaves the node may not have):
+    every moved leaf of a full list; in a delta against ``base``, the ``added`` leaves and
+    those that moved since the base. None when there are none."""
+    if not len(record.posed):
+        return None  # nothing ever moved
+    current = record.tile(tile)
+    if base is None:
+        send = current
+    else:
+        send = np.union1d(added, np.intersect1d(current, history.changed_since(base,
+                                                                               record.number),
+                                                assume_unique=True))
+    if not len(send):
+        return None
+    hit = np.isin(record.posed, send, assume_unique=True)
+    if not hit.any():
+        return None
+    return {"ids": record.posed[hit].tolist(),
+            "matrices": record.posed_world[hit].reshape(-1, 16).tolist()}
 
 
 def apply(held: np.ndarray | None, pkt: dict) -> np.ndarray:

@@ -20,7 +20,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from . import protocol
+from . import encode, protocol
 from .errors import InputError
 from .fit import FitOptions
 from .pipeline import Session
@@ -253,7 +253,8 @@ class WallSession:
         s = self.session
         return {"id": self.id, "scene": self.scene.name, "wall": self.wall.to_dict(),
                 "tiles": self.wall.tiles, "method": s.method, "bounds": s.state.kind,
-                "pseudo_groups": s.culler.pseudo_groups, "latest": self.latest,
+                "pseudo_groups": s.culler.pseudo_groups, "shadow_fit": s.fit_options.shadow_fit,
+                "settings": s.raw_settings, "latest": self.latest,
                 "history": self.history.size, "subscribers": self.subscribers}
 
     def check_tile(self, tile: int) -> None:
@@ -280,14 +281,11 @@ class WallSession:
             self._ever_moved = np.union1d(self._ever_moved, changed)
         t1 = time.perf_counter()
         result = self.session.frame(frame)
-        t2 = time.perf_counter()
-        start, leaves = result.visibility.leaf_lists()
+        start, leaves = result.leaves
         posed = self._ever_moved
         record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed, posed,
                                       self.session.state.world[posed])
-        return record, {"update_ms": (t1 - t0) * 1e3, "cull_ms": result.timings["cull_ms"],
-                        "fit_ms": result.timings["fit_ms"],
-                        "lists_ms": (time.perf_counter() - t2) * 1e3,
+        return record, {"update_ms": (t1 - t0) * 1e3, **result.timings,
                         "total_ms": (time.perf_counter() - t0) * 1e3}
 
     def publish(self, record: protocol.FrameRecord) -> int:
@@ -352,10 +350,9 @@ class WallSession:
         for event in (self._new_frame, self._new_ack, *self._tile_acked.values()):
             event.set()
 
-    def packet(self, tile: int, number: int, full: bool = False, since: int = -1) -> dict:
-        """Tile ``tile``'s packet of frame ``number``: a delta against the tile's acknowledged
-        frame if that is at least ``since``, else a full list. A stream passes its first frame
-        as ``since``: a node that reconnected holds nothing from before it."""
+    def _base(self, tile: int, number: int, full: bool, since: int) -> int | None:
+        """What tile ``tile``'s packet of frame ``number`` is a delta against: its acknowledged
+        frame if that is at least ``since``, else None (a full list)."""
         self.check_tile(tile)
         if number > self.latest or number < 0:
             raise NotFound(f"frame {number} does not exist yet (latest {self.latest})")
@@ -365,7 +362,31 @@ class WallSession:
             raise Gone(f"frame {number} has left the history (oldest {self.history.oldest})")
         ack = int(self.acks[tile])
         base = None if full or ack < 0 or ack < since else ack
-        return protocol.packet(self.history, number, tile, base)
+        held = base is not None and base < number and self.history.get(base) is not None
+        return base if held else None
+
+    def packet(self, tile: int, number: int, full: bool = False, since: int = -1) -> dict:
+        """Tile ``tile``'s packet of frame ``number``: a delta against the tile's acknowledged
+        frame if that is at least ``since``, else a full list. A stream passes its first frame
+        as ``since``: a node that reconnected holds nothing from before it."""
+        return protocol.packet(self.history, number, tile,
+                               self._base(tile, number, full, since))
+
+    def packet_bytes(self, tile: int, number: int, full: bool = False,
+                     since: int = -1) -> tuple[memoryview, bool]:
+        """:meth:`packet` as msgpack bytes, and whether it is a delta. The first tile to ask
+        for a frame against a base encodes every tile's packet of that frame against it
+        (:mod:`wallcull.encode`); the others take their slice."""
+        base = self._base(tile, number, full, since)
+        record = self.history.get(number)
+        cache = record.__dict__.setdefault("_encoded", {})
+        encoded = cache.get(base)
+        if encoded is None:
+            encoded = cache[base] = encode.frame_packets(self.history, number,
+                                                         np.arange(self.wall.tiles), base)
+            while len(cache) > 4:
+                cache.pop(next(iter(cache)))
+        return encoded[tile], base is not None
 
     def ack(self, tile: int, number: int) -> None:
         self.check_tile(tile)
@@ -406,14 +427,15 @@ class Walls:
         self.sessions: dict[str, WallSession] = {}
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
-               history: int, fit: FitOptions = FitOptions()) -> WallSession:
+               history: int, fit: FitOptions = FitOptions(),
+               settings: Mapping[str, Any] | None = None) -> WallSession:
         if len(self.sessions) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
         if history * wall.tiles > MAX_TILE_FRAMES:
             raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
                              f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
                              f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
-        session = Session(scene, wall, method, bounds, pseudo_groups, fit)
+        session = Session(scene, wall, method, bounds, pseudo_groups, fit, settings)
         wid = secrets.token_hex(6)
         self.sessions[wid] = WallSession(wid, session, protocol.History(history))
         return self.sessions[wid]

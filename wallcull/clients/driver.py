@@ -82,11 +82,15 @@ class Driver:
         await self.close()
 
     async def create_wall(self, scene: str, wall: dict, method: str = "adaptive",
-                          bounds: str = "obb", history: int = 64) -> dict:
-        """``POST /walls``; returns the wall's info (``id``, ``tiles``, ...)."""
-        return await self.conn.call("POST", "/walls", {"wall": wall, "scene": scene,
-                                                       "method": method, "bounds": bounds,
-                                                       "history": history}, auth=True)
+                          bounds: str = "obb", history: int = 64, settings: dict | None = None,
+                          shadow_fit: str = "refined") -> dict:
+        """``POST /walls``; returns the wall's info (``id``, ``tiles``, ...). ``settings``:
+        lights and mirrors for this wall instead of the scene's own."""
+        body = {"wall": wall, "scene": scene, "method": method, "bounds": bounds,
+                "history": history, "shadow_fit": shadow_fit}
+        if settings is not None:
+            body["settings"] = settings
+        return await self.conn.call("POST", "/walls", body, auth=True)
 
     async def wall_info(self, wid: str) -> dict:
         return await self.conn.call("GET", f"/walls/{wid}")

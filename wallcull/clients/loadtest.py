@@ -368,7 +368,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                       cache_bytes: str = "256M", history: int = 64, method: str = "adaptive",
                       server: str | None = None, token: str | None = None,
                       progress: bool = True, workdir: str | None = None,
-                      render: bool = False, draw_time: float = 0.0) -> dict:
+                      render: bool = False, draw_time: float = 0.0,
+                      settings: dict | None = None, shadow_fit: str = "refined") -> dict:
     """Run one walkthrough load test (see the module docstring) and return its report."""
     import psutil
 
@@ -386,7 +387,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
             await own.start()
         url = own.url if own else server
         async with Driver(url, token) as d:
-            info = await d.create_wall(scene, wall, method, "obb", history)
+            info = await d.create_wall(scene, wall, method, "obb", history, settings,
+                                       shadow_fit)
         wid, tiles = info["id"], info["tiles"]
         ranges = split(tiles, clients_procs)
         for k, (a, b) in enumerate(ranges):
@@ -466,6 +468,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
               "config": {"scene": scene, "wall": wall, "tiles": tiles, "rate": rate,
                          "duration": duration, "frames": frames, "mode": mode,
                          "clients_procs": len(procs), "barrier": barrier, "path": path,
+                         "settings": settings, "shadow_fit": shadow_fit,
                          "path_frames": path_frames or PATH_FRAMES, "warmup_frames": warm,
                          "cache_bytes": cache_bytes, "method": method, "render": render,
                          "draw_time": draw_time},
@@ -803,6 +806,10 @@ def register(sub) -> None:
     q.add_argument("--render", action="store_true",
                    help="the nodes draw with the headless OpenGL renderer (slow on a CPU)")
     q.add_argument("--history", type=int, default=64)
+    q.add_argument("--settings", metavar="SETTINGS.json",
+                   help="lights and mirrors for the wall instead of the scene's own")
+    q.add_argument("--shadow-fit", choices=("sphere", "greedy", "refined"), default="refined",
+                   help="shadow-frustum fitting effort")
     q.add_argument("--requests", type=int, metavar="N",
                    help="instead: N single-packet GETs from a separate process; requests/s")
     q.add_argument("--concurrency", type=int, default=64,
@@ -817,6 +824,7 @@ def register(sub) -> None:
 
 def cmd_loadtest(args) -> int:
     from ..errors import InputError
+    from ..settings import read as read_settings
 
     if args.clients_procs < 1:
         raise InputError("--clients-procs must be at least 1")
@@ -834,7 +842,9 @@ def cmd_loadtest(args) -> int:
             args.scene, wall, args.rate, args.duration, args.mode, args.clients_procs,
             args.barrier, args.path, args.path_frames, args.warmup, args.cache_bytes,
             args.history, server=args.server, token=args.token, progress=progress,
-            render=args.render, draw_time=args.draw_time))
+            render=args.render, draw_time=args.draw_time,
+            settings=read_settings(args.settings) if args.settings else None,
+            shadow_fit=args.shadow_fit))
     write(report, args.out)
     if args.json:
         print(json.dumps(report))

@@ -20,8 +20,8 @@ class Metrics:
         self._bound: dict = {}
         self.errors = Counter("wallcull_errors", "Requests refused", ["status"], registry=r)
 
-    def packet(self, pkt: dict, size: int, transport: str):
-        key = ("full" if pkt["base"] is None else "delta", transport)
+    def packet(self, delta: bool, size: int, transport: str):
+        key = ("delta" if delta else "full", transport)
         bound = self._bound.get(key)
         if bound is None:  # labels() costs a lock and a dict lookup: bind each pair once
             bound = self._bound[key] = (self.packets.labels(*key), self.bytes.labels(*key))

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
 from ..bounds import KINDS
 from ..cull import METHODS
 from ..errors import InputError
+from ..lowilie import EFFORTS
 from ..wall import MAX_TILES
 
 Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
@@ -69,6 +70,10 @@ class WallCreate(BaseModel):
     history: int = Field(default=64, ge=2, le=4096)
     depth: Literal["tight", "wall"] = "tight"
     reversed_z: bool = False
+    shadow_fit: Literal[EFFORTS] = "refined"  # type: ignore[valid-type]
+    settings: Optional[dict[str, Any]] = Field(
+        default=None, description="Scene settings (lights, mirrors; see the README) for this "
+                                  "wall instead of the scene's own")
 
 
 class FramePost(BaseModel):

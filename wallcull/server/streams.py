@@ -56,14 +56,16 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack",
                 # uvicorn's send only blocks past the transport's 64 KiB high-water mark.
                 await session.wait_acked(tile, last - STREAM_WINDOW + 1, MAX_WAIT)
                 number = session.latest
-            pkt = session.packet(tile, number, wants.pop("full", False), since)
-            since = number if since < 0 else since
-            data = protocol.encode(pkt, binary)
-            if binary:
+            full = wants.pop("full", False)
+            if binary:  # encoded once per frame for every tile (wallcull.encode)
+                data, delta = session.packet_bytes(tile, number, full, since)
                 await ws.send_bytes(data)
             else:
+                pkt = session.packet(tile, number, full, since)
+                data, delta = protocol.encode(pkt, False), pkt["base"] is not None
                 await ws.send_text(data.decode())
-            metrics.packet(pkt, len(data), "ws")
+            since = number if since < 0 else since
+            metrics.packet(delta, len(data), "ws")
             last = number
 
     async def receiver():

@@ -7,6 +7,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
 
+from .. import settings as cfg
 from ..fit import FitOptions
 from ..service import NotFound
 from ..wall import Wall
@@ -24,9 +25,13 @@ router = APIRouter(tags=["walls"])
              responses=refusals(400, 401, 404, 409, 413))
 async def create_wall(request: Request, state: State, body: WallCreate):
     wall = Wall.from_dict(body.wall.model_dump())
+    if body.settings is not None:
+        cfg.parse(body.settings)  # refused here, with its reason, not at the first frame
     scene = await state.store.get(body.scene)
     session = state.walls.create(scene, wall, body.method, body.bounds, body.pseudo_groups,
-                                 body.history, FitOptions(body.depth, body.reversed_z))
+                                 body.history,
+                                 FitOptions(body.depth, body.reversed_z, body.shadow_fit),
+                                 body.settings)
     return reply(request, session.info(), 201)
 
 
@@ -88,7 +93,7 @@ async def get_packet(request: Request, state: State, wid: str, tile: int,
             raise NotFound(f"frame {number} is not ready (latest {session.latest})")
     pkt = session.packet(tile, number, full)
     response = reply(request, pkt)
-    state.metrics.packet(pkt, len(response.body), "http")
+    state.metrics.packet(pkt["base"] is not None, len(response.body), "http")
     return response
 
 
