@@ -160,6 +160,20 @@ def test_frusta(out):
         assert max(v["samples"]) <= v["wall_bits"] + 1e-9 and v["gained_mean"] >= 0
 
 
+def test_frame(out):
+    result = E.run("frame", out, quick=True, progress=False)
+    r = check_output(out, "frame", result)
+    assert len(r["stages"]) == 9
+    for s in r["stages"].values():  # the total is the sum of the stages, frame by frame
+        parts = sum(s[k]["median_ms"] for k in ("cull", "leaves", "fit", "encode"))
+        assert 0 < s["total"]["median_ms"] <= 2 * parts and s["packet_bytes_per_frame"] > 0
+    lit, plain = r["stages"]["8x8 / lamp + mirror"], r["stages"]["8x8 / none"]
+    assert lit["packet_bytes_per_frame"] > plain["packet_bytes_per_frame"]  # shadows, mirrors
+    for per in r["efforts"].values():  # the dial: the quads fill more of the shadow map
+        assert per["refined"]["coverage_mean"] >= per["sphere"]["coverage_mean"]
+        assert per["greedy"]["coverage_mean"] > per["sphere"]["coverage_mean"]
+
+
 def test_oracle_bookkeeping_matches_bench_accuracy():
     """The experiments' memoized oracle counts what ``wallcull.bench.accuracy`` counts."""
     scene = C.Pristine("fatehpur").fresh()
