@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings as hsettings, strategies as 
 from wallcull import fit as fitmod
 from wallcull.fit import FitOptions, tile_projections
 from wallcull.projection import view_matrix
-from wallcull.oracle import clip_triangles, frustum_planes as oracle_planes
+from wallcull.oracle import clip_triangles, tile_frusta
 from wallcull.pipeline import Session
 from wallcull.projection import frustum_planes, tile_view_projection
 from wallcull.scene import Scene
@@ -216,7 +216,7 @@ def test_mirror_lists_everything_seen_in_it():
     beyond = -mirror.plane
     seen_any = 0
     for t, tile in enumerate(result.fits):
-        planes = oracle_planes(WALL, FRAME, t, 1e-7 * 50)
+        (planes,) = tile_frusta(WALL, FRAME, t, 1e-7 * 50)
         # to world, for the clipping: the oracle's planes are in display space
         from wallcull.oracle import to_display
         listed = set()

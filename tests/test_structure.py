@@ -15,8 +15,9 @@ PACKAGE = Path(__file__).resolve().parent.parent / "wallcull"
 
 #: Modules of the pipeline (scene -> frusta -> cull -> fit -> encode) and their helpers: they
 #: never reach for a shell around them.
-CORE = ("bounds", "scene", "wall", "cull", "projection", "quad", "lowilie", "fit", "pipeline",
-        "protocol", "settings", "oracle", "paths", "errors", "documents")
+CORE = ("bounds", "scene", "wall", "screens", "stereo", "validate", "cull", "projection", "quad",
+        "lowilie", "fit", "pipeline", "protocol", "encode", "workers", "settings", "oracle",
+        "paths", "errors", "documents")
 SHELLS = ("cli", "server", "service", "bench", "experiments", "clients")
 
 

@@ -65,11 +65,12 @@ def cmd_cull(args) -> int:
         return 0
     s = scene.stats
     print(f"scene {scene.name}: {s['nodes']} nodes ({s['internal']} internal, {s['leaves']} "
-          f"leaves), {wall.cols} x {wall.rows} wall, method {args.method}, bounds {args.bounds}")
+          f"leaves), {describe_wall(wall)}, method {args.method}, bounds {args.bounds}")
     for tile in tiles:
         names = ", ".join(tile["visible"]) or "-"
         extras = "".join(f", {len(tile[k])} {k}" for k in ("shadows", "mirrors") if k in tile)
-        print(f"tile {tile['id']:>3} (row {tile['row']}, col {tile['col']}): depth "
+        where = f" (row {tile['row']}, col {tile['col']})" if "row" in tile else ""
+        print(f"tile {tile['id']:>3}{where}: depth "
               f"{tile['near']:.4g}-{tile['far']:.4g}{extras}; {len(tile['visible'])} "
               f"{'leaves' if args.leaves else 'nodes'}: {names}")
     print(f"culled in {stats['cull_ms']:.3f} ms with {stats['primary_tests'] + stats['tests']} "
@@ -180,22 +181,34 @@ def cmd_walk(args) -> int:
     s = scene.stats
     console = Console()
     console.print(f"[bold]{scene.name}[/]: {s['leaves']} leaves, {s['triangles']:,} triangles; "
-                  f"{wall.cols} x {wall.rows} wall; {len(frames)} frames of the {args.path} path; "
+                  f"{describe_wall(wall)}; {len(frames)} frames of the {args.path} path; "
                   f"method {args.method}, bounds {args.bounds}")
     table = Table(title="leaves drawn per tile (mean, min-max over the walkthrough)")
-    table.add_column("row")
-    for c in range(wall.cols):
-        table.add_column(f"col {c}", justify="right")
     mean, lo, hi = counts.mean(0), counts.min(0), counts.max(0)
-    for r in range(wall.rows):
-        cells = [f"{mean[t]:.0f} ({lo[t]}-{hi[t]})"
-                 for t in range(r * wall.cols, (r + 1) * wall.cols)]
-        table.add_row(str(r), *cells)
+    cells = [f"{mean[t]:.0f} ({lo[t]}-{hi[t]})" for t in range(wall.tiles)]
+    if wall.kind == "grid":
+        table.add_column("row")
+        for c in range(wall.cols):
+            table.add_column(f"col {c}", justify="right")
+        for r in range(wall.rows):
+            table.add_row(str(r), *cells[r * wall.cols:(r + 1) * wall.cols])
+    else:
+        table.add_column("screen")
+        table.add_column("leaves", justify="right")
+        for t, cell in enumerate(cells):
+            table.add_row(str(t), cell)
     console.print(table)
     t = np.asarray(times)
     console.print(f"culling time per frame: median {np.median(t):.3f} ms, p99 "
                   f"{np.percentile(t, 99):.3f} ms, max {t.max():.3f} ms")
     return 0
+
+
+def describe_wall(wall) -> str:
+    """``4 x 4 wall`` or ``wall of 5 screens``."""
+    if wall.kind == "grid":
+        return f"{wall.cols} x {wall.rows} wall"
+    return f"wall of {wall.tiles} screens"
 
 
 def cmd_serve(args) -> int:

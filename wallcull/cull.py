@@ -79,17 +79,24 @@ _R_BALL, _R_AXES, _R_SPHERE = 3, 4, 13
 #: on all of them; the count is flat between 1 and 4.
 UNFOLD_RATIO = 1.0
 
-_OUT, _CUT, _FULL = 0, 1, 2
+_OUT, _CUTS, _FULL = 0, 1, 2
 
 # Columns of the frustum-hierarchy table (int64).
 _FIRST, _SECOND, _PA, _PB, _TILE, _MODE, _SIDE_A, _SIDE_B = range(8)
-_SHARED, _DISJOINT, _OVERLAP = 0, 1, 2
+# How a node's children are told apart: one plane, negated for the second (no gap); two planes
+# whose insides meet only behind the eye (bezels); two planes that may overlap (projectors, or
+# the two eyes of a stereo frame); each child by its own tile's six planes, or by none (screens
+# that no plane through the eye separates, see wallcull.screens); not at all (a split of a
+# screens wall that does not hold from this frame's eye).
+_SHARED, _DISJOINT, _OVERLAP, _BOUNDS, _PASS = range(5)
 
-# Bits of an object's mask in ``adaptive``: the four side planes of its frustum node's region
-# (L, R, T, B), "unknown" in bits 0-3 (not tested: inherited from a parent unfolded above) and
-# "cut" in bits 4-7 (tested, cut); bit 8: the object may reach behind the eye.
-_UNKNOWN = 15
-_BEHIND = 256
+# Bits of an object's mask in ``adaptive``: the side planes of its frustum node's region
+# (L, R, T, B; near and far for screens, whose tiles do not share them), "unknown" in bits 0-5
+# (not tested: inherited from a parent unfolded above) and "cut" in bits 8-13 (tested, cut);
+# bit 16: the object may reach behind the eye.
+_UNKNOWN = 63
+_CUT = 8
+_BEHIND = 1 << 16
 
 
 def pack(bounds: Bounds) -> np.ndarray:
@@ -124,17 +131,38 @@ def _state(s, r):
         return _OUT
     if s >= r:
         return _FULL
-    return _CUT
+    return _CUTS
 
 
 @njit(cache=True, inline="always")
-def _split(box, o, planes, fh, f, behind):
-    """States of bound ``o`` against frustum node ``f``'s two child planes, and the tests
-    taken: one when the planes are one (no gap), or when the bound, wholly in front of the
-    eye, is inside the first plane of a bezel split (then it is outside the second)."""
+def _region(box, o, planes, tile_planes, tile):
+    """State of bound ``o`` against tile ``tile``'s planes (-1: no bound, inside), and tests."""
+    if tile < 0:
+        return _FULL, 0
+    state = _FULL
+    for p in range(tile_planes.shape[1]):
+        s, r = _sr(box, o, planes, tile_planes[tile, p])
+        if s < -r:
+            return _OUT, p + 1
+        if s < r:
+            state = _CUTS
+    return state, tile_planes.shape[1]
+
+
+@njit(cache=True, inline="always")
+def _split(box, o, planes, fh, f, behind, tile_planes):
+    """States of bound ``o`` against frustum node ``f``'s two children, and the tests taken:
+    one when the planes are one (no gap), or when the bound, wholly in front of the eye, is
+    inside the first plane of a bezel split (then it is outside the second)."""
+    mode = fh[f, _MODE]
+    if mode == _PASS:
+        return _FULL, _FULL, 0
+    if mode == _BOUNDS:
+        sa, na = _region(box, o, planes, tile_planes, fh[f, _PA])
+        sb, nb = _region(box, o, planes, tile_planes, fh[f, _PB])
+        return sa, sb, na + nb
     s, r = _sr(box, o, planes, fh[f, _PA])
     sa = _state(s, r)
-    mode = fh[f, _MODE]
     if mode == _SHARED:
         return sa, _state(-s, r), 1
     if mode == _DISJOINT and sa == _FULL and not behind:
@@ -269,8 +297,8 @@ def _oh(roots, masks, child_start, child_count, children, box, planes, region_pl
 
 
 @njit(cache=True)
-def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit, stack,
-        out_n, out_t):
+def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit, tile_planes,
+        check, stack, out_n, out_t):
     k = 0
     tests = 0
     cap = out_n.shape[0]
@@ -284,14 +312,20 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
             while sp > 0:
                 sp -= 1
                 f = stack[sp]
-                if fh[f, _TILE] >= 0:
+                tile = fh[f, _TILE]
+                if tile >= 0:
+                    if check:  # screens: the splits above are not the tile's own planes
+                        state, nt = _region(box, leaf, planes, tile_planes, tile)
+                        tests += nt
+                        if state == _OUT:
+                            continue
                     if k == cap:
                         return -1, tests
                     out_n[k] = leaf
-                    out_t[k] = fh[f, _TILE]
+                    out_t[k] = tile
                     k += 1
                     continue
-                sa, sb, nt = _split(box, leaf, planes, fh, f, behind)
+                sa, sb, nt = _split(box, leaf, planes, fh, f, behind, tile_planes)
                 tests += nt
                 if sb != _OUT:
                     stack[sp] = fh[f, _SECOND]
@@ -304,7 +338,8 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
 
 @njit(cache=True)
 def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh, fh_unfold,
-              tile_planes, view, pitch_x, pitch_y, near_bit, so, sf, sm, ts, tm, out_n, out_t):
+              tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, so, sf, sm, ts,
+              tm, out_n, out_t):
     """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring).
 
     A stack entry is (object ``so``, frustum node ``sf``, mask ``sm``). At an internal frustum
@@ -318,6 +353,11 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
     object is tested against its "unknown" planes; with no plane left cut it is inside the
     tile and is listed; a cut leaf is listed; a cut internal node is culled to this tile alone,
     over the planes it is cut by (``oh`` with plane masking, on stack ``ts``/``tm``).
+
+    ``tile_planes`` holds each tile's side planes: four for a grid (the primary frustum holds
+    near and far), six for screens, whose objects start with all six unknown
+    (``unknown_at_root``). ``view``: the plane whose distance is an object's depth, or zeros
+    for its distance from the eye (``view[3]`` the eye's index... see :class:`Culler`).
     """
     k = 0
     tests = 0
@@ -326,7 +366,7 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
     for j in range(roots.shape[0] - 1, -1, -1):
         so[sp] = roots[j]
         sf[sp] = 0
-        sm[sp] = _BEHIND if masks[j] & near_bit else 0
+        sm[sp] = unknown_at_root | (_BEHIND if masks[j] & near_bit else 0)
         sp += 1
     while sp > 0:
         sp -= 1
@@ -337,20 +377,24 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
             tile = fh[f, _TILE]
             if tile >= 0:
                 break
-            sa, sb, nt = _split(box, o, planes, fh, f, (m & _BEHIND) != 0)
+            sa, sb, nt = _split(box, o, planes, fh, f, (m & _BEHIND) != 0, tile_planes)
             tests += nt
             bit_a = fh[f, _SIDE_A]
             bit_b = fh[f, _SIDE_B]
             # the split gives each child a new side plane: forget what was known of the old one
-            ma = (m & ~(bit_a | (bit_a << 4))) | ((bit_a << 4) if sa == _CUT else 0)
-            mb = (m & ~(bit_b | (bit_b << 4))) | ((bit_b << 4) if sb == _CUT else 0)
-            if (sa == _CUT or sb == _CUT) and child_count[o] > 0:
-                depth = (view[0] * box[o, 0] + view[1] * box[o, 1] + view[2] * box[o, 2]
-                         + view[3])
+            ma = (m & ~(bit_a | (bit_a << _CUT))) | ((bit_a << _CUT) if sa == _CUTS else 0)
+            mb = (m & ~(bit_b | (bit_b << _CUT))) | ((bit_b << _CUT) if sb == _CUTS else 0)
+            if (sa == _CUTS or sb == _CUTS) and child_count[o] > 0:
+                if view[0] == 0.0 and view[1] == 0.0 and view[2] == 0.0:  # all around: distance
+                    depth = math.sqrt((box[o, 0] - view[4]) ** 2 + (box[o, 1] - view[5]) ** 2
+                                      + (box[o, 2] - view[6]) ** 2)
+                else:
+                    depth = (view[0] * box[o, 0] + view[1] * box[o, 1] + view[2] * box[o, 2]
+                             + view[3])
                 angle = box[o, _R_SPHERE] / depth if depth > 0 else np.inf
                 reach = (2 * angle / pitch_x + 1) * (2 * angle / pitch_y + 1)
                 if reach > fh_unfold[f]:  # large for this frustum node: unfold here
-                    cm = (m & _UNKNOWN) | ((m >> 4) & _UNKNOWN)
+                    cm = (m & _UNKNOWN) | ((m >> _CUT) & _UNKNOWN)
                     for c in range(child_start[o] + child_count[o] - 1, child_start[o] - 1,
                                    -1):
                         so[sp] = children[c]
@@ -378,10 +422,10 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
         if tile < 0:
             continue
         unknown = m & _UNKNOWN
-        cut = (m >> 4) & _UNKNOWN
+        cut = (m >> _CUT) & _UNKNOWN
         if unknown:
             outside = False
-            for p in range(4):
+            for p in range(tile_planes.shape[1]):
                 if unknown & (1 << p):
                     s, r = _sr(box, o, planes, tile_planes[tile, p])
                     tests += 1
@@ -484,7 +528,8 @@ def _group(members, count, box, pool_box, pool_start, pool_members, n_pg, n_pm):
 
 
 @njit(cache=True)
-def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, near_bit):
+def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, near_bit,
+            tile_planes):
     """The paper's Algorithm 2 as written, with pseudo-groups (section 4.2).
 
     A cut object always unfolds; its members are classified at once and the ones wholly on one
@@ -545,7 +590,7 @@ def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, n
                 k += 1
             continue
         if o < n:
-            sa, sb, nt = _split(box, o, planes, fh, f, behind)
+            sa, sb, nt = _split(box, o, planes, fh, f, behind, tile_planes)
         else:
             s, r = _box_sr(pool_box, o - n, planes, fh[f, _PA])
             sa, nt = _state(s, r), 1
@@ -563,7 +608,7 @@ def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, n
             so = _grow(so)
             sf = _grow(sf)
             sb_ = _grow(sb_)
-        if sa != _CUT and sb != _CUT:  # intact to each side it fills
+        if sa != _CUTS and sb != _CUTS:  # intact to each side it fills
             if sb == _FULL:
                 so[sp], sf[sp], sb_[sp] = o, second, behind
                 sp += 1
@@ -587,7 +632,7 @@ def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, n
         n_second = 0
         for q in range(m0, m0 + m_count):
             i = children[q] if o < n else pool_members[q]
-            ma, mb, nt = _split(box, i, planes, fh, f, behind)
+            ma, mb, nt = _split(box, i, planes, fh, f, behind, tile_planes)
             tests += nt
             if ma == _FULL and mb == _OUT:
                 firsts[n_first] = i
@@ -595,7 +640,7 @@ def _pseudo(roots, masks, child_start, child_count, children, box, planes, fh, n
             elif mb == _FULL and ma == _OUT:
                 seconds[n_second] = i
                 n_second += 1
-            elif ma != _CUT and mb != _CUT:  # in both children (projector overlap) or neither
+            elif ma != _CUTS and mb != _CUTS:  # in both children (projector overlap) or neither
                 if mb == _FULL:
                     so[sp], sf[sp], sb_[sp] = i, second, behind
                     sp += 1
@@ -829,32 +874,51 @@ class Culler:
     """Culls one scene state to one wall, frame after frame, by one method.
 
     The wall's static tables (frustum hierarchy, per-tile plane indices) are built once, and so
-    are the kernels' stacks and outputs; each call to :meth:`cull` builds the frame's planes and
-    runs the traversal.
+    are the kernels' stacks and outputs; each call to :meth:`cull` takes the frame's planes
+    (:class:`~wallcull.wall.Frusta`) and runs the traversal. Grid walls and screens walls
+    share the kernels: a screens tile has six planes of its own (near and far included), and
+    the splits of its frustum hierarchy are checked each frame. A stereo frame is culled once
+    against planes that hold both eyes' frusta on a grid (:mod:`wallcull.stereo`), and eye by
+    eye, merged, on screens.
     """
 
     def __init__(self, state: SceneState, wall, method: str = "adaptive",
                  pseudo_groups: bool = False):
         if method not in METHODS:
             raise InputError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+        if pseudo_groups and wall.kind != "grid":
+            raise InputError("pseudo-groups need a grid wall")
         self.state = state
         self.wall = wall
         self.method = method
         self.pseudo_groups = pseudo_groups
         scene = state.scene
         self._tree = (scene.child_start, scene.child_count, scene.children)
-        lay = wall.layout
-        self._tile_planes = np.ascontiguousarray(lay.tile_planes, dtype=np.int64)
-        self._tile_sides = np.ascontiguousarray(self._tile_planes[:, :4])
-        self._primary_planes = lay.primary_planes.astype(np.int64)
-        r, col = np.divmod(np.arange(wall.tiles), wall.cols)
-        border = ((col == 0) * 1 | (col == wall.cols - 1) * 2 | (r == 0) * 4
-                  | (r == wall.rows - 1) * 8)
-        self._inherit = (border | 48).astype(np.int64)
-        self._force = (15 & ~border).astype(np.int64)
-        self._size = np.full(wall.tiles, 6, np.int64)
-        self._fh, self._unfold = _fh_table(wall)
-        self._near_bit = 1 << 4  # the primary planes are L, R, T, B, near, far
+        tiles = wall.tiles
+        if wall.kind == "grid":
+            lay = wall.layout
+            self._tile_planes = np.ascontiguousarray(lay.tile_planes, dtype=np.int64)
+            self._tile_sides = np.ascontiguousarray(self._tile_planes[:, :4])
+            self._primary_planes = lay.primary_planes.astype(np.int64)
+            r, col = np.divmod(np.arange(tiles), wall.cols)
+            border = ((col == 0) * 1 | (col == wall.cols - 1) * 2 | (r == 0) * 4
+                      | (r == wall.rows - 1) * 8)
+            self._inherit = (border | 48).astype(np.int64)
+            self._force = (15 & ~border).astype(np.int64)
+            self._fh, self._unfold = _fh_table(wall)
+            self._fh_stereo = self._fh.copy()  # two eyes: the planes of a split differ
+            self._fh_stereo[self._fh[:, _TILE] < 0, _MODE] = _OVERLAP
+            self._near_bit = 1 << 4  # the primary planes are L, R, T, B, near, far
+            self._unknown_at_root = 0
+        else:
+            self._tile_planes = np.arange(6 * tiles, dtype=np.int64).reshape(tiles, 6)
+            self._tile_sides = self._tile_planes
+            self._inherit = np.zeros(tiles, np.int64)
+            self._force = np.full(tiles, 63, np.int64)
+            self._fh, self._unfold = _screen_fh_table(wall)
+            self._near_bit = 0
+            self._unknown_at_root = _UNKNOWN
+        self._size = np.full(tiles, 6, np.int64)
         leaf_start, leaf_count = scene.leaf_range
         self._leaves = (scene.leaves, leaf_start, leaf_count)
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
@@ -864,26 +928,52 @@ class Culler:
     def cull(self, frusta: Frusta) -> Visibility:
         """The frame's per-tile node lists."""
         t0 = time.perf_counter()
-        frame = frusta.frame
-        forward = -frame.rotation[:, 2]  # the view direction
-        vis = self.cull_planes(frusta.planes, forward, frame.eye_world, frame.eye[2])
+        vis = self._each_eye(frusta, None, None)
         vis.stats["cull_ms"] = (time.perf_counter() - t0) * 1e3
         return vis
 
-    def cull_planes(self, planes: np.ndarray, forward: np.ndarray, eye: np.ndarray,
-                    eye_z: float, extra: np.ndarray | None = None) -> Visibility:
-        """Per-tile node lists for any plane table laid out as the wall's
-        (:class:`~wallcull.wall.PlaneLayout`), seen from ``eye`` looking along ``forward``
-        (world) with the eye at display ``z = eye_z``, and optionally ``extra`` planes
-        ``(k, 4)`` that bound every tile (culled against once, with the primary frustum's).
-        A mirror's view of the wall is the frame's table reflected, with the mirror's plane
-        and outline as ``extra``."""
+    def cull_reflected(self, frusta: Frusta, reflection: np.ndarray,
+                       extra: np.ndarray) -> Visibility:
+        """Per-tile node lists of a mirror's view: the frame's frusta reflected by
+        ``reflection (4, 4)`` (their layout and hierarchy stay the wall's), bounded besides by
+        ``extra`` planes ``(k, 4)`` (the mirror's plane and outline) that every tile shares."""
+        return self._each_eye(frusta, reflection, extra)
+
+    def _each_eye(self, frusta: Frusta, reflection, extra) -> Visibility:
+        if not frusta.per_eye:
+            return self._traverse(frusta, reflection, extra)
+        lists = [self._traverse(f, reflection, extra) for f in frusta.per_eye]
+        return merge(lists)
+
+    def _traverse(self, frusta: Frusta, reflection, extra) -> Visibility:
+        frame, wall = frusta.frame, self.wall
+        planes = frusta.planes
+        forward = -frame.rotation[:, 2]  # the view direction
+        eye = frame.to_world(frusta.eye)
+        if reflection is not None:
+            planes = planes @ reflection  # a plane P of reflected points: P . (R p) = (P R) . p
+            forward = reflection[:3, :3] @ forward
+            eye = reflection[:3, :3] @ eye + reflection[:3, 3]
         box = packed(self.state)
-        if self.wall.gap[0] == 0.0 or self.wall.gap[1] == 0.0:
-            # Equal and opposite split planes: one test decides both sides. Use the exact
-            # negation so that rounding cannot make the two disagree.
-            planes = _shared_planes(planes, self.wall)
-        primary = self._primary_planes
+        fh = self._fh
+        if wall.kind == "grid":
+            primary = self._primary_planes
+            if frame.stereo is not None:
+                fh = self._fh_stereo
+            elif wall.gap[0] == 0.0 or wall.gap[1] == 0.0:
+                # Equal and opposite split planes: one test decides both sides. Use the exact
+                # negation so that rounding cannot make the two disagree.
+                planes = _shared_planes(planes, wall)
+            view = np.array([*forward, -float(forward @ eye), 0.0, 0.0, 0.0])  # depth
+            depth = wall.distance + frusta.eye[2]
+            (w, h), (gx, gy) = wall.tile_size, wall.gap
+            pitch = ((w + gx) / depth, (h + gy) / depth)
+        else:
+            primary = frusta.primary_rows.astype(np.int64)
+            fh = fh.copy()  # a split that does not hold from this eye culls nothing
+            fh[(fh[:, _MODE] == _SHARED) & ~frusta.valid, _MODE] = _PASS
+            view = np.array([0.0, 0.0, 0.0, 0.0, *eye])  # all around the eye: distance
+            pitch = wall.pitch
         if extra is not None and len(extra):
             primary = np.concatenate([primary, len(planes) + np.arange(len(extra))])
             planes = np.concatenate([planes, extra])
@@ -905,24 +995,80 @@ class Culler:
                                           self._tile_planes, self._size, self._force,
                                           self._inherit, stack_n, stack_m)
         elif self.method == "fh":
-            nodes, tiles, tests = buf.run(_fh, roots, masks, *self._leaves, box, planes,
-                                          self._fh, self._near_bit, stack_n)
+            nodes, tiles, tests = buf.run(_fh, roots, masks, *self._leaves, box, planes, fh,
+                                          self._near_bit, self._tile_planes,
+                                          wall.kind != "grid", stack_n)
         elif self.pseudo_groups:
-            nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, self._fh,
-                                          self._near_bit)
+            nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, fh,
+                                          self._near_bit, self._tile_sides)
         else:
-            view = np.array([*forward, -float(forward @ eye)])  # depth of a centre
-            depth = self.wall.distance + eye_z
-            (w, h), (gx, gy) = self.wall.tile_size, self.wall.gap
             nodes, tiles, tests = buf.run(
-                _adaptive, roots, masks, *self._tree, box, planes, self._fh, self._unfold,
-                self._tile_sides, view, (w + gx) / depth, (h + gy) / depth, self._near_bit,
-                stack_n, stack_m, buf.get("stack_o", stack), buf.get("tile_n", stack),
-                buf.get("tile_m", stack))
-        start, ordered = _by_region(nodes, tiles, self.wall.tiles)
+                _adaptive, roots, masks, *self._tree, box, planes, fh, self._unfold,
+                self._tile_sides, view, pitch[0], pitch[1], self._near_bit,
+                self._unknown_at_root, stack_n, stack_m, buf.get("stack_o", stack),
+                buf.get("tile_n", stack), buf.get("tile_m", stack))
+        start, ordered = _by_region(nodes, tiles, wall.tiles)
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
             "tests": int(tests), "pairs": len(nodes)})
+
+
+def merge(lists: list[Visibility]) -> Visibility:
+    """The union of per-tile lists (each eye's of a stereo frame): a node also under a node
+    listed for the same tile is dropped, so every tile's nodes stay disjoint subtrees."""
+    first = lists[0]
+    start, nodes = first.start, first.nodes
+    for other in lists[1:]:
+        start, nodes = _merge_lists(start, nodes, other.start, other.nodes, first.scene.size)
+    stats = {key: sum(v.stats[key] for v in lists) for key in ("roots", "primary_tests",
+                                                               "tests")}
+    return Visibility(first.scene, start, nodes, {"method": first.stats["method"], **stats,
+                                                  "pairs": len(nodes), "eyes": len(lists)})
+
+
+@njit(cache=True)
+def _merge_lists(start_a, nodes_a, start_b, nodes_b, size):
+    tiles = start_a.shape[0] - 1
+    out = np.empty(nodes_a.shape[0] + nodes_b.shape[0], np.int64)
+    out_start = np.zeros(tiles + 1, np.int64)
+    k = 0
+    for t in range(tiles):
+        i, j = start_a[t], start_b[t]
+        cover = -1  # the end of the subtree of the last node kept
+        while i < start_a[t + 1] or j < start_b[t + 1]:
+            if j >= start_b[t + 1] or (i < start_a[t + 1] and nodes_a[i] <= nodes_b[j]):
+                node = nodes_a[i]
+                i += 1
+            else:
+                node = nodes_b[j]
+                j += 1
+            if node < cover:
+                continue  # in (or equal to) a node kept already
+            out[k] = node
+            k += 1
+            cover = node + size[node]
+        out_start[t + 1] = k
+    return out_start, out[:k]
+
+
+def _screen_fh_table(wall) -> tuple[np.ndarray, np.ndarray]:
+    """The frustum-hierarchy table of a screens wall (see :func:`_fh_table`): a split node's
+    plane is row ``6 T + node`` of the frame's table (:class:`~wallcull.wall.Frusta`), its
+    second child outside it; a ``BOUNDS`` node names the tile bounding each child."""
+    from .screens import BOUNDS, SPLIT
+
+    h = wall.hierarchy
+    n = len(h)
+    table = np.zeros((n, 8), np.int64)
+    table[:, _FIRST], table[:, _SECOND], table[:, _TILE] = h.first, h.second, h.tile
+    split, bounds = h.mode == SPLIT, h.mode == BOUNDS
+    table[split, _PA] = 6 * wall.tiles + np.flatnonzero(split)
+    table[split, _MODE] = _SHARED
+    table[bounds, _PA] = h.own[h.first[bounds]]
+    table[bounds, _PB] = h.own[h.second[bounds]]
+    table[bounds, _MODE] = _BOUNDS
+    counts = np.array([len(m) for m in h.members])
+    return table, UNFOLD_RATIO * np.log2(np.maximum(counts, 1))
 
 
 def _shared_planes(planes: np.ndarray, wall) -> np.ndarray:

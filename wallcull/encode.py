@@ -27,10 +27,10 @@ from .fit import CUBE, FRUSTUM, Fits
 
 _KEYS = ("frame", "tile", "time", "base", "visible", "added", "removed", "count", "view",
          "projection", "near", "far", "shadows", "mirrors", "light", "cube", "views", "coverage",
-         "casters", "mirror", "front_face", "cw")
+         "casters", "mirror", "front_face", "cw", "left", "right")
 (K_FRAME, K_TILE, K_TIME, K_BASE, K_VISIBLE, K_ADDED, K_REMOVED, K_COUNT, K_VIEW,
  K_PROJECTION, K_NEAR, K_FAR, K_SHADOWS, K_MIRRORS, K_LIGHT, K_CUBE, K_VIEWS, K_COVERAGE,
- K_CASTERS, K_MIRROR, K_FRONT_FACE, V_CW) = range(len(_KEYS))
+ K_CASTERS, K_MIRROR, K_FRONT_FACE, V_CW, K_LEFT, K_RIGHT) = range(len(_KEYS))
 
 
 def _pack_each(items) -> tuple[np.ndarray, np.ndarray]:
@@ -167,11 +167,21 @@ def _mat4(buf, p, m, bits):
 # --------------------------------------------------------------------------- fits
 
 
+@njit(cache=True, inline="always")
+def _view(out, p, views, shared, t, bits):
+    """A tile's view: the frame's shared one, pre-encoded (``views`` has one row), or its own."""
+    if views.shape[0] == 1:
+        return _copy(out, p, shared, 0, shared.shape[0])
+    return _mat4(out, p, views[t], bits)
+
+
 @njit(cache=True)
-def _fit_segments(view, projection, near, far, s_kind, s_view, s_projection, s_near, s_far,
-                  s_coverage, s_start, s_casters, s_names, s_name_off, s_cube, s_cube_off,
-                  m_shown, m_view, m_view_off, m_projection, m_start, m_visible, m_names,
-                  m_name_off, out, out_start, out_pairs):
+def _fit_segments(views, view_bytes, projection, near, far, s_kind, s_view, s_projection,
+                  s_near, s_far, s_coverage, s_start, s_casters, s_names, s_name_off, s_cube,
+                  s_cube_off, m_shown, m_views, m_view_bytes, m_view_off, m_projection,
+                  m_start, m_visible, m_names, m_name_off, e_views, e_view_bytes, e_view_off,
+                  e_projection, e_near, e_far, e_m_views, e_m_projection, e_m_shown, out,
+                  out_start, out_pairs):
     """Every tile's fitted frusta as msgpack key/value pairs into ``out`` (see
     :func:`fit_segments` for the arguments)."""
     bits = np.empty(1)
@@ -181,7 +191,7 @@ def _fit_segments(view, projection, near, far, s_kind, s_view, s_projection, s_n
         out_start[t] = p
         pairs = 4
         p = _key(out, p, K_VIEW)
-        p = _copy(out, p, view, 0, view.shape[0])
+        p = _view(out, p, views, view_bytes, t, bits)
         p = _key(out, p, K_PROJECTION)
         p = _mat4(out, p, projection[t], bits)
         p = _key(out, p, K_NEAR)
@@ -236,22 +246,60 @@ def _fit_segments(view, projection, near, far, s_kind, s_view, s_projection, s_n
                 p = _key(out, p, K_MIRROR)
                 p = _copy(out, p, m_names, m_name_off[q], m_name_off[q + 1])
                 p = _key(out, p, K_VIEW)
-                p = _copy(out, p, m_view, m_view_off[q], m_view_off[q + 1])
+                p = _view(out, p, m_views[q], m_view_bytes[m_view_off[q]:m_view_off[q + 1]], t,
+                          bits)
                 p = _key(out, p, K_PROJECTION)
                 p = _mat4(out, p, m_projection[q, t], bits)
                 p = _key(out, p, K_FRONT_FACE)
                 p = _key(out, p, V_CW)
                 p = _key(out, p, K_VISIBLE)
                 p = _ints(out, p, m_visible, m_start[q, t], m_start[q, t + 1])
+        for e in range(e_views.shape[0]):  # a stereo frame: "left", "right"
+            pairs += 1
+            p = _key(out, p, K_LEFT + e)
+            seen = 0
+            for q in range(m_shown.shape[0]):
+                seen += m_shown[q, t] and e_m_shown[e, q, t]
+            p = _map(out, p, 4 + (seen > 0))
+            p = _key(out, p, K_VIEW)
+            p = _view(out, p, e_views[e], e_view_bytes[e_view_off[e]:e_view_off[e + 1]], t,
+                      bits)
+            p = _key(out, p, K_PROJECTION)
+            p = _mat4(out, p, e_projection[e, t], bits)
+            p = _key(out, p, K_NEAR)
+            p = _float(out, p, e_near[e, t], bits)
+            p = _key(out, p, K_FAR)
+            p = _float(out, p, e_far[e, t], bits)
+            if seen:
+                p = _key(out, p, K_MIRRORS)
+                p = _array(out, p, seen)
+                for q in range(m_shown.shape[0]):
+                    if not (m_shown[q, t] and e_m_shown[e, q, t]):
+                        continue
+                    p = _map(out, p, 3)
+                    p = _key(out, p, K_MIRROR)
+                    p = _copy(out, p, m_names, m_name_off[q], m_name_off[q + 1])
+                    p = _key(out, p, K_VIEW)
+                    p = _mat4(out, p, e_m_views[e, q, 0 if e_m_views.shape[2] == 1 else t],
+                              bits)
+                    p = _key(out, p, K_PROJECTION)
+                    p = _mat4(out, p, e_m_projection[e, q, t], bits)
         out_pairs[t] = pairs
     out_start[tiles] = p
+
+
+def _views(view: np.ndarray) -> np.ndarray:
+    """A view as ``(V, 4, 4)``: one shared row (grid), or one per tile (screens)."""
+    return view[None] if view.ndim == 2 else view
 
 
 def fit_segments(fits: Fits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every tile's fitted frusta as msgpack key/value pairs: ``(data (uint8), start (T + 1,),
     pairs (T,))``; tile ``t``'s ``pairs[t]`` pairs are ``data[start[t]:start[t + 1]]``."""
     tiles = len(fits)
-    shadows, mirrors = fits.shadows, fits.mirrors
+    shadows, mirrors, eyes = fits.shadows, fits.mirrors, fits.eyes
+    shared = fits.view.ndim == 2
+    vshape = (1 if shared else tiles, 4, 4)
     # one light's arrays per row; casters offset into one concatenated array
     s_kind = np.array([s.kind for s in shadows], np.int64).reshape(len(shadows), tiles)
     s_view = np.array([s.view for s in shadows]).reshape(len(shadows), tiles, 4, 4)
@@ -264,27 +312,42 @@ def fit_segments(fits: Fits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     s_casters = np.concatenate([s.casters for s in shadows] or [np.zeros(0, np.int64)])
     s_names, s_name_off = _pack_each([s.light.name for s in shadows])
     s_cube, s_cube_off = _pack_each([s.cube_views.tolist() if s.cube_views is not None else []
-                                  for s in shadows])
+                                     for s in shadows])
     m_shown = np.array([m.shown for m in mirrors], np.bool_).reshape(len(mirrors), tiles)
-    m_view, m_view_off = _pack_each([m.view.tolist() for m in mirrors])
+    m_views = np.array([_views(m.view) for m in mirrors]).reshape(len(mirrors), *vshape)
+    m_view_bytes, m_view_off = _pack_each([m.view.tolist() if shared else [] for m in mirrors])
     m_projection = np.array([m.projection for m in mirrors]).reshape(len(mirrors), tiles, 4, 4)
     offsets = np.cumsum([0] + [len(m.visible) for m in mirrors])
     m_start = np.array([m.visible_start + o for m, o in zip(mirrors, offsets)],
                        np.int64).reshape(len(mirrors), tiles + 1)
     m_visible = np.concatenate([m.visible for m in mirrors] or [np.zeros(0, np.int64)])
     m_names, m_name_off = _pack_each([m.mirror.name for m in mirrors])
-    view = np.frombuffer(msgpack.packb(fits.view.tolist()), np.uint8)
-    size = tiles * (len(view) + MAT4 + 2 * NUMBER + 64) \
-        + len(s_kind) * tiles * (2 * MAT4 + 4 * NUMBER + 64) + int(s_cube_off[-1]) * tiles \
-        + NUMBER * (len(s_casters) + len(m_visible)) + len(mirrors) * tiles * (
-            int(m_view_off[-1]) + MAT4 + 64) + (int(s_name_off[-1]) + int(m_name_off[-1])) * tiles
+    e_views = np.array([_views(e.view) for e in eyes]).reshape(len(eyes), *vshape)
+    e_view_bytes, e_view_off = _pack_each([e.view.tolist() if shared else [] for e in eyes])
+    e_projection = np.array([e.projection for e in eyes]).reshape(len(eyes), tiles, 4, 4)
+    e_near = np.array([e.near for e in eyes]).reshape(len(eyes), tiles)
+    e_far = np.array([e.far for e in eyes]).reshape(len(eyes), tiles)
+    e_m_views = np.array([[_views(v) for v, _, _ in e.mirrors] for e in eyes]).reshape(
+        len(eyes), len(mirrors), *vshape)
+    e_m_projection = np.array([[pr for _, pr, _ in e.mirrors] for e in eyes]).reshape(
+        len(eyes), len(mirrors), tiles, 4, 4)
+    e_m_shown = np.array([[ok for _, _, ok in e.mirrors] for e in eyes], np.bool_).reshape(
+        len(eyes), len(mirrors), tiles)
+    view_bytes = np.frombuffer(msgpack.packb(fits.view.tolist()) if shared else b"", np.uint8)
+    # an upper bound: every matrix, number, key and name a tile may carry
+    entries = 1 + len(shadows) + len(mirrors) * (1 + len(eyes)) + len(eyes)
+    size = tiles * (entries * (2 * MAT4 + 4 * NUMBER + 256)) + int(s_cube_off[-1]) * tiles \
+        + NUMBER * (len(s_casters) + len(m_visible)) \
+        + (int(s_name_off[-1]) + int(m_name_off[-1]) * (1 + len(eyes))) * tiles
     out = np.empty(size, np.uint8)
     start = np.empty(tiles + 1, np.int64)
     pairs = np.empty(tiles, np.int64)
-    _fit_segments(view, fits.projection, fits.near, fits.far, s_kind, s_view, s_projection,
-                  s_near, s_far, s_coverage, s_start, s_casters, s_names, s_name_off, s_cube,
-                  s_cube_off, m_shown, m_view, m_view_off, m_projection, m_start, m_visible,
-                  m_names, m_name_off, out, start, pairs)
+    _fit_segments(_views(fits.view), view_bytes, fits.projection, fits.near, fits.far, s_kind,
+                  s_view, s_projection, s_near, s_far, s_coverage, s_start, s_casters, s_names,
+                  s_name_off, s_cube, s_cube_off, m_shown, m_views, m_view_bytes, m_view_off,
+                  m_projection, m_start, m_visible, m_names, m_name_off, e_views, e_view_bytes,
+                  e_view_off, e_projection, e_near, e_far, e_m_views, e_m_projection, e_m_shown,
+                  out, start, pairs)
     return out[:start[-1]], start, pairs
 
 

@@ -39,7 +39,7 @@ from . import settings as cfg
 from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
 from .projection import look_at, oblique_near_many, rigid_inverse, view_matrix
 from .scene import SceneState
-from .wall import Frame, Frusta, Wall
+from .wall import Frame, Frusta
 
 #: Depth ranges are widened by this fraction of their far distance, so that rounding in the
 #: client's float32 matrices never clips a surface lying exactly on a fitted plane.
@@ -60,16 +60,39 @@ class FitOptions:
                              f"got {self.shadow_fit!r}")
 
 
-def tile_projections(wall: Wall, frame: Frame, near: np.ndarray, far: np.ndarray,
-                     reversed_z: bool = False) -> np.ndarray:
-    """``(tiles, 4, 4)`` off-axis projections through each tile rectangle with per-tile near
-    and far distances: Lengyel's frustum matrix, vectorized; reversed-Z maps near to 1, far to
-    0. A far distance of ``inf`` gives the infinite projection."""
-    ex, ey, ez = frame.eye
-    depth = wall.distance + ez
-    r, c = np.divmod(np.arange(wall.tiles), wall.cols)
-    x0, x1 = wall.col_edges[c, 0] - ex, wall.col_edges[c, 1] - ex
-    y0, y1 = wall.row_edges[r, 0] - ey, wall.row_edges[r, 1] - ey
+def tile_views(wall, frame: Frame, eye: np.ndarray | None = None) -> np.ndarray:
+    """World to each tile's eye space: ``(4, 4)``, the same for every tile of a grid (display
+    space's axes at the eye); ``(tiles, 4, 4)`` for screens, whose eye spaces are aligned to
+    their screens (x along the bottom edge, y up the left edge, z toward the viewer)."""
+    view = view_matrix(frame, eye)
+    if wall.kind == "grid":
+        return view
+    axes = np.zeros((wall.tiles, 4, 4))
+    axes[:, :3, :3] = wall.basis
+    axes[:, 3, 3] = 1.0
+    return axes @ view
+
+
+def tile_projections(wall, frame: Frame, near: np.ndarray, far: np.ndarray,
+                     reversed_z: bool = False, eye: np.ndarray | None = None) -> np.ndarray:
+    """``(tiles, 4, 4)`` off-axis projections through each tile rectangle, seen from the
+    frame's eye (or ``eye``, display space), with per-tile near and far distances: Lengyel's
+    frustum matrix, vectorized; reversed-Z maps near to 1, far to 0. A far distance of ``inf``
+    gives the infinite projection. For screens, the rectangle in each tile's own eye space
+    (the generalized perspective projection)."""
+    eye = frame.eye if eye is None else np.asarray(eye, np.float64)
+    if wall.kind == "grid":
+        ex, ey, ez = eye
+        depth = np.full(wall.tiles, wall.distance + ez)
+        r, c = np.divmod(np.arange(wall.tiles), wall.cols)
+        x0, x1 = wall.col_edges[c, 0] - ex, wall.col_edges[c, 1] - ex
+        y0, y1 = wall.row_edges[r, 0] - ey, wall.row_edges[r, 1] - ey
+    else:
+        rel = wall.corners - eye  # bl, br, tl from the eye
+        u, v, n = wall.basis[:, 0], wall.basis[:, 1], wall.basis[:, 2]
+        depth = -(rel[:, 0] * n).sum(axis=1)
+        x0, x1 = (rel[:, 0] * u).sum(axis=1), (rel[:, 1] * u).sum(axis=1)
+        y0, y1 = (rel[:, 0] * v).sum(axis=1), (rel[:, 2] * v).sum(axis=1)
     # 2n/(r-l) with l = x0 n / depth: the near distance cancels out of the x and y rows.
     out = np.zeros((wall.tiles, 4, 4))
     out[:, 0, 0] = 2 * depth / (x1 - x0)
@@ -89,13 +112,18 @@ def tile_projections(wall: Wall, frame: Frame, near: np.ndarray, far: np.ndarray
     return out
 
 
-def depth_ranges(state: SceneState, wall: Wall, frame: Frame,
-                 visibility: Visibility) -> tuple[np.ndarray, np.ndarray]:
-    """Per-tile ``(near, far)``: the eye-space depths the tile's listed bounds span, clamped to
-    the wall's. A tile that shows nothing keeps the wall's range."""
-    forward = -frame.rotation[:, 2]  # the view direction in the world
-    lo, hi = node_depths(state, visibility.start, visibility.nodes, forward[None],
-                         frame.eye_world[None], (np.nan, np.nan))
+def depth_ranges(state: SceneState, wall, frame: Frame, visibility: Visibility,
+                 eye: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-tile ``(near, far)``: the eye-space depths the tile's listed bounds span (from the
+    frame's eye, or ``eye``), clamped to the wall's. A tile that shows nothing keeps the wall's
+    range."""
+    eye = frame.eye if eye is None else np.asarray(eye, np.float64)
+    if wall.kind == "grid":
+        forward = (-frame.rotation[:, 2])[None]  # the view direction in the world
+    else:
+        forward = -wall.basis[:, 2] @ frame.rotation.T  # each screen's, into the world
+    lo, hi = node_depths(state, visibility.start, visibility.nodes, forward,
+                         frame.to_world(eye)[None], (np.nan, np.nan))
     near = np.full(wall.tiles, wall.near)
     far = np.full(wall.tiles, wall.far)
     full = np.isfinite(lo)
@@ -234,14 +262,20 @@ def _cube_views(position: tuple) -> np.ndarray:
 # --------------------------------------------------------------------------- mirrors
 
 
+def _tile_view(view: np.ndarray, t: int) -> np.ndarray:
+    """Tile ``t``'s view from a shared ``(4, 4)`` or per-tile ``(T, 4, 4)`` array."""
+    return view if view.ndim == 2 else view[t]
+
+
 @dataclass
 class MirrorSet:
-    """One mirror as every tile of a frame sees it: the reflected view (shared), each tile's
-    projection with the oblique near plane, and the leaves culled against each tile's reflected
-    frustum. Tiles with ``shown[t]`` false see nothing in it."""
+    """One mirror as every tile of a frame sees it: the reflected view (shared on a grid, each
+    tile's on a screens wall), each tile's projection with the oblique near plane, and the
+    leaves culled against each tile's reflected frustum. Tiles with ``shown[t]`` false see
+    nothing in it."""
 
     mirror: cfg.Mirror
-    view: np.ndarray  # (4, 4), det -1
+    view: np.ndarray  # (4, 4) or (T, 4, 4), det -1
     shown: np.ndarray  # (T,) bool
     projection: np.ndarray  # (T, 4, 4)
     visible_start: np.ndarray  # (T + 1,)
@@ -254,54 +288,58 @@ class MirrorSet:
     def entry(self, t: int) -> dict | None:
         if not self.shown[t]:
             return None
-        return {"mirror": self.mirror.name, "view": self.view_rows,
+        view = self.view_rows if self.view.ndim == 2 else self.view[t].tolist()
+        return {"mirror": self.mirror.name, "view": view,
                 "projection": self.projection[t].tolist(), "front_face": "cw",
                 "visible": _csr_rows(self.visible_start, self.visible, t)}
 
 
 @dataclass
 class MirrorSight:
-    """A mirror as one frame's eye sees it: what every tile's reflected view shares."""
+    """A mirror as one frame's eyes see it: what every tile's reflected view shares."""
 
     mirror: cfg.Mirror
-    view: np.ndarray  # the reflected view, world -> eye, det -1
-    clip: np.ndarray  # the mirror plane in eye space, keeping what lies beyond it
     outline: np.ndarray  # (k, 4) world planes: in front of the mirror, within its outline
 
     @classmethod
-    def of(cls, mirror: cfg.Mirror, frame: Frame, view: np.ndarray) -> "MirrorSight | None":
-        """None when the eye cannot see the mirror's reflective side."""
-        eye = frame.to_world(frame.eye)
+    def of(cls, mirror: cfg.Mirror, frame: Frame) -> "MirrorSight | None":
+        """None when no eye can see the mirror's reflective side."""
+        eyes = frame.to_world(frame.eyes)
         plane = mirror.plane
-        if plane[:3] @ eye + plane[3] <= 1e-9 * max(float(np.abs(eye).max()), 1.0):
+        scale = max(float(np.abs(eyes).max()), 1.0)
+        if not (eyes @ plane[:3] + plane[3] > 1e-9 * scale).any():
             return None
-        refl = mirror.reflection
         outline = [plane[None]]
-        if mirror.polygon is not None:
-            outline.append(_pyramid(refl @ np.append(eye, 1.0), mirror.polygon))
-        clip = rigid_inverse(view).T @ (-plane)
-        return cls(mirror, view @ refl, clip, np.concatenate(outline))
+        if mirror.polygon is not None and frame.stereo is None:
+            # the pyramid from the reflected eye through the outline (two eyes: the plane only)
+            outline.append(_pyramid(mirror.reflection @ np.append(eyes[0], 1.0), mirror.polygon))
+        return cls(mirror, np.concatenate(outline))
 
-    def tiles(self, culler: Culler, frusta: Frusta, projections: np.ndarray) -> MirrorSet:
-        """The reflected view of every tile (its frustum's planes and projection)."""
-        # Seen in the mirror, in world space: the tile frusta reflected (a plane P applied to
-        # reflected points, P . (R p), is the plane P R), in front of the mirror, within the
-        # pyramid from the reflected eye through the outline. The reflected table keeps the
-        # wall's layout, so the wall's own culling (frustum hierarchy included) does it, with
-        # the mirror's planes bounding every tile.
+    def matrices(self, views: np.ndarray, projections: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(views, projections, ok)``: each tile's reflected view (det -1), its projection
+        with the mirror as oblique near plane (in the tile's eye space), and whether it has one
+        (the mirror is behind the tile's camera, or edge-on: it shows nothing)."""
         refl = self.mirror.reflection
-        frame = frusta.frame
-        vis = culler.cull_planes(frusta.planes @ refl, refl[:3, :3] @ -frame.rotation[:, 2],
-                                 (refl @ np.append(frame.eye_world, 1.0))[:3], frame.eye[2],
-                                 self.outline)
+        eye_to_world = np.linalg.inv(views)  # rigid: exact enough for the clip plane
+        clip = np.swapaxes(eye_to_world, -1, -2) @ (-self.mirror.plane)
+        oblique, refused = oblique_near_many(projections, clip)
+        return views @ refl, oblique, refused == 0
+
+    def tiles(self, culler: Culler, frusta: Frusta, views: np.ndarray,
+              projections: np.ndarray) -> MirrorSet:
+        """The reflected view of every tile (its frustum's planes and projection)."""
+        # Seen in the mirror, in world space: the tile frusta reflected, in front of the
+        # mirror, within the pyramid from the reflected eye through the outline. The reflected
+        # table keeps the wall's layout, so the wall's own culling (frustum hierarchy
+        # included) does it, with the mirror's planes bounding every tile.
+        vis = culler.cull_reflected(frusta, self.mirror.reflection, self.outline)
         start, leaves = vis.leaf_lists()
-        shown = np.diff(start) > 0
-        oblique = projections.copy()
-        oblique[shown], refused = oblique_near_many(projections[shown], self.clip)
-        shown[shown] = refused == 0
+        view, oblique, ok = self.matrices(views, projections)
+        shown = (np.diff(start) > 0) & ok
         counts = np.where(shown, np.diff(start), 0)
         keep = np.repeat(shown, np.diff(start))
-        return MirrorSet(self.mirror, self.view, shown, oblique,
+        return MirrorSet(self.mirror, view, shown, oblique,
                          np.concatenate([[0], np.cumsum(counts)]), leaves[keep])
 
 
@@ -323,17 +361,43 @@ def _pyramid(apex: np.ndarray, polygon: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class EyeFits:
+    """One eye's matrices for every tile of a stereo frame: the ``left`` or ``right`` record
+    (SPEC section 3); ``mirrors`` holds, per mirror set of the frame, this eye's reflected
+    views, oblique projections and which tiles have them."""
+
+    view: np.ndarray  # (4, 4) or (T, 4, 4)
+    projection: np.ndarray  # (T, 4, 4)
+    near: np.ndarray
+    far: np.ndarray
+    mirrors: list = field(default_factory=list)  # [(views, projections, shown)]
+
+    def entry(self, t: int, mirror_sets: list) -> dict:
+        out = {"view": _tile_view(self.view, t).tolist(),
+               "projection": self.projection[t].tolist(), "near": float(self.near[t]),
+               "far": float(self.far[t])}
+        seen = [{"mirror": m.mirror.name, "view": _tile_view(v, t).tolist(),
+                 "projection": p[t].tolist()}
+                for m, (v, p, shown) in zip(mirror_sets, self.mirrors) if m.shown[t] and shown[t]]
+        if seen:
+            out["mirrors"] = seen
+        return out
+
+
+@dataclass
 class Fits(Sequence):
     """One frame's fitted frusta: arrays, read as a sequence of per-tile JSON-ready dicts
-    (``fits[t]``: ``view``, ``projection``, ``near``, ``far`` and any ``shadows``/``mirrors``).
-    Kept as arrays, a 64 x 64 wall's frame takes half a megabyte, not ten."""
+    (``fits[t]``: ``view``, ``projection``, ``near``, ``far``, any ``shadows``/``mirrors``, and
+    ``left``/``right`` for a stereo frame). Kept as arrays, a 64 x 64 wall's frame takes half a
+    megabyte, not ten."""
 
-    view: np.ndarray  # (4, 4), shared by every tile
+    view: np.ndarray  # (4, 4), shared by every tile of a grid; (tiles, 4, 4) for screens
     projection: np.ndarray  # (tiles, 4, 4)
     near: np.ndarray  # (tiles,)
     far: np.ndarray  # (tiles,)
     shadows: list[ShadowSet] = field(default_factory=list)
     mirrors: list[MirrorSet] = field(default_factory=list)
+    eyes: list[EyeFits] = field(default_factory=list)  # left, right: a stereo frame
 
     def __len__(self) -> int:
         return len(self.projection)
@@ -341,12 +405,15 @@ class Fits(Sequence):
     def __getitem__(self, tile: int) -> dict:
         if not 0 <= tile < len(self):
             raise IndexError(tile)
-        out = {"view": self.view_rows, "projection": self.projection[tile].tolist(),
+        view = self.view_rows if self.view.ndim == 2 else self.view[tile].tolist()
+        out = {"view": view, "projection": self.projection[tile].tolist(),
                "near": float(self.near[tile]), "far": float(self.far[tile])}
         for key, sets in (("shadows", self.shadows), ("mirrors", self.mirrors)):
             entries = [e for e in (s.entry(tile) for s in sets) if e is not None]
             if entries:
                 out[key] = entries
+        for key, eye in zip(("left", "right"), self.eyes):
+            out[key] = eye.entry(tile, self.mirrors)
         return out
 
     @cached_property
@@ -354,28 +421,36 @@ class Fits(Sequence):
         return self.view.tolist()
 
 
-def fit_frame(wall: Wall, frame: Frame, visibility: Visibility | None = None,
+def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
               state: SceneState | None = None, scene_settings: cfg.Settings | None = None,
               options: FitOptions = FitOptions(), frusta: Frusta | None = None,
               culler: Culler | None = None) -> Fits:
     """One frame's fitted frusta (see the module docstring). ``culler`` (the frame's own, or
     one for ``state`` and ``wall``) culls what mirrors show."""
-    view = view_matrix(frame)
-    if options.depth == "tight" and visibility is not None:
-        near, far = depth_ranges(state, wall, frame, visibility)
-    else:
-        near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
-    projections = tile_projections(wall, frame, near, far, options.reversed_z)
-    out = Fits(view, projections, near, far)
+    tight = options.depth == "tight" and visibility is not None
+
+    def for_eye(eye):
+        if tight:
+            near, far = depth_ranges(state, wall, frame, visibility, eye)
+        else:
+            near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
+        return (tile_views(wall, frame, eye),
+                tile_projections(wall, frame, near, far, options.reversed_z, eye), near, far)
+
+    out = Fits(*for_eye(frame.eye))
+    if frame.stereo is not None:
+        out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
     if scene_settings is None or scene_settings.empty or visibility is None:
         return out  # nothing declared: nothing computed, nothing sent
     for light in scene_settings.lights:
         out.shadows.append(shadow_set(state, light, visibility, options.shadow_fit))
     for mirror in scene_settings.mirrors:
-        sight = MirrorSight.of(mirror, frame, view)
+        sight = MirrorSight.of(mirror, frame)
         if sight is None:
-            continue  # the eye is behind the mirror (or on it): no tile sees anything in it
+            continue  # no eye sees the mirror's reflective side: no tile shows anything in it
         frusta = frusta or Frusta.build(wall, frame)
         culler = culler or Culler(state, wall)
-        out.mirrors.append(sight.tiles(culler, frusta, projections))
+        out.mirrors.append(sight.tiles(culler, frusta, out.view, out.projection))
+        for eye in out.eyes:
+            eye.mirrors.append(sight.matrices(eye.view, eye.projection))
     return out

@@ -20,6 +20,8 @@ from scipy.spatial.transform import Rotation
 
 def tile_planes_display(wall: dict, eye, tile: int) -> np.ndarray:
     """``(6, 4)`` inward unit planes of a tile frustum, display space, from first principles."""
+    if "screens" in wall:
+        return screen_planes_display(wall, eye, tile)
     cols, rows = wall["cols"], wall["rows"]
     w, h = wall["tile_size"]
     gx, gy = wall.get("gap", (0, 0))
@@ -45,6 +47,43 @@ def tile_planes_display(wall: dict, eye, tile: int) -> np.ndarray:
     planes.append([0, 0, -1, e[2] - near])  # z <= ez - near
     planes.append([0, 0, 1, far - e[2]])  # z >= ez - far
     return np.array(planes, dtype=float)
+
+
+def screen_planes_display(wall: dict, eye, tile: int) -> np.ndarray:
+    """``(6, 4)`` planes of a screen's frustum (SPEC section 2b): through the eye and each of
+    its four edges, and parallel to it at ``near`` and ``far`` from the eye."""
+    s = wall["screens"][tile]
+    bl, br, tl = (np.asarray(s[k], dtype=float) for k in ("bottom_left", "bottom_right",
+                                                         "top_left"))
+    corners = np.array([bl, br, br + tl - bl, tl])
+    inside = corners.mean(axis=0)
+    e = np.asarray(eye, dtype=float)
+    planes = []
+    for k in range(4):
+        n = np.cross(corners[k] - e, corners[(k + 1) % 4] - e)
+        n /= np.linalg.norm(n)
+        d = -n @ e
+        if n @ inside + d < 0:
+            n, d = -n, -d
+        planes.append([*n, d])
+    normal = np.cross(br - bl, tl - bl)
+    normal /= np.linalg.norm(normal)  # toward the seen side, where the eye is
+    near, far = wall.get("near", 0.1), wall.get("far", 1000.0)
+    # distance from the eye along -normal between near and far
+    planes.append([*(-normal), normal @ e - near])
+    planes.append([*normal, far - normal @ e])
+    return np.array(planes, dtype=float)
+
+
+def eyes_of(frame: dict) -> list:
+    """The frame's eyes in display space: one, or left and right for a stereo frame."""
+    eye = np.asarray(frame.get("eye", (0, 0, 0)), dtype=float)
+    stereo = frame.get("stereo")
+    if not stereo:
+        return [eye]
+    w, x, y, z = stereo.get("head", (1, 0, 0, 0))
+    across = Rotation.from_quat([x, y, z, w]).apply([1.0, 0, 0]) * stereo["ipd"] / 2
+    return [eye - across, eye + across]
 
 
 def to_display(frame: dict, points: np.ndarray) -> np.ndarray:
@@ -96,11 +135,24 @@ def triangles_meet(tris: np.ndarray, planes: np.ndarray) -> bool:
     return bool(undecided.any() and clip_triangles(tris[undecided], planes).any())
 
 
-def frustum_planes(wall: dict, frame: dict, tile: int, tol: float = 0.0) -> np.ndarray:
-    """A tile's planes in display space, moved inward by ``tol``."""
-    planes = tile_planes_display(wall, frame.get("eye", (0, 0, 0)), tile)
-    planes[:, 3] -= tol
-    return planes
+def tile_frusta(wall: dict, frame: dict, tile: int, tol: float = 0.0) -> list:
+    """A tile's frusta in display space, one per eye, each ``(6, 4)`` moved inward by
+    ``tol``."""
+    out = []
+    for eye in eyes_of(frame):
+        planes = tile_planes_display(wall, eye, tile)
+        planes[:, 3] -= tol
+        out.append(planes)
+    return out
+
+
+def meets(tris: np.ndarray, frusta: list) -> bool:
+    """Whether any of the triangles meets any of the frusta (either eye's)."""
+    return any(triangles_meet(tris, planes) for planes in frusta)
+
+
+def tiles_of(wall: dict) -> int:
+    return len(wall["screens"]) if "screens" in wall else wall["cols"] * wall["rows"]
 
 
 def leaf_triangles_display(scene, frame: dict, leaf: int, world=None) -> np.ndarray:
@@ -113,14 +165,15 @@ def leaf_triangles_display(scene, frame: dict, leaf: int, world=None) -> np.ndar
 
 
 def visible_leaves(scene, wall: dict, frame: dict, tol: float, world=None) -> list[set[int]]:
-    """Per tile, the leaf ids with a triangle in the tile frustum shrunk by ``tol``."""
-    tiles = wall["cols"] * wall["rows"]
-    planes = [frustum_planes(wall, frame, t, tol) for t in range(tiles)]
+    """Per tile, the leaf ids with a triangle in the tile frustum (of either eye) shrunk by
+    ``tol``."""
+    tiles = tiles_of(wall)
+    frusta = [tile_frusta(wall, frame, t, tol) for t in range(tiles)]
     out = [set() for _ in range(tiles)]
     for leaf in scene.leaves:
         tris = leaf_triangles_display(scene, frame, leaf, world)
         for t in range(tiles):
-            if triangles_meet(tris, planes[t]):
+            if meets(tris, frusta[t]):
                 out[t].add(int(leaf))
     return out
 
@@ -132,10 +185,10 @@ def false_positives(scene, wall: dict, frame: dict, reported: list, tol: float,
     false = total = 0
     cache: dict[int, np.ndarray] = {}
     for t, leaves in enumerate(reported):
-        planes = frustum_planes(wall, frame, t, -tol)
+        frusta = tile_frusta(wall, frame, t, -tol)
         for leaf in leaves:
             if leaf not in cache:
                 cache[leaf] = leaf_triangles_display(scene, frame, leaf, world)
             total += 1
-            false += not triangles_meet(cache[leaf], planes)
+            false += not meets(cache[leaf], frusta)
     return false, total

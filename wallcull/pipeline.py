@@ -85,8 +85,9 @@ def tile_records(result: FrameResult, leaves: bool = False) -> list[dict]:
     wall, vis = result.frusta.wall, result.visibility
     names = vis.scene.names
     out = []
+    grid = wall.kind == "grid" and not wall.given_as_screens  # screens have no row and col
     for t in range(wall.tiles):
-        record = {"id": t, "row": t // wall.cols, "col": t % wall.cols,
+        record = {"id": t, **({"row": t // wall.cols, "col": t % wall.cols} if grid else {}),
                   "visible": vis.names(t, leaves=leaves)}
         if result.fits is not None:
             fits = dict(result.fits[t])

@@ -214,12 +214,13 @@ def tile_view_projection(wall, frame, tile: int, near: float | None = None,
     return view_matrix(frame), projection
 
 
-def view_matrix(frame) -> np.ndarray:
-    """World to eye space for a frame: display space's axes, origin at the tracked eye,
-    ``inverse([R(q) | R(q) eye + t])``. The same for every tile of the frame."""
+def view_matrix(frame, eye=None) -> np.ndarray:
+    """World to eye space for a frame: display space's axes, origin at the tracked eye (or at
+    ``eye``, display space: one eye of a stereo frame), ``inverse([R(q) | R(q) eye + t])``.
+    The same for every tile of a grid wall."""
     eye_to_world = np.eye(4)
     eye_to_world[:3, :3] = frame.rotation
-    eye_to_world[:3, 3] = frame.to_world(frame.eye)
+    eye_to_world[:3, 3] = frame.to_world(frame.eye if eye is None else np.asarray(eye))
     return rigid_inverse(eye_to_world)
 
 
@@ -326,19 +327,18 @@ _CLIP_REFUSALS = {
 
 def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
                       ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`oblique_near` for many projections ``(k, 4, 4)`` and one eye-space plane (a
-    mirror seen by every tile of a wall): ``(matrices (k, 4, 4), reason (k,))``, ``reason`` 0
-    where the matrix was made, else 1 (through the camera), 2 (camera on the visible side) or
-    3 (clips everything), as :class:`ClipPlaneError`'s reasons; those rows are left as they
-    were."""
+    """:func:`oblique_near` for many projections ``(k, 4, 4)`` and one eye-space plane ``(4,)``
+    (a mirror seen by every tile of a grid wall) or one each ``(k, 4)`` (each tile's own eye
+    space): ``(matrices (k, 4, 4), reason (k,))``, ``reason`` 0 where the matrix was made, else
+    1 (through the camera), 2 (camera on the visible side) or 3 (clips everything), as
+    :class:`ClipPlaneError`'s reasons; those rows are left as they were."""
     m = np.asarray(projections, dtype=np.float64)
-    c = np.asarray(clip_plane, dtype=np.float64).reshape(4)
     if m.ndim != 3 or m.shape[1:] != (4, 4) or \
             not np.allclose(m[:, 3], (0.0, 0.0, -1.0, 0.0), rtol=0, atol=1e-12):
         raise ValueError("oblique_near needs a perspective projection with row 4 = (0, 0, -1, 0)")
-    normal = np.linalg.norm(c[:3])
-    if not (np.isfinite(c).all() and normal > 0):
-        raise ValueError(f"clip plane {c.tolist()} has no normal")
+    c = np.ascontiguousarray(np.broadcast_to(np.asarray(clip_plane, np.float64), (len(m), 4)))
+    if not (np.isfinite(c).all() and (np.linalg.norm(c[:, :3], axis=1) > 0).all()):
+        raise ValueError(f"clip plane {c[:1].tolist()} has no normal")
     out = m.copy()
     reason = np.zeros(len(m), np.int64)
     _oblique(m, c, rtol, out, reason)
@@ -389,10 +389,10 @@ def _inverse4(m):
 def _oblique(m, c, rtol, out, reason):
     """The body of :func:`oblique_near_many`: row 3 of ``out[k]`` replaced, or ``reason[k]``
     set (1 through the camera, 2 camera visible, 3 clips everything)."""
-    normal = math.sqrt(c[0] ** 2 + c[1] ** 2 + c[2] ** 2)
-    distance = c[3] / normal  # signed distance of the camera (eye-space origin) from the plane
     corner = np.empty(4)
     for k in range(m.shape[0]):
+        normal = math.sqrt(c[k, 0] ** 2 + c[k, 1] ** 2 + c[k, 2] ** 2)
+        distance = c[k, 3] / normal  # signed distance of the camera (eye space origin)
         near_plane = m[k, 3] + m[k, 2]
         near = abs(near_plane[3]) / math.sqrt(near_plane[0] ** 2 + near_plane[1] ** 2
                                                  + near_plane[2] ** 2)
@@ -403,15 +403,15 @@ def _oblique(m, c, rtol, out, reason):
             reason[k] = 2
             continue
         inv = _inverse4(m[k])
-        c_clip = inv.T @ c  # C' = M^-T C
+        c_clip = inv.T @ c[k]  # C' = M^-T C
         corner[0] = 1.0 if c_clip[0] > 0 else (-1.0 if c_clip[0] < 0 else 0.0)
         corner[1] = 1.0 if c_clip[1] > 0 else (-1.0 if c_clip[1] < 0 else 0.0)
         corner[2] = corner[3] = 1.0
         q = inv @ corner  # Q = M^-1 (sgn C'x, sgn C'y, 1, 1)
-        cq = c @ q
+        cq = c[k] @ q
         if not cq > 0:
             reason[k] = 3
             continue
         scale = 2.0 * (m[k, 3] @ q) / cq
         for j in range(4):
-            out[k, 2, j] = scale * c[j] - m[k, 3, j]
+            out[k, 2, j] = scale * c[k, j] - m[k, 3, j]

@@ -36,7 +36,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import InputError
-from .wall import _vector
+from .validate import as_vector
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ class Settings:
 
 
 def _vec(value: Any, what: str, n: int = 3) -> np.ndarray:
-    return np.array(_vector(value, n, what))  # the wall's check: n finite numbers
+    return np.array(as_vector(value, n, what))  # the wall's check: n finite numbers
 
 
 def _unit(value: Any, what: str) -> np.ndarray:

@@ -27,48 +27,9 @@ import numpy as np
 from numba import njit
 
 from .errors import InputError
-
-#: The largest wall accepted (tiles). 64 x 64 is the largest wall the project is built for;
-#: the limit leaves room above it while refusing requests that could only exhaust memory.
-MAX_TILES = 1 << 16
-
-#: Relative tolerance on the norm of a frame's quaternion (SPEC section 3).
-QUATERNION_TOLERANCE = 1e-6
-
-#: The ranges float64 geometry stays meaningful in (beyond them the matrices sent to clients
-#: would overflow or lose every digit): lengths of the wall, m; and world coordinates.
-MIN_LENGTH, MAX_LENGTH = 1e-9, 1e9
-MAX_COORDINATE = 1e15
-
-WALL_DEFAULTS = {"gap": (0.0, 0.0), "near": 0.1, "far": 1000.0, "resolution": (1920, 1080)}
-WALL_KEYS = {"cols", "rows", "tile_size", "gap", "distance", "near", "far", "resolution"}
-
-
-def _number(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"{what} must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise InputError(f"{what} must be finite, got {value!r}")
-    return value
-
-
-def _vector(value: Any, n: int, what: str) -> tuple[float, ...]:
-    if not isinstance(value, (list, tuple)) or len(value) != n:
-        raise InputError(f"{what} must be a list of {n} numbers, got {value!r}")
-    return tuple(_number(v, f"{what}[{i}]") for i, v in enumerate(value))
-
-
-def _count(value: Any, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        else:
-            raise InputError(f"{what} must be a whole number, got {value!r}")
-    if value < 1:
-        raise InputError(f"{what} must be at least 1, got {value}")
-    return value
-
+from .validate import (MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH,
+                       QUATERNION_TOLERANCE, WALL_DEFAULTS, WALL_KEYS, as_count, as_number,
+                       as_vector)
 
 @dataclass(frozen=True)
 class Wall:
@@ -82,12 +43,24 @@ class Wall:
     near: float
     far: float
     resolution: tuple[int, int]
+    given_as_screens: bool = False  # SPEC 2b's form of this grid: tiles have no row and col
+    kind = "grid"
 
     @classmethod
-    def from_dict(cls, spec: Mapping[str, Any]) -> "Wall":
-        """Validate a wall spec (SPEC section 2); missing optional keys take ``WALL_DEFAULTS``."""
+    def from_dict(cls, spec: Mapping[str, Any]) -> "Wall | ScreensWall":
+        """Validate a wall spec (SPEC section 2); missing optional keys take ``WALL_DEFAULTS``.
+
+        A spec with ``screens`` (SPEC 2b) gives a :class:`~wallcull.screens.ScreensWall`,
+        unless its screens are exactly the tiles of a grid wall, listed in tile order: then
+        it is that grid (``given_as_screens``), culled and fitted as the grid is, so both forms
+        give identical lists and matrices."""
         if not isinstance(spec, Mapping):
             raise InputError(f"a wall must be a JSON object, got {type(spec).__name__}")
+        if "screens" in spec:
+            from .screens import ScreensWall
+
+            screens = ScreensWall.from_dict(spec)
+            return cls.from_screens(screens) or screens
         unknown = set(spec) - WALL_KEYS
         if unknown:
             raise InputError(f"unknown wall key(s): {', '.join(sorted(map(str, unknown)))}")
@@ -95,18 +68,18 @@ class Wall:
             if key not in spec:
                 raise InputError(f"wall is missing {key!r}")
         spec = {**WALL_DEFAULTS, **spec}
-        cols, rows = _count(spec["cols"], "wall cols"), _count(spec["rows"], "wall rows")
+        cols, rows = as_count(spec["cols"], "wall cols"), as_count(spec["rows"], "wall rows")
         if cols * rows > MAX_TILES:
             raise InputError(f"wall has {cols * rows} tiles; at most {MAX_TILES} are supported")
-        w, h = _vector(spec["tile_size"], 2, "wall tile_size")
+        w, h = as_vector(spec["tile_size"], 2, "wall tile_size")
         if w <= 0 or h <= 0:
             raise InputError(f"wall tile_size must be positive, got {[w, h]}")
-        gx, gy = _vector(spec["gap"], 2, "wall gap")
+        gx, gy = as_vector(spec["gap"], 2, "wall gap")
         if gx <= -w or gy <= -h:
             raise InputError(f"wall gap {[gx, gy]} overlaps a whole tile; it must exceed -tile_size")
-        distance = _number(spec["distance"], "wall distance")
-        near = _number(spec["near"], "wall near")
-        far = _number(spec["far"], "wall far")
+        distance = as_number(spec["distance"], "wall distance")
+        near = as_number(spec["near"], "wall near")
+        far = as_number(spec["far"], "wall far")
         if distance <= 0:
             raise InputError(f"wall distance must be positive, got {distance}")
         if not 0 < near < far:
@@ -121,7 +94,7 @@ class Wall:
         res = spec["resolution"]
         if not isinstance(res, (list, tuple)) or len(res) != 2:
             raise InputError(f"wall resolution must be [width, height] in pixels, got {res!r}")
-        resolution = (_count(res[0], "wall resolution[0]"), _count(res[1], "wall resolution[1]"))
+        resolution = (as_count(res[0], "wall resolution[0]"), as_count(res[1], "wall resolution[1]"))
         wall = cls(cols, rows, (w, h), (gx, gy), distance, near, far, resolution)
         for name, edges in (("columns", wall.col_edges), ("rows", wall.row_edges)):
             # every tile must keep a width in float64 however far from the centre it lies
@@ -130,12 +103,63 @@ class Wall:
                                  "tell a tile's edges apart")
         return wall
 
+    @classmethod
+    def from_screens(cls, screens: "ScreensWall") -> "Wall | None":
+        """The grid wall whose tiles are exactly ``screens``, in tile order, or None."""
+        corners = screens.corners
+        z = corners[..., 2]
+        if not ((z == z[0, 0]).all() and z[0, 0] < 0 and len(set(map(tuple,
+                                                                   screens.resolutions))) == 1):
+            return None
+        bl, br, tl = corners[:, 0], corners[:, 1], corners[:, 2]
+        if not ((bl[:, 1] == br[:, 1]).all() and (bl[:, 0] == tl[:, 0]).all()
+                and (br[:, 0] > bl[:, 0]).all() and (tl[:, 1] > bl[:, 1]).all()):
+            return None  # not facing +z with rows along x and columns along y
+        cols, rows = len(np.unique(bl[:, 0])), len(np.unique(tl[:, 1]))
+        if cols * rows != screens.tiles or cols * rows > MAX_TILES:
+            return None
+        # Tile order is row-major from the top left: the corners as the grid would place them.
+        order = np.lexsort((bl[:, 0], -tl[:, 1]))
+        if not np.array_equal(order, np.arange(screens.tiles)):
+            return None
+        x0, x1 = bl[:cols, 0], br[:cols, 0]
+        y0, y1 = bl[::cols, 1], tl[::cols, 1]
+        if not ((bl[:, 0] == np.tile(x0, rows)).all() and (br[:, 0] == np.tile(x1, rows)).all()
+                and (bl[:, 1] == np.repeat(y0, cols)).all()
+                and (tl[:, 1] == np.repeat(y1, cols)).all()):
+            return None
+        columns = _grid_axis(x0, x1, True)
+        lines = _grid_axis(y1, y0, False)
+        if columns is None or lines is None:
+            return None
+        (w, gx), (h, gy) = columns, lines
+        res = screens.resolutions[0]
+        try:
+            return cls(cols, rows, (w, h), (gx, gy), float(-z[0, 0]), screens.near, screens.far,
+                       (int(res[0]), int(res[1])), given_as_screens=True)
+        except (ValueError, TypeError):
+            return None
+
     def to_dict(self) -> dict:
+        if self.given_as_screens:
+            return {"screens": [{"bottom_left": [x0, y0, -self.distance],
+                                 "bottom_right": [x1, y0, -self.distance],
+                                 "top_left": [x0, y1, -self.distance],
+                                 "resolution": list(self.resolution)}
+                                for x0, x1, y0, y1 in map(self.tile_rect, range(self.tiles))],
+                    "near": self.near, "far": self.far}
         return {
             "cols": self.cols, "rows": self.rows, "tile_size": list(self.tile_size),
             "gap": list(self.gap), "distance": self.distance, "near": self.near,
             "far": self.far, "resolution": list(self.resolution),
         }
+
+    def check_eye(self, eye: np.ndarray, what: str = "frame eye") -> None:
+        """An eye must be strictly in front of the wall (SPEC section 3)."""
+        if not eye[2] > -self.distance + self.near:
+            raise InputError(
+                f"{what} z={eye[2]:g} is not in front of the wall: it must exceed "
+                f"-distance + near = {-self.distance + self.near:g}")
 
     @property
     def tiles(self) -> int:
@@ -167,12 +191,51 @@ class Wall:
         return (*self.col_edges[c], *self.row_edges[r])
 
     @cached_property
+    def resolutions(self) -> np.ndarray:
+        """``(tiles, 2)``: every tile's pixels (all alike on a grid)."""
+        return np.tile(np.array(self.resolution, np.int64), (self.tiles, 1))
+
+    @cached_property
     def layout(self) -> "PlaneLayout":
         return PlaneLayout(self.cols, self.rows)
 
     @cached_property
     def hierarchy(self) -> "FrustumHierarchy":
         return FrustumHierarchy.build(self)
+
+
+def _grid_axis(first: np.ndarray, second: np.ndarray, columns: bool
+               ) -> tuple[float, float] | None:
+    """``(size, gap)`` with which :class:`Wall`'s formulas place the tiles of one axis exactly:
+    columns (``first`` left edges, ``second`` right edges: ``x0 = -W/2 + c (w + g)``,
+    ``x1 = x0 + w``) or rows from the top (``first`` top edges, ``second`` bottom edges:
+    ``y1 = H/2 - r (h + g)``, ``y0 = y1 - h``); None if none does. The size and gap read off
+    the corners may be an ulp from the ones that made them, so the floats around are tried."""
+    n = len(first)
+    size = abs(float(second[0] - first[0]))
+    total = 2 * abs(float(first[0]))  # the outer edge is at -total/2 (or +total/2): exact
+
+    def around(v, steps):
+        out, lo, hi = [v], v, v
+        for _ in range(steps):
+            lo, hi = np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)
+            out += [lo, hi]
+        return out
+
+    for a in around(size, 3):
+        # the gap that makes the extent come out: small against the tile, so search wider
+        gaps = around((total - n * a) / (n - 1), 64) if n > 1 else [0.0]
+        for g in gaps:
+            extent = n * a + (n - 1) * g
+            if columns:
+                lo = -extent / 2 + np.arange(n) * (a + g)
+                ok = np.array_equal(lo, first) and np.array_equal(lo + a, second)
+            else:
+                top = extent / 2 - np.arange(n) * (a + g)
+                ok = np.array_equal(top, first) and np.array_equal(top - a, second)
+            if ok and a > 0:
+                return float(a), float(g)
+    return None
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
@@ -208,33 +271,54 @@ def matrix_quaternion(m: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+#: Largest interocular distance accepted, meters (a head is not a meter wide).
+MAX_IPD = 1.0
+
+
 @dataclass(frozen=True)
 class Frame:
-    """Where display space sits in the world for one frame, and the tracked eye (SPEC section 3)."""
+    """Where display space sits in the world for one frame, and the tracked eye (SPEC section 3),
+    or two eyes for a stereo frame."""
 
     position: np.ndarray  # (3,) world position of the display-space origin
     orientation: np.ndarray  # (4,) unit quaternion w, x, y, z
     eye: np.ndarray  # (3,) tracked head, display space
     rotation: np.ndarray = field(repr=False)  # (3, 3) R(q)
+    stereo: tuple | None = None  # (ipd, head quaternion (4,)) of a stereo frame
 
     @classmethod
-    def from_dict(cls, spec: Mapping[str, Any], wall: Wall) -> "Frame":
-        """Validate a frame against its wall: unit quaternion, eye strictly in front of the wall."""
+    def from_dict(cls, spec: Mapping[str, Any], wall) -> "Frame":
+        """Validate a frame against its wall: unit quaternions, every eye in front of the wall
+        (of every screen)."""
         if not isinstance(spec, Mapping):
             raise InputError(f"a frame must be a JSON object, got {type(spec).__name__}")
-        unknown = set(spec) - {"position", "orientation", "eye"}
+        unknown = set(spec) - {"position", "orientation", "eye", "stereo"}
         if unknown:
             raise InputError(f"unknown frame key(s): {', '.join(sorted(map(str, unknown)))}")
         for key in ("position", "orientation"):
             if key not in spec:
                 raise InputError(f"frame is missing {key!r}")
-        position = np.array(_vector(spec["position"], 3, "frame position"))
-        q = np.array(_vector(spec["orientation"], 4, "frame orientation"))
-        eye = np.array(_vector(spec.get("eye", (0.0, 0.0, 0.0)), 3, "frame eye"))
-        return cls.make(position, q, eye, wall)
+        position = np.array(as_vector(spec["position"], 3, "frame position"))
+        q = np.array(as_vector(spec["orientation"], 4, "frame orientation"))
+        eye = np.array(as_vector(spec.get("eye", (0.0, 0.0, 0.0)), 3, "frame eye"))
+        stereo = spec.get("stereo")
+        if stereo is not None:
+            if not isinstance(stereo, Mapping):
+                raise InputError("frame stereo must be an object: {\"ipd\": meters, \"head\": "
+                                 "[w, x, y, z]}")
+            unknown = set(stereo) - {"ipd", "head"}
+            if unknown:
+                raise InputError(f"unknown frame stereo key(s): "
+                                 f"{', '.join(sorted(map(str, unknown)))}")
+            if "ipd" not in stereo:
+                raise InputError("frame stereo is missing 'ipd'")
+            stereo = (as_number(stereo["ipd"], "frame stereo ipd"),
+                      np.array(as_vector(stereo.get("head", (1.0, 0.0, 0.0, 0.0)), 4,
+                                       "frame stereo head")))
+        return cls.make(position, q, eye, wall, stereo)
 
     @classmethod
-    def make(cls, position, orientation, eye, wall: Wall) -> "Frame":
+    def make(cls, position, orientation, eye, wall, stereo=None) -> "Frame":
         position = np.asarray(position, dtype=np.float64).reshape(3)
         q = np.asarray(orientation, dtype=np.float64).reshape(4)
         eye = np.asarray(eye, dtype=np.float64).reshape(3)
@@ -248,16 +332,39 @@ class Frame:
         if abs(norm - 1.0) > QUATERNION_TOLERANCE:
             raise InputError(
                 f"frame orientation {q.tolist()} is not a unit quaternion (norm {norm:.9g})")
-        if not eye[2] > -wall.distance + wall.near:
-            raise InputError(
-                f"frame eye z={eye[2]:g} is not in front of the wall: it must exceed "
-                f"-distance + near = {-wall.distance + wall.near:g}")
-        q = q / norm
-        return cls(position, q, eye, quaternion_matrix(q))
+        if stereo is not None:
+            ipd, head = float(stereo[0]), np.asarray(stereo[1], np.float64).reshape(4)
+            if not 0 < ipd <= MAX_IPD:
+                raise InputError(f"frame stereo ipd must be in (0, {MAX_IPD:g}] m, got {ipd:g}")
+            head_norm = float(np.linalg.norm(head))
+            if abs(head_norm - 1.0) > QUATERNION_TOLERANCE:
+                raise InputError(f"frame stereo head {head.tolist()} is not a unit quaternion "
+                                 f"(norm {head_norm:.9g})")
+            stereo = (ipd, head / head_norm)
+        frame = cls(position, q / norm, eye, quaternion_matrix(q / norm), stereo)
+        if stereo is None:
+            wall.check_eye(eye)
+        else:
+            for name, e in zip(("left eye", "right eye"), frame.eyes):
+                wall.check_eye(e, f"frame {name}")
+        return frame
+
+    @cached_property
+    def eyes(self) -> np.ndarray:
+        """``(1, 3)``, or ``(2, 3)`` left and right for a stereo frame: ``eye -+ (ipd / 2)
+        R(head) e_x`` (SPEC section 3), display space."""
+        if self.stereo is None:
+            return self.eye[None]
+        ipd, head = self.stereo
+        across = quaternion_matrix(head)[:, 0] * (ipd / 2)
+        return np.stack([self.eye - across, self.eye + across])
 
     def to_dict(self) -> dict:
-        return {"position": self.position.tolist(), "orientation": self.orientation.tolist(),
-                "eye": self.eye.tolist()}
+        out = {"position": self.position.tolist(), "orientation": self.orientation.tolist(),
+               "eye": self.eye.tolist()}
+        if self.stereo is not None:
+            out["stereo"] = {"ipd": self.stereo[0], "head": self.stereo[1].tolist()}
+        return out
 
     def to_world(self, p: np.ndarray) -> np.ndarray:
         """Display-space points ``(..., 3)`` to world space."""
@@ -355,26 +462,78 @@ def _plane_table(col_edges, row_edges, eye, distance, near, far, rotation, trans
 
 @dataclass(frozen=True)
 class Frusta:
-    """One frame's frusta: the plane table in world space and what indexes it."""
+    """One frame's frusta: the plane table in world space and what indexes it.
 
-    wall: Wall
+    Grid walls: :class:`PlaneLayout`'s table, for one eye or (stereo) holding both eyes'
+    frusta (:mod:`wallcull.stereo`). Screens walls: each tile's six planes, then the frustum
+    hierarchy's split planes, then the primary bound (:mod:`wallcull.screens`); ``valid`` says
+    which splits separate their screens from this eye, and a stereo frame has ``per_eye``, one
+    :class:`Frusta` per eye, culled apart and merged."""
+
+    wall: Any
     frame: Frame
-    planes: np.ndarray  # (PlaneLayout.count, 4), world space
+    planes: np.ndarray  # (rows, 4), world space
+    eye: np.ndarray | None = None  # the eye (display space) the table is for; None: frame.eye
+    primary_rows: np.ndarray | None = None  # screens: the rows of the primary bound
+    valid: np.ndarray | None = None  # screens: per hierarchy node, its split holds this frame
+    per_eye: tuple = ()  # screens, stereo: one Frusta per eye
+
+    def __post_init__(self):
+        if self.eye is None:
+            object.__setattr__(self, "eye", self.frame.eye)
 
     @classmethod
-    def build(cls, wall: Wall, frame: Frame) -> "Frusta":
-        planes = _plane_table(wall.col_edges, wall.row_edges, frame.eye, wall.distance,
-                              wall.near, wall.far, frame.rotation, frame.position)
-        return cls(wall, frame, planes)
+    def build(cls, wall, frame: Frame) -> "Frusta":
+        if wall.kind == "grid":
+            if frame.stereo is None:
+                planes = _plane_table(wall.col_edges, wall.row_edges, frame.eye, wall.distance,
+                                      wall.near, wall.far, frame.rotation, frame.position)
+            else:
+                from .stereo import grid_planes
+
+                planes = _to_world(grid_planes(wall, frame.eyes), frame)
+            return cls(wall, frame, planes)
+        if frame.stereo is not None:
+            eyes = tuple(cls.for_eye(wall, frame, e) for e in frame.eyes)
+            return cls(wall, frame, eyes[0].planes, frame.eye, eyes[0].primary_rows,
+                       eyes[0].valid, eyes)
+        return cls.for_eye(wall, frame, frame.eye)
+
+    @classmethod
+    def for_eye(cls, wall, frame: Frame, eye: np.ndarray) -> "Frusta":
+        """A screens wall's table for one eye."""
+        tiles = wall.tile_planes(eye).reshape(-1, 4)
+        splits, valid = wall.hierarchy.split_planes(wall, eye)
+        primary = wall.primary_planes(eye)
+        table = np.concatenate([tiles, splits, primary])
+        rows = len(tiles) + len(splits) + np.arange(len(primary))
+        return cls(wall, frame, _to_world(table, frame), eye, rows, valid)
 
     @property
     def primary(self) -> np.ndarray:
-        """``(6, 4)`` planes of the primary frustum."""
-        return self.planes[self.wall.layout.primary_planes]
+        """The planes of the primary bound (for a grid, the primary frustum's six)."""
+        if self.wall.kind == "grid":
+            return self.planes[self.wall.layout.primary_planes]
+        return self.planes[self.primary_rows]
 
     def tile(self, tile: int) -> np.ndarray:
         """``(6, 4)`` planes of one tile frustum."""
-        return self.planes[self.wall.layout.tile_planes[tile]]
+        if self.wall.kind == "grid":
+            return self.planes[self.wall.layout.tile_planes[tile]]
+        return self.planes[6 * tile:6 * tile + 6]
+
+    @property
+    def tile_rows(self) -> np.ndarray:
+        """``(tiles, 6)`` rows of every tile's planes: left, right, top, bottom, near, far."""
+        if self.wall.kind == "grid":
+            return self.wall.layout.tile_planes
+        return np.arange(6 * self.wall.tiles).reshape(-1, 6)
+
+
+def _to_world(planes: np.ndarray, frame: Frame) -> np.ndarray:
+    """Display-space planes ``(k, 4)`` in the frame's world: under ``p' = R p + t``."""
+    n = planes[:, :3] @ frame.rotation.T
+    return np.concatenate([n, (planes[:, 3] - n @ frame.position)[:, None]], axis=1)
 
 
 @dataclass(frozen=True)

@@ -231,7 +231,7 @@ class Oracle:
         for t, leaves in enumerate(reported):
             pk = (key, t)
             if pk not in self._planes:
-                self._planes[pk] = oracle.frustum_planes(self.wall_dict, fd, t, -tol)
+                self._planes[pk] = oracle.tile_frusta(self.wall_dict, fd, t, -tol)
             planes = self._planes[pk]
             for leaf in leaves.tolist():
                 k = (key, t, leaf)
@@ -240,7 +240,7 @@ class Oracle:
                     tk = (key, leaf)
                     if tk not in self._tris:
                         self._tris[tk] = oracle.leaf_triangles_display(self.scene, fd, leaf, world)
-                    meets = self._meets[k] = oracle.triangles_meet(self._tris[tk], planes)
+                    meets = self._meets[k] = oracle.meets(self._tris[tk], planes)
                 total += 1
                 if not meets:
                     false += 1

@@ -1,0 +1,379 @@
+"""Walls given screen by screen (SPEC section 2b): CAVEs, curved and angled walls.
+
+A screen is a rectangle in display space given by three corners, ``bottom_left``,
+``bottom_right`` and ``top_left``; it is seen from the side its normal ``u x v`` points to
+(``u``, ``v``: the unit directions of its bottom and left edges). Its tile frustum is bounded by
+the four planes through the eye and its edges and by a near and a far plane parallel to it, at
+distances ``near`` and ``far`` from the eye.
+
+**The plane table of a frame** (world space, unit normals inward, as for grid walls): tile ``t``
+owns rows ``6 t .. 6 t + 5``: its left, right, top, bottom, near and far planes. After them come
+the split planes of the frustum hierarchy (one per split node) and the primary bound: six
+planes of a box around the eye that holds every tile frustum, and, when every screen lies in
+an open half-space through the eye, the planes through the eye and the edges of the screens'
+spherical convex hull (at most :data:`MAX_CONE` of them).
+
+**The frustum hierarchy** (the paper's general case, section 4.2). A group of screens is split
+in two by a plane through the eye and one of its screens' edges wherever such a plane separates
+the group: every corner of one part on one side, every corner of the other on the other (the
+tile frusta, cones from the eye over their screens, then lie on their sides). Among the
+separating planes the most even split is taken. Where none separates the group (the floor of a
+CAVE from its walls; screens all around the eye), the group is cut in two along the widest
+spread of the screens' directions, and each part is bounded by its own planes: a single screen
+by its tile planes, a group by none (an object goes on down it). The hierarchy is built once,
+for the nominal eye (display space origin); each frame the split planes are rebuilt through the
+tracked eye and checked: a split that no longer separates its groups culls nothing that frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import InputError
+from .validate import MAX_LENGTH, MAX_TILES, WALL_DEFAULTS, as_count, as_number, as_vector
+
+#: Relative tolerance for the screens' edges to be perpendicular (SPEC 2b).
+RIGHT_ANGLE = 1e-6
+
+#: Most planes of the cone bounding all screens (the primary bound keeps at most 63 planes).
+MAX_CONE = 48
+
+SCREEN_KEYS = {"bottom_left", "bottom_right", "top_left", "resolution"}
+
+# Modes of a node of the frustum hierarchy (columns of the table, see wallcull.cull).
+SPLIT, BOUNDS, PASS = 0, 3, 4
+
+
+def _vec3(value: Any, what: str) -> np.ndarray:
+    return np.array(as_vector(value, 3, what))
+
+
+@dataclass(frozen=True, eq=False)
+class ScreensWall:
+    """A wall given as a list of screens (SPEC section 2b). Build it with
+    :meth:`wallcull.wall.Wall.from_dict`, which keeps a grid given as screens a grid."""
+
+    corners: np.ndarray  # (T, 3, 3): bottom_left, bottom_right, top_left
+    resolutions: np.ndarray  # (T, 2) pixels
+    near: float
+    far: float
+    kind: str = field(default="screens", init=False)
+
+    @classmethod
+    def from_dict(cls, spec: Mapping[str, Any]) -> "ScreensWall":
+        unknown = set(spec) - {"screens", "near", "far"}
+        if unknown:
+            raise InputError(f"unknown wall key(s): {', '.join(sorted(map(str, unknown)))}")
+        screens = spec["screens"]
+        if not isinstance(screens, (list, tuple)) or not screens:
+            raise InputError("wall screens must be a non-empty list of screens")
+        if len(screens) > MAX_TILES:
+            raise InputError(f"wall has {len(screens)} screens; at most {MAX_TILES} are supported")
+        near = as_number(spec.get("near", WALL_DEFAULTS["near"]), "wall near")
+        far = as_number(spec.get("far", WALL_DEFAULTS["far"]), "wall far")
+        if not 0 < near < far:
+            raise InputError(f"wall needs 0 < near < far, got near={near}, far={far}")
+        corners, resolutions = [], []
+        for k, screen in enumerate(screens):
+            what = f"wall screen {k}"
+            if not isinstance(screen, Mapping):
+                raise InputError(f"{what} must be an object with bottom_left, bottom_right "
+                                 "and top_left")
+            unknown = set(screen) - SCREEN_KEYS
+            if unknown:
+                raise InputError(f"unknown key(s) of {what}: "
+                                 f"{', '.join(sorted(map(str, unknown)))}")
+            for key in ("bottom_left", "bottom_right", "top_left"):
+                if key not in screen:
+                    raise InputError(f"{what} is missing {key!r}")
+            bl, br, tl = (_vec3(screen[key], f"{what} {key}")
+                          for key in ("bottom_left", "bottom_right", "top_left"))
+            if max(np.abs(bl).max(), np.abs(br).max(), np.abs(tl).max()) > MAX_LENGTH:
+                raise InputError(f"{what} lies farther than {MAX_LENGTH:g} m from the origin")
+            u, v = br - bl, tl - bl
+            width, height = np.linalg.norm(u), np.linalg.norm(v)
+            scale = max(width, height, np.abs(bl).max())
+            if not (width > 1e-9 * max(scale, 1e-300) and height > 1e-9 * max(scale, 1e-300)):
+                raise InputError(f"{what} is degenerate: its edges need positive lengths, got "
+                                 f"{width:g} x {height:g} m")
+            if abs(u @ v) > RIGHT_ANGLE * width * height:
+                raise InputError(f"{what} is not a rectangle: its bottom and left edges meet "
+                                 f"at {math.degrees(math.acos(u @ v / width / height)):.6g} "
+                                 "degrees, not 90")
+            res = screen.get("resolution", WALL_DEFAULTS["resolution"])
+            if not isinstance(res, (list, tuple)) or len(res) != 2:
+                raise InputError(f"{what} resolution must be [width, height] in pixels")
+            resolutions.append((as_count(res[0], f"{what} resolution[0]"),
+                                as_count(res[1], f"{what} resolution[1]")))
+            corners.append((bl, br, tl))
+        return cls(np.array(corners), np.array(resolutions, np.int64), near, far)
+
+    def to_dict(self) -> dict:
+        return {"screens": [{"bottom_left": c[0].tolist(), "bottom_right": c[1].tolist(),
+                             "top_left": c[2].tolist(), "resolution": r.tolist()}
+                            for c, r in zip(self.corners, self.resolutions)],
+                "near": self.near, "far": self.far}
+
+    # ----------------------------------------------------------------- geometry
+
+    @property
+    def tiles(self) -> int:
+        return len(self.corners)
+
+    @cached_property
+    def basis(self) -> np.ndarray:
+        """``(T, 3, 3)``: each screen's unit ``u`` (along its bottom edge), ``v`` (up its left
+        edge) and normal ``n = u x v`` (toward the seen side), as rows: world-to-screen axes."""
+        u = self.corners[:, 1] - self.corners[:, 0]
+        v = self.corners[:, 2] - self.corners[:, 0]
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        v -= (v * u).sum(axis=1, keepdims=True) * u  # exactly perpendicular, for the matrices
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+        return np.stack([u, v, np.cross(u, v)], axis=1)
+
+    @cached_property
+    def size(self) -> np.ndarray:
+        """``(T, 2)``: width and height of each screen, meters."""
+        return np.stack([np.linalg.norm(self.corners[:, 1] - self.corners[:, 0], axis=1),
+                         np.linalg.norm(self.corners[:, 2] - self.corners[:, 0], axis=1)], axis=1)
+
+    @cached_property
+    def quads(self) -> np.ndarray:
+        """``(T, 4, 3)``: each screen's corners, bottom left, bottom right, top right, top
+        left (CCW seen from the front)."""
+        bl, br, tl = self.corners[:, 0], self.corners[:, 1], self.corners[:, 2]
+        return np.stack([bl, br, br + tl - bl, tl], axis=1)
+
+    def check_eye(self, eye: np.ndarray, what: str = "frame eye") -> None:
+        """An eye must be on the seen side of every screen, farther than ``near`` from its
+        plane (SPEC section 2b)."""
+        n = self.basis[:, 2]
+        distance = ((eye - self.corners[:, 0]) * n).sum(axis=1)
+        bad = np.flatnonzero(~(distance > self.near))
+        if len(bad):
+            t = int(bad[0])
+            raise InputError(f"{what} {np.round(eye, 9).tolist()} is {distance[t]:.6g} m in front "
+                             f"of screen {t}: it must be on its seen side, farther than near = "
+                             f"{self.near:g}")
+
+    @cached_property
+    def pitch(self) -> tuple[float, float]:
+        """The screens' typical angular size (width, height over their distance) from the
+        nominal eye: what the adaptive traversal weighs an object's angular size against."""
+        distance = np.maximum(-(self.corners[:, 0] * self.basis[:, 2]).sum(axis=1), 1e-9)
+        return (float(np.median(self.size[:, 0] / distance)),
+                float(np.median(self.size[:, 1] / distance)))
+
+    @cached_property
+    def hierarchy(self) -> "ScreenHierarchy":
+        return ScreenHierarchy.build(self)
+
+    # ----------------------------------------------------------------- planes
+
+    def tile_planes(self, eye: np.ndarray) -> np.ndarray:
+        """``(T, 6, 4)``: each tile frustum's planes in display space, seen from ``eye``:
+        left, right, top, bottom (through the eye and the edges, facing the screen's inside),
+        near and far (parallel to the screen)."""
+        q = self.quads
+        # left: tl -> bl, right: br -> tr, top: tr -> tl, bottom: bl -> br; the cross product
+        # of an edge with the ray to its start faces the screen's inside (the quad is CCW seen
+        # from the eye)
+        starts = q[:, [3, 1, 2, 0]]
+        ends = q[:, [0, 2, 3, 1]]
+        normal = np.cross(ends - starts, starts - eye)
+        normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+        sides = np.concatenate([normal, -(normal @ eye)[..., None]], axis=2)
+        n = self.basis[:, 2]
+        out = np.empty((self.tiles, 6, 4))
+        out[:, :4] = sides
+        out[:, 4, :3], out[:, 4, 3] = -n, n @ eye - self.near
+        out[:, 5, :3], out[:, 5, 3] = n, self.far - n @ eye
+        return out
+
+    def reach(self, eye: np.ndarray) -> float:
+        """How far from ``eye`` any tile frustum reaches: its far cap's farthest corner."""
+        rays = self.quads - eye  # (T, 4, 3)
+        n = self.basis[:, 2][:, None]
+        cos = (-(rays * n).sum(axis=2)) / np.linalg.norm(rays, axis=2)
+        return float(self.far / cos.min())
+
+    def primary_planes(self, eye: np.ndarray) -> np.ndarray:
+        """``(k, 4)`` display-space planes bounding every tile frustum: a box around the eye,
+        and the cone through the screens' spherical hull when they fit in a half-space."""
+        r = self.reach(eye) * (1 + 1e-9)
+        box = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
+                       float)
+        planes = [np.concatenate([box, (r - box @ eye)[:, None]], axis=1)]
+        cone = hull_cone(self.quads.reshape(-1, 3) - eye)
+        if cone is not None and len(cone) <= MAX_CONE:
+            planes.append(np.concatenate([cone, np.zeros((len(cone), 1))], axis=1))
+            planes[-1][:, 3] = -(cone @ eye)
+        return np.concatenate(planes)
+
+
+def hull_cone(directions: np.ndarray) -> np.ndarray | None:
+    """Inward unit normals ``(k, 3)`` of the planes through the origin and the edges of the
+    convex cone over ``directions (m, 3)``, or None when they do not all lie in an open
+    half-space (they surround the origin). Found as the 2D hull of their gnomonic projection on
+    the plane across their mean direction."""
+    from .quad import hull_indices
+
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    axis = d.mean(axis=0)
+    norm = np.linalg.norm(axis)
+    if not norm > 1e-6:
+        return None
+    axis /= norm
+    depth = d @ axis
+    if not depth.min() > 1e-6:
+        return None
+    a = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(axis, a)
+    image = np.stack([d @ a, d @ b], axis=1) / depth[:, None]
+    hull = hull_indices(image)
+    if len(hull) < 3:
+        return None
+    rays = d[hull]
+    normals = np.cross(rays, np.roll(rays, -1, axis=0))  # CCW hull: the inside is on the left
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    if (normals @ axis < 0).all():
+        normals = -normals
+    # conservative: every direction on or inside every plane (rounding pushed outward)
+    slack = np.minimum(d @ normals.T, 0).min(axis=0)
+    if slack.min() < -1e-9:
+        return None
+    return normals
+
+
+@dataclass(frozen=True)
+class ScreenHierarchy:
+    """The frustum hierarchy of a screens wall (module docstring), as flat arrays.
+
+    Node 0 is the root. Internal nodes have ``first``/``second`` children and ``tile == -1``;
+    a ``SPLIT`` node's first child lies inside the plane through the eye and its edge
+    ``(edge_a, edge_b)`` (display space), its second outside; a ``BOUNDS`` node's children are
+    bounded by their own planes (``own[c]``: the tile whose six planes bound child ``c``, or -1
+    for none).
+    """
+
+    first: np.ndarray
+    second: np.ndarray
+    tile: np.ndarray
+    mode: np.ndarray
+    edge_a: np.ndarray  # (nodes, 3)
+    edge_b: np.ndarray  # (nodes, 3)
+    own: np.ndarray  # (nodes,) tile bounding this node as a child of a BOUNDS node, or -1
+    members: list  # tiles under each node
+    depth: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.tile)
+
+    @property
+    def height(self) -> int:
+        return int(self.depth.max())
+
+    @classmethod
+    def build(cls, wall: ScreensWall, eye: np.ndarray | None = None) -> "ScreenHierarchy":
+        eye = np.zeros(3) if eye is None else np.asarray(eye, float)
+        quads = wall.quads
+        scale = float(np.abs(quads - eye).max())
+        rows: list[list] = []
+
+        def add(group: np.ndarray, depth: int) -> int:
+            index = len(rows)
+            rows.append([-1, -1, -1, PASS, np.zeros(3), np.zeros(3), -1, group, depth])
+            if len(group) == 1:
+                rows[index][2] = int(group[0])
+                rows[index][6] = int(group[0])
+                return index
+            split = _best_split(quads, group, eye, scale)
+            if split is not None:
+                inside, outside, a, b = split
+                rows[index][3], rows[index][4], rows[index][5] = SPLIT, a, b
+            else:
+                inside, outside = _halves(quads, group, eye)
+                rows[index][3] = BOUNDS
+            first = add(inside, depth + 1)
+            second = add(outside, depth + 1)
+            rows[index][0], rows[index][1] = first, second
+            return index
+
+        add(np.arange(wall.tiles), 0)
+        col = list(zip(*rows))
+        return cls(np.array(col[0], np.int64), np.array(col[1], np.int64),
+                   np.array(col[2], np.int64), np.array(col[3], np.int64),
+                   np.array(col[4]), np.array(col[5]), np.array(col[6], np.int64),
+                   list(col[7]), np.array(col[8], np.int64))
+
+    def split_planes(self, wall: ScreensWall, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(planes (nodes, 4), valid (nodes,))``: each split node's plane through ``eye``
+        and its edge, facing its first child, and whether it still separates its children's
+        screens from this eye (False for other nodes)."""
+        a, b = self.edge_a - eye, self.edge_b - eye
+        normal = np.cross(a, b)
+        length = np.linalg.norm(normal, axis=1, keepdims=True)
+        split = (self.mode == SPLIT) & (length[:, 0] > 0)
+        normal = np.where(length > 0, normal / np.where(length > 0, length, 1), 0.0)
+        planes = np.concatenate([normal, -(normal @ eye)[:, None]], axis=1)
+        valid = np.zeros(len(self), bool)
+        quads = wall.quads
+        tol = 1e-9 * float(np.abs(quads - eye).max())
+        for k in np.flatnonzero(split):
+            inside = quads[self.members[self.first[k]]].reshape(-1, 3) @ planes[k, :3] \
+                + planes[k, 3]
+            outside = quads[self.members[self.second[k]]].reshape(-1, 3) @ planes[k, :3] \
+                + planes[k, 3]
+            if inside.min() >= -tol and outside.max() <= tol:
+                valid[k] = True
+            elif outside.min() >= -tol and inside.max() <= tol:
+                planes[k] = -planes[k]
+                valid[k] = True
+        return planes, valid
+
+
+def _best_split(quads: np.ndarray, group: np.ndarray, eye: np.ndarray, scale: float):
+    """The most even split of ``group`` by a plane through ``eye`` and one of its screens'
+    edges: ``(inside, outside, edge point a, edge point b)``, or None."""
+    tol = 1e-9 * scale
+    corners = quads[group] - eye  # (g, 4, 3)
+    edges = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2).reshape(-1, 2, 3)
+    normal = np.cross(edges[:, 0], edges[:, 1])
+    length = np.linalg.norm(normal, axis=1)
+    keep = length > 1e-12 * scale * scale
+    edges, normal = edges[keep], normal[keep] / length[keep, None]
+    side = (corners.reshape(-1, 3) @ normal.T).T.reshape(len(normal), len(group), 4)
+    plus = (side >= -tol).all(axis=2)
+    minus = (side <= tol).all(axis=2)
+    separated = (plus | minus).all(axis=1) & plus.any(axis=1) & minus.any(axis=1) \
+        & ~(plus & minus).all(axis=1)
+    best, best_score = None, None
+    for e in np.flatnonzero(separated):
+        inside = plus[e] & ~minus[e]
+        on = plus[e] & minus[e]  # screens in the plane itself (seen edge-on): either side
+        first = group[inside | on]
+        second = group[~(inside | on)]
+        if not len(first) or not len(second):
+            continue
+        score = abs(len(first) - len(second))
+        if best_score is None or score < best_score:
+            best_score = score
+            best = (first, second, edges[e, 0] + eye, edges[e, 1] + eye)
+    return best
+
+
+def _halves(quads: np.ndarray, group: np.ndarray, eye: np.ndarray):
+    """``group`` cut in two along the widest spread of its screens' directions from ``eye``."""
+    d = quads[group].mean(axis=1) - eye
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centered = d - d.mean(axis=0)
+    axis = np.linalg.svd(centered, full_matrices=False)[2][0] if len(group) > 1 else d[0]
+    order = group[np.argsort(d @ axis, kind="stable")]
+    half = (len(order) + 1) // 2
+    return order[:half], order[half:]
