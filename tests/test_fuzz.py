@@ -189,5 +189,6 @@ def test_the_prepared_objects_survived_the_fuzzing():
     """The wall every case pointed at still serves, and the server is healthy."""
     with asgi.get_client(APP) as c:
         assert c.get(f"http://{asgi.HOST}/health").json()["status"] == "ok"
-        r = c.get(f"http://{asgi.HOST}/walls/{WID}/tiles/0/packets/latest")
+        r = c.get(f"http://{asgi.HOST}/walls/{WID}/tiles/0/packets/latest",
+                  headers={"Authorization": BEARER})
         assert r.status_code == 200 and r.json()["tile"] == 0

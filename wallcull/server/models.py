@@ -1,52 +1,85 @@
-"""The typed bodies of the HTTP API: validation happens here, at the boundary, and nowhere else."""
+"""The typed bodies of the HTTP API: validation happens here, at the boundary, and nowhere else.
+
+The schema says what the server accepts, as far as JSON Schema can: ranges, lengths, patterns,
+and strict scalars (``true`` is not a number, ``"7"`` is not a number, ``7.5`` is not an
+integer). What it cannot say is checked by the core and answered 422 with a detail: that an
+orientation is a *unit* quaternion, that ``near < far`` and ``gap > -tile_size``, that
+``cols x rows`` is at most 65,536 and ``history x tiles`` at most 2^20, that the eye is in front
+of the wall, that a node name exists, that an update's matrix is invertible.
+"""
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+from pydantic import (AllowInfNan, BaseModel, ConfigDict, Field, Strict, StringConstraints,
+                      TypeAdapter, ValidationError)
 
 from ..bounds import KINDS
 from ..cull import METHODS
 from ..errors import InputError
-from ..wall import MAX_TILES
+from ..wall import MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH
 
-Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+#: A number: an integer or a float, finite; never a bool or a string.
+Num = Annotated[float, Strict(), AllowInfNan(False)]
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Coordinate = Annotated[Num, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+Length = Annotated[Num, Field(ge=MIN_LENGTH, le=MAX_LENGTH)]
+Offset = Annotated[Num, Field(ge=-MAX_LENGTH, le=MAX_LENGTH)]
+Unit = Annotated[Num, Field(ge=-1.0, le=1.0)]
+Vec3 = tuple[Coordinate, Coordinate, Coordinate]
+Quaternion = tuple[Unit, Unit, Unit, Unit]
+Tile = Annotated[Int, Field(ge=0, lt=MAX_TILES)]
+FrameNumber = Annotated[Int, Field(ge=0, le=2**53)]
+#: Scene names: plain file names, ASCII (what the scene folder can hold).
+SCENE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
+SceneName = Annotated[str, Strict(), StringConstraints(pattern=SCENE_NAME)]
+#: Wall ids, as the server makes them.
+WALL_ID = r"^[0-9a-f]{12}$"
+NodeName = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=1024)]
+Pixels = Annotated[Int, Field(ge=1, le=1 << 16)]
+#: Each of cols and rows; their product is at most 65,536 (checked by the core).
+Count = Annotated[Int, Field(ge=1, le=256)]
+
+Row = tuple[Num, Num, Num, Num]
+Zero, One = Annotated[Num, Field(ge=0, le=0)], Annotated[Num, Field(ge=1, le=1)]
 
 
-class WallSpec(BaseModel):
+class Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class WallSpec(Body):
     """A wall (SPEC section 2)."""
 
-    model_config = ConfigDict(extra="forbid")
-    cols: int = Field(ge=1, le=MAX_TILES)
-    rows: int = Field(ge=1, le=MAX_TILES)
-    tile_size: tuple[FiniteFloat, FiniteFloat]
-    gap: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
-    distance: FiniteFloat
-    near: FiniteFloat = 0.1
-    far: FiniteFloat = 1000.0
-    resolution: tuple[Annotated[int, Field(ge=1, le=1 << 16)],
-                      Annotated[int, Field(ge=1, le=1 << 16)]] = (1920, 1080)
+    cols: Count
+    rows: Count
+    tile_size: tuple[Length, Length]
+    gap: tuple[Offset, Offset] = (0.0, 0.0)
+    distance: Length
+    near: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 0.1
+    far: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 1000.0
+    resolution: tuple[Pixels, Pixels] = (1920, 1080)
 
 
-class FrameSpec(BaseModel):
-    """A frame (SPEC section 3)."""
+class FrameSpec(Body):
+    """A frame (SPEC section 3). ``orientation`` must be a unit quaternion, and the eye in
+    front of the wall (``eye[2] > near - distance``)."""
 
-    model_config = ConfigDict(extra="forbid")
     position: Vec3
-    orientation: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
-    eye: Vec3 = (0.0, 0.0, 0.0)
+    orientation: Quaternion
+    eye: tuple[Offset, Offset, Offset] = (0.0, 0.0, 0.0)
 
 
-class NodeUpdate(BaseModel):
-    """A node's new local transform: ``matrix`` (4x4, row by row), or position, orientation
-    (unit quaternion w, x, y, z) and an optional scale."""
+class NodeUpdate(Body):
+    """A node's new local transform: ``matrix`` (4x4 affine, row by row), or position,
+    orientation (unit quaternion w, x, y, z) and an optional scale."""
 
-    model_config = ConfigDict(extra="forbid")
-    matrix: Optional[list[list[FiniteFloat]]] = None
+    matrix: Optional[tuple[Row, Row, Row, tuple[Zero, Zero, Zero, One]]] = None
     position: Optional[Vec3] = None
-    orientation: Optional[tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]] = None
-    scale: Optional[Vec3] = None
+    orientation: Optional[Quaternion] = None
+    scale: Optional[tuple[Length, Length, Length]] = None
 
     def value(self) -> Any:
         if self.matrix is not None:
@@ -59,31 +92,101 @@ class NodeUpdate(BaseModel):
         return out
 
 
-class WallCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+#: Updates of one frame at most (a 1 MiB body holds about 100,000 empty ones).
+MAX_UPDATES = 100_000
+
+
+class WallCreate(Body):
     wall: WallSpec
-    scene: str = Field(min_length=1, max_length=128)
+    scene: SceneName
     method: Literal[METHODS] = "adaptive"  # type: ignore[valid-type]
     bounds: Literal[KINDS] = "obb"  # type: ignore[valid-type]
-    pseudo_groups: bool = False
-    history: int = Field(default=64, ge=2, le=4096)
+    pseudo_groups: Bool = False
+    history: Annotated[Int, Field(ge=2, le=4096)] = 64
     depth: Literal["tight", "wall"] = "tight"
-    reversed_z: bool = False
+    reversed_z: Bool = False
+    #: Tiles grouped under one node credential each (a node driving several tiles); tiles
+    #: no group names get a credential of their own.
+    nodes: Optional[list[Annotated[list[Tile], Field(min_length=1, max_length=MAX_TILES)]]] = \
+        Field(default=None, max_length=MAX_TILES)
+
+    def spec(self) -> dict:
+        """What the server keeps (and persists) of the wall."""
+        return self.model_dump(exclude={"nodes"})
 
 
-class FramePost(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class FramePost(Body):
     frame: FrameSpec
-    updates: dict[str, NodeUpdate] = Field(default_factory=dict, max_length=100_000)
-    number: Optional[int] = Field(default=None, ge=0, le=2**53)
+    updates: dict[NodeName, NodeUpdate] = Field(default_factory=dict, max_length=MAX_UPDATES)
+    number: Optional[FrameNumber] = None
     refit: Optional[Literal["obb", "aabb"]] = None
-    packets: bool = False
-    full: bool = False
+    packets: Bool = False
+    full: Bool = False
+
+    @classmethod
+    def from_body(cls, body: Any) -> "FramePost":
+        """Validate, the updates in pieces: one pydantic call over 100,000 of them holds the
+        GIL for 0.2 s, which would stall the event loop even from a worker thread."""
+        updates = body.get("updates") if isinstance(body, dict) else None
+        if not isinstance(updates, dict) or len(updates) <= _PIECE:
+            return cls.model_validate(body)
+        if len(updates) > MAX_UPDATES:
+            raise ValidationError.from_exception_data(cls.__name__, [{
+                "type": "too_long", "loc": ("updates",),
+                "input": f"{len(updates)} updates",
+                "ctx": {"field_type": "Dictionary", "min_length": 0,
+                        "max_length": MAX_UPDATES, "actual_length": len(updates)}}])
+        out = cls.model_validate({**body, "updates": {}})
+        items, checked = list(updates.items()), {}
+        for k in range(0, len(items), _PIECE):
+            try:
+                checked.update(_UPDATES.validate_python(dict(items[k:k + _PIECE])))
+            except ValidationError as exc:
+                raise ValidationError.from_exception_data(cls.__name__, [
+                    {**e, "loc": ("updates", *e["loc"])} for e in exc.errors()]) from None
+        out.updates = checked
+        return out
 
 
-class Ack(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    frame: int = Field(ge=0, le=2**53)
+_PIECE = 2000
+_UPDATES = TypeAdapter(dict[NodeName, NodeUpdate])
+
+
+class Ack(Body):
+    frame: FrameNumber
+
+
+class NodeCredential(BaseModel):
+    tiles: list[int]
+    token: str
+
+
+class Credentials(BaseModel):
+    """Shown once, when the wall is created; the server keeps only their digests."""
+
+    driver: str
+    nodes: list[NodeCredential]
+
+
+class WallInfo(BaseModel):
+    id: str
+    scene: str
+    wall: dict
+    tiles: int
+    method: str
+    bounds: str
+    pseudo_groups: bool
+    latest: int
+    history: int
+    subscribers: int
+
+
+class WallCreated(WallInfo):
+    credentials: Credentials
+
+
+class WallList(BaseModel):
+    walls: list[WallInfo]
 
 
 class FrameAnswer(BaseModel):
@@ -122,9 +225,13 @@ class Detail(BaseModel):
 
 
 _REFUSALS = {304: "Not modified: the ETag matches", 400: "Malformed msgpack body",
-             401: "Missing or wrong token", 404: "No such scene, wall, tile, node or frame",
-             409: "Conflicts with the server's state", 410: "The frame left the history",
-             413: "Body too large", 422: "Invalid input"}
+             401: "No token, or one this server does not hold",
+             403: "The token does not hold this wall, role or tile",
+             404: "No such scene, wall, tile, node or frame",
+             408: "The body arrived too slowly", 409: "Conflicts with the server's state",
+             410: "The frame left the history", 413: "Body too large",
+             415: "Bodies are JSON or msgpack", 422: "Invalid input",
+             503: "Too many uploads at once; retry"}
 
 
 def refusals(*codes: int) -> dict:
