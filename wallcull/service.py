@@ -9,6 +9,7 @@ server's event loop; the culling of a frame (a millisecond or two) runs inline, 
 from __future__ import annotations
 
 import asyncio
+import gc
 import hashlib
 import logging
 import os
@@ -118,7 +119,7 @@ class SceneStore:
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
                 spec = name if name in bundled.BUNDLED else str(self.path(name))
-                scene = await asyncio.to_thread(lambda: usable(load(spec)))
+                scene = await asyncio.to_thread(lambda: settled(usable(load(spec))))
                 scene.name = name
                 self.remember(name, scene)
         return self.cache[name]
@@ -153,7 +154,8 @@ class SceneStore:
         """Store the GLB at ``path`` (an upload's spooled body, see :meth:`spool`) as scene
         ``name`` (from :meth:`upload_name`): checked and parsed in a sandbox
         (:mod:`wallcull.uploads`), then moved into the folder atomically."""
-        scene = await asyncio.to_thread(parse_sandboxed, path, name, self.limits)
+        scene = await asyncio.to_thread(lambda: settled(parse_sandboxed(path, name,
+                                                                        self.limits)))
         if self.folder is not None:
             os.replace(path, self.folder / name)
         else:
@@ -185,6 +187,17 @@ class SceneStore:
         return dropped
 
 
+def settled(obj=None):
+    """``obj``, after moving every object alive now out of the garbage collector's sight
+    (``gc.freeze``). A server holds scenes of hundreds of thousands of objects for days; a
+    full collection walks them all, holding the GIL for 50-100 ms, and any request that
+    allocates a lot (a 1 MiB JSON body) can set one off mid-parse, stalling the event loop.
+    Frozen objects are still freed when nothing refers to them any more."""
+    gc.collect()
+    gc.freeze()
+    return obj
+
+
 def footprint(obj, _depth: int = 0) -> int:
     """Bytes of the arrays, byte strings and text an object holds, through its attributes,
     dicts, lists and tuples (an estimate of what evicting it frees; small objects count 0)."""
@@ -205,18 +218,18 @@ def footprint(obj, _depth: int = 0) -> int:
     return 0
 
 
-def describe(scene: Scene, nodes: bool = True) -> dict:
-    """A scene's shape: stats, bounds, settings and (optionally) every node."""
+def describe(scene: Scene, nodes: bool = True, arrays: bool = False) -> dict:
+    """A scene's shape: stats, bounds, settings and (optionally) every node. ``arrays``: the
+    per-node columns stay numpy arrays (for an encoder that turns them into lists a piece at
+    a time: a 100,000-node scene is 2.3 million numbers)."""
     pts = scene.leaf_points[0]
     out = {"name": scene.name, "stats": scene.stats, "settings": scene.settings,
            "bounds": {"min": pts.min(0).tolist(), "max": pts.max(0).tolist()}}
     if nodes:
-        out["nodes"] = {
-            "name": list(scene.names), "parent": scene.parent.tolist(),
-            "leaf": scene.is_leaf.tolist(), "synthetic": scene.synthetic.tolist(),
-            "mesh": scene.geometry,
-            "world": scene.world.reshape(len(scene), 16).tolist(),
-        }
+        columns = {"parent": scene.parent, "leaf": scene.is_leaf, "synthetic": scene.synthetic,
+                   "world": scene.world.reshape(len(scene), 16)}
+        out["nodes"] = {"name": scene.names, "mesh": scene.geometry, **{
+            k: v if arrays else v.tolist() for k, v in columns.items()}}
     return out
 
 

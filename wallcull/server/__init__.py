@@ -31,7 +31,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from ..errors import InputError
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
-from ..service import Conflict, Gone, NotFound, SceneStore, Walls
+from ..service import Conflict, Gone, NotFound, SceneStore, Walls, settled
 from . import openapi, scenes, streams, walls
 from .deps import ServerState
 from .gate import Gate
@@ -64,10 +64,12 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
 
     @asynccontextmanager
     async def lifespan(app):
-        await asyncio.to_thread(_warm_up)  # compile (or load) the culling kernels once
-        restored = await walls_.restore(store)
+        # compile (or load) the culling kernels once, while the walls of the state folder
+        # come back (their scenes load in another thread): clients wait for both
+        _, restored = await asyncio.gather(asyncio.to_thread(_warm_up), walls_.restore(store))
         if restored:
             log.info("restored %d wall(s): %s", len(restored), ", ".join(restored))
+        await asyncio.to_thread(settled)
         yield
         if folder is not None:
             folder.close()

@@ -43,8 +43,11 @@ async def reply_large(request: Request, build: Callable[[], Any]) -> Response:
 
 
 def encode_in_pieces(obj: Any, binary: bool) -> bytes:
-    """The bytes :func:`reply` would send for ``obj``, long lists encoded a piece at a time."""
+    """The bytes :func:`reply` would send for ``obj``, long lists encoded a piece at a time;
+    numpy arrays (rows) are encoded as the nested lists ``tolist`` would give, a piece of
+    rows at a time."""
     import msgpack
+    import numpy as np
 
     parts: list[bytes] = []
 
@@ -63,10 +66,11 @@ def encode_in_pieces(obj: Any, binary: bool) -> bytes:
                 walk(item)
             if not binary:
                 parts.append(b"}")
-        elif isinstance(value, list) and len(value) > PIECE:
+        elif isinstance(value, (list, np.ndarray)) and len(value) > PIECE:
             parts.append(_msgpack_header(len(value)) if binary else b"[")
             for k in range(0, len(value), PIECE):
                 piece = value[k:k + PIECE]
+                piece = piece.tolist() if isinstance(piece, np.ndarray) else piece
                 if binary:
                     encoded = msgpack.packb(piece, use_bin_type=True)
                     parts.append(encoded[len(_msgpack_header(len(piece))):])
@@ -75,6 +79,8 @@ def encode_in_pieces(obj: Any, binary: bool) -> bytes:
                         piece, default=_b64, separators=(",", ":"))[1:-1].encode())
             if not binary:
                 parts.append(b"]")
+        elif isinstance(value, np.ndarray):
+            walk(value.tolist())
         elif binary:
             parts.append(msgpack.packb(value, use_bin_type=True))
         else:

@@ -67,7 +67,7 @@ async def scene_info(request: Request, state: State, name: SceneName, nodes: boo
     leaf flag, mesh key and rest world transform (row by row, flattened)."""
     scene = await state.store.get(name)
     if nodes:  # a 100,000-node scene is megabytes of lists: built and encoded off the loop
-        return await reply_large(request, lambda: describe(scene, True))
+        return await reply_large(request, lambda: describe(scene, True, arrays=True))
     return reply(request, describe(scene, False))
 
 
