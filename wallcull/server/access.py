@@ -45,6 +45,22 @@ def leaf_routes(routes) -> list:
     return out
 
 
+def query_names(route) -> frozenset[str]:
+    """The query parameters a route declares (and ``token``, a stream's credential), kept on
+    the route once found."""
+    known = getattr(route, "wallcull_query", None)
+    if known is None:
+        names, stack = set(), [route.dependant] if hasattr(route, "dependant") else []
+        while stack:
+            dependant = stack.pop()
+            names |= {q.alias for q in dependant.query_params}
+            stack += dependant.dependencies
+        if not hasattr(route, "methods"):  # a WebSocket route
+            names.add("token")
+        known = route.wallcull_query = frozenset(names)
+    return known
+
+
 def bearer(authorization: str | None) -> str | None:
     """The token of an ``Authorization: Bearer`` header (the scheme is case-insensitive,
     RFC 9110 11.1; the token is not)."""

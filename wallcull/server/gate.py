@@ -8,7 +8,8 @@ request costs least:
 2. a WebSocket whose ``Origin`` is not allowed (``--cors-origin``; same-origin always is) is
    denied 403 before the handshake completes;
 3. the caller's token is checked against the route's role (:mod:`.access`): 401 or 403,
-   **before a byte of the body is read**;
+   **before a byte of the body is read**; then a query parameter the route does not declare
+   is refused (422), as an unknown key of a body is;
 4. a body is capped (``Content-Length`` first, then as it arrives: 413), must keep arriving
    (``limits.body_idle`` seconds between chunks, ``limits.body_seconds`` in all: 408), and
    uploads are limited to ``limits.uploads`` at once (503 with ``Retry-After``).
@@ -21,11 +22,11 @@ from __future__ import annotations
 import asyncio
 import json
 import time
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qs, parse_qsl, urlsplit
 
 from starlette.routing import Match
 
-from .access import bearer, check, leaf_routes, role_of
+from .access import bearer, check, leaf_routes, query_names, role_of
 from .deps import ServerState
 from .http import Refused
 
@@ -84,6 +85,12 @@ class Gate:
             token = bearer(headers.get("authorization"))
         scope.setdefault("state", {})["acting"] = check(self.state, role_of(route.endpoint),
                                                         token, params)
+        query = scope.get("query_string", b"")
+        if query:  # the schema lists every parameter a route takes: no others, like bodies
+            unknown = {k for k, _ in parse_qsl(query.decode("latin-1"), keep_blank_values=True)
+                       } - query_names(route)
+            if unknown:
+                raise Refused(422, f"unknown query parameter(s): {', '.join(sorted(unknown))}")
         if scope["type"] == "websocket" or scope["method"] not in BODY_METHODS:
             return receive, False
         upload = getattr(route.endpoint, "wallcull_upload", False)

@@ -12,17 +12,29 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Optional
 
-from pydantic import (AllowInfNan, BaseModel, ConfigDict, Field, Strict, StringConstraints,
-                      TypeAdapter, ValidationError)
+from pydantic import (AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict,
+                      StringConstraints, TypeAdapter, ValidationError)
 
 from ..bounds import KINDS
 from ..cull import METHODS
 from ..errors import InputError
 from ..wall import MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH
 
+def _whole(value):
+    """JSON Schema's integers: ``7`` and ``7.0`` (a number with no fraction), never ``true``."""
+    if isinstance(value, float) and value.is_integer() and abs(value) < 2.0 ** 63:
+        return int(value)
+    return value
+
+
+def Int(**bounds) -> Any:
+    """An integer within ``bounds`` (``ge``, ``le``, ``lt``); never a bool or a string. (The
+    bounds go inside, next to the type, so that the schema states them as minimum/maximum.)"""
+    return Annotated[int, Strict(), Field(**bounds), BeforeValidator(_whole)]
+
+
 #: A number: an integer or a float, finite; never a bool or a string.
 Num = Annotated[float, Strict(), AllowInfNan(False)]
-Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
 Coordinate = Annotated[Num, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
 Length = Annotated[Num, Field(ge=MIN_LENGTH, le=MAX_LENGTH)]
@@ -30,17 +42,17 @@ Offset = Annotated[Num, Field(ge=-MAX_LENGTH, le=MAX_LENGTH)]
 Unit = Annotated[Num, Field(ge=-1.0, le=1.0)]
 Vec3 = tuple[Coordinate, Coordinate, Coordinate]
 Quaternion = tuple[Unit, Unit, Unit, Unit]
-Tile = Annotated[Int, Field(ge=0, lt=MAX_TILES)]
-FrameNumber = Annotated[Int, Field(ge=0, le=2**53)]
+Tile = Int(ge=0, lt=MAX_TILES)
+FrameNumber = Int(ge=0, le=2**53)
 #: Scene names: plain file names, ASCII (what the scene folder can hold).
 SCENE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
 SceneName = Annotated[str, Strict(), StringConstraints(pattern=SCENE_NAME)]
 #: Wall ids, as the server makes them.
 WALL_ID = r"^[0-9a-f]{12}$"
 NodeName = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=1024)]
-Pixels = Annotated[Int, Field(ge=1, le=1 << 16)]
+Pixels = Int(ge=1, le=1 << 16)
 #: Each of cols and rows; their product is at most 65,536 (checked by the core).
-Count = Annotated[Int, Field(ge=1, le=256)]
+Count = Int(ge=1, le=256)
 
 Row = tuple[Num, Num, Num, Num]
 Zero, One = Annotated[Num, Field(ge=0, le=0)], Annotated[Num, Field(ge=1, le=1)]
@@ -58,7 +70,9 @@ class WallSpec(Body):
     tile_size: tuple[Length, Length]
     gap: tuple[Offset, Offset] = (0.0, 0.0)
     distance: Length
-    near: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 0.1
+    #: at most 10^6 m: the eye must be farther than ``near - distance`` in front of the wall,
+    #: and an eye is at most 10^9 m from the display's origin
+    near: Annotated[Num, Field(gt=0, le=1e6)] = 0.1
     far: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 1000.0
     resolution: tuple[Pixels, Pixels] = (1920, 1080)
 
@@ -104,17 +118,13 @@ class WallCreate(Body):
     method: Literal[METHODS] = "adaptive"  # type: ignore[valid-type]
     bounds: Literal[KINDS] = "obb"  # type: ignore[valid-type]
     pseudo_groups: Bool = False
-    history: Annotated[Int, Field(ge=2, le=4096)] = 64
+    history: Int(ge=2, le=4096) = 64
     depth: Literal["tight", "wall"] = "tight"
     reversed_z: Bool = False
     #: Tiles grouped under one node credential each (a node driving several tiles); tiles
     #: no group names get a credential of their own.
     nodes: Optional[list[Annotated[list[Tile], Field(min_length=1, max_length=MAX_TILES)]]] = \
         Field(default=None, max_length=MAX_TILES)
-
-    def spec(self) -> dict:
-        """What the server keeps (and persists) of the wall."""
-        return self.model_dump(exclude={"nodes"})
 
 
 class FramePost(Body):
