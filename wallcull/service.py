@@ -122,6 +122,7 @@ class SceneStore:
                 scene = await asyncio.to_thread(lambda: settled(usable(load(spec))))
                 scene.name = name
                 self.remember(name, scene)
+                return scene
         return self.cache[name]
 
     # ------------------------------------------------------------------ uploads
@@ -166,12 +167,13 @@ class SceneStore:
     # ------------------------------------------------------------------ the memory budget
 
     def remember(self, name: str, scene: Scene) -> None:
-        """Cache ``scene``, then evict what the budget no longer has room for."""
+        """Cache ``scene``, then evict what the budget no longer has room for (never
+        ``scene`` itself: whoever loaded it is about to use it)."""
         self.cache[name] = scene
         self.cache.move_to_end(name)
-        self.evict()
+        self.evict(keep=name)
 
-    def evict(self) -> list[str]:
+    def evict(self, keep: str | None = None) -> list[str]:
         """Drop the least recently used scenes that no wall uses (and that can be loaded again)
         until the cache fits ``limits.scene_cache``; returns their names."""
         sizes = {name: footprint(scene) for name, scene in self.cache.items()}
@@ -179,7 +181,7 @@ class SceneStore:
         for name in list(self.cache):
             if total <= self.limits.scene_cache:
                 break
-            if name in used or name in self.uploaded:
+            if name in used or name in self.uploaded or name == keep:
                 continue
             total -= sizes[name]
             del self.cache[name]
@@ -278,6 +280,7 @@ class WallSession:
     on_number: Callable[[int], None] | None = None
     streams: Counter = field(default_factory=Counter)  # open streams per tile
     digests: set = field(default_factory=set)  # of its credentials
+    credentials: dict | None = None  # as issued, to be shown once (never kept on disk)
     gone: asyncio.Event = field(default_factory=asyncio.Event)  # set when it is deleted
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
     _new_ack: asyncio.Event = field(default_factory=asyncio.Event)
@@ -447,6 +450,15 @@ class WallSession:
         return self.barrier_state(number)
 
 
+def spec_of(session: WallSession) -> dict:
+    """What a restart needs to make ``session`` again (the state folder keeps it as JSON)."""
+    s = session.session
+    fit = s.fit_options or FitOptions()
+    return {"wall": session.wall.to_dict(), "scene": session.scene.name, "method": s.method,
+            "bounds": s.state.kind, "pseudo_groups": s.culler.pseudo_groups,
+            "history": session.history.size, "depth": fit.depth, "reversed_z": fit.reversed_z}
+
+
 class Walls:
     """The wall sessions of a server, by id, with a cap on how many exist at once, the grants
     of their credentials, and (with a state folder) what a restart needs to bring them back."""
@@ -457,32 +469,30 @@ class Walls:
         self.sessions: dict[str, WallSession] = {}
         self.grants: dict[str, Grant] = {}  # credential digest -> what it holds, every wall's
 
-    def create(self, scene: Scene, spec: Mapping[str, Any], nodes=None) -> tuple[WallSession,
-                                                                                 dict]:
-        """A new wall from ``spec`` (the validated ``POST /walls`` body: ``wall``, ``scene``,
-        ``method``, ``bounds``, ``pseudo_groups``, ``history``, ``depth``, ``reversed_z``) and
-        its credentials, shown this once: ``{"driver": token, "nodes": [{"tiles", "token"}]}``
-        (``nodes`` groups tiles under one node credential; by default a node per tile)."""
+    def create(self, scene: Scene, wall: Wall, method: str, bounds: str, pseudo_groups: bool,
+               history: int, fit: FitOptions = FitOptions(), nodes=None) -> WallSession:
+        """A new wall, with its credentials in ``.credentials``, to be shown this once:
+        ``{"driver": token, "nodes": [{"tiles", "token"}, ...]}`` (``nodes`` groups tiles
+        under one node credential; by default a node per tile). With a state folder, the wall
+        is written down before it is returned."""
         if len(self.sessions) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
         wid = secrets.token_hex(6)
-        session = self._session(wid, scene, spec)
-        shown, grants = credentials.issue(wid, session.wall.tiles, nodes)
+        session = self._session(wid, scene, wall, method, bounds, pseudo_groups, history, fit)
+        session.credentials, grants = credentials.issue(wid, wall.tiles, nodes)
         if self.state is not None:
-            self.state.add_wall(wid, session.created, dict(spec), grants)
+            self.state.add_wall(wid, session.created, spec_of(session), grants)
         self._add(session, grants)
-        return session, shown
+        return session
 
-    def _session(self, wid: str, scene: Scene, spec: Mapping[str, Any]) -> WallSession:
-        wall = Wall.from_dict(spec["wall"])
-        history = spec.get("history", 64)
+    @staticmethod
+    def _session(wid: str, scene: Scene, wall: Wall, method: str, bounds: str,
+                 pseudo_groups: bool, history: int, fit: FitOptions) -> WallSession:
         if history * wall.tiles > MAX_TILE_FRAMES:
             raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
                              f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
                              f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
-        fit = FitOptions(spec.get("depth", "tight"), spec.get("reversed_z", False))
-        session = Session(scene, wall, spec.get("method", "adaptive"), spec.get("bounds", "obb"),
-                          spec.get("pseudo_groups", False), fit)
+        session = Session(scene, wall, method, bounds, pseudo_groups, fit)
         return WallSession(wid, session, protocol.History(history))
 
     def _add(self, session: WallSession, grants: dict[str, Grant]) -> None:
@@ -502,9 +512,13 @@ class Walls:
         out = []
         for row in self.state.walls():
             try:
-                scene = await store.get(row.spec["scene"])
-                session = self._session(row.id, scene, row.spec)
-            except (InputError, NotFound, KeyError) as exc:
+                spec = row.spec
+                scene = await store.get(spec["scene"])
+                session = self._session(row.id, scene, Wall.from_dict(spec["wall"]),
+                                        spec["method"], spec["bounds"], spec["pseudo_groups"],
+                                        spec["history"], FitOptions(spec["depth"],
+                                                                    spec["reversed_z"]))
+            except (InputError, NotFound, KeyError, ValueError) as exc:
                 log.warning("wall %s cannot be restored and is dropped: %s", row.id, exc)
                 self.state.remove_wall(row.id)
                 continue

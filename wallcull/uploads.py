@@ -20,7 +20,8 @@ bounds) runs in a child process forked from a small server process that has the 
 already imported (multiprocessing's ``forkserver``), with ``RLIMIT_AS`` (address space) and
 ``RLIMIT_CPU`` set, and a wall-clock deadline: a file that makes the parser allocate too much,
 loop, or crash costs a 422 and a dead child, never the server. The scene comes back pickled.
-Materials and textures are never decoded (``skip_materials``): culling needs none.
+Materials and textures are never decoded (``skip_materials``): culling needs none. (The child
+runs as the same user: it contains memory, time and crashes, not code execution.)
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import multiprocessing
 import os
 import struct
 import threading
+from multiprocessing import spawn
 from pathlib import Path
 
 from .errors import InputError
@@ -320,6 +322,7 @@ def _child(conn, path: str, name: str, limits: Limits) -> None:
 
 _context_lock = threading.Lock()
 _context = None
+CHILD = "wallcull-parse"
 
 
 def _forkserver():
@@ -329,8 +332,20 @@ def _forkserver():
         if _context is None:
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload(["numpy", "trimesh", "wallcull.scene", "wallcull.uploads"])
+            spawn.get_preparation_data = _without_main
             _context = ctx
     return _context
+
+
+def _without_main(name, _original=spawn.get_preparation_data):
+    """multiprocessing's data for a new child, less ``__main__`` for a parse child: it needs
+    nothing from it, and importing it again there would run a script without a main guard
+    (or fail on ``python - < script``)."""
+    data = _original(name)
+    if name.startswith(CHILD):
+        data.pop("init_main_from_name", None)
+        data.pop("init_main_from_path", None)
+    return data
 
 
 def parse_sandboxed(path: str | os.PathLike, name: str, limits: Limits):
@@ -340,7 +355,7 @@ def parse_sandboxed(path: str | os.PathLike, name: str, limits: Limits):
     ctx = _forkserver()
     receive, send = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(send, str(path), name, limits), daemon=True,
-                       name=f"wallcull-parse-{name}")
+                       name=f"{CHILD}-{name}")
     proc.start()
     send.close()
     try:

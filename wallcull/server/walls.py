@@ -9,7 +9,9 @@ from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
 
 from ..credentials import DRIVER, NODE, OPERATOR
+from ..fit import FitOptions
 from ..service import NotFound
+from ..wall import Wall
 from .access import needs
 from .deps import State
 from .http import body_of, reply
@@ -38,8 +40,12 @@ async def create_wall(request: Request, state: State,
     """A wall culling a scene. The answer carries the wall's credentials, shown this once:
     the driver's (posting frames) and one per node (its tiles' packets, streams and
     acknowledgements)."""
+    wall = Wall.from_dict(body.wall.model_dump())
     scene = await state.store.get(body.scene)
-    session, credentials = state.walls.create(scene, body.spec(), body.nodes)
+    session = state.walls.create(scene, wall, body.method, body.bounds, body.pseudo_groups,
+                                 body.history, FitOptions(body.depth, body.reversed_z),
+                                 body.nodes)
+    credentials, session.credentials = session.credentials, None  # shown once
     return reply(request, {**session.info(), "credentials": credentials}, 201)
 
 
