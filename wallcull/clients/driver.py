@@ -10,8 +10,13 @@ earlier than ``t0 + k / rate``); a driver that falls behind posts at once rather
 The camera follows :func:`wallcull.paths.camera_path` around the scene's bounds (from
 ``GET /scenes/{name}``), one loop every ``path_frames`` frames.
 
+Every request is retried with backoff while the server is away (:mod:`.retry`); the driver
+fails with a message and a non-zero status when the server stays away longer than
+``--retry-for`` seconds or refuses a request for good.
+
     python -m wallcull.clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
-        --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly]
+        --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly] \\
+        [--credentials-out credentials.json]
 """
 
 from __future__ import annotations

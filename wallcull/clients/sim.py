@@ -30,9 +30,17 @@ difference is the frame-to-tile latency; both are ``time.time()`` on the same cl
 and server share a host), the bytes received, whether it was full or a delta, and the size the
 same packet would have had as a full list (re-encoded exactly as the server would).
 
+Each node sends its own credential (``--credentials FILE``: the wall's credentials as
+``POST /walls`` answered them; or one ``--token`` for all). When the server goes away (a
+restart) a node reconnects with backoff (:mod:`.retry`) to the same wall, and its new stream
+starts from a full list; it fails with a message and a non-zero status when the server refuses
+it for good (the wall was deleted, the credential is refused) or stays away longer than
+``--reconnect-for`` seconds. It never exits silently.
+
 Run a wall of them::
 
-    python -m wallcull.clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws
+    python -m wallcull.clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws \
+        --credentials credentials.json
 """
 
 from __future__ import annotations
