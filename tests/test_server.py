@@ -31,6 +31,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from starlette.testclient import WebSocketDenialResponse
 from starlette.websockets import WebSocketDisconnect
 
+from wallcull.clients.hostile import glb as glb_build
 from wallcull.paths import camera_path
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
@@ -67,16 +68,6 @@ def glb_parts(data: bytes) -> tuple[dict, bytes]:
     doc = json.loads(data[20:20 + length])
     rest = data[20 + length:]
     return doc, rest[8:8 + struct.unpack("<I", rest[:4])[0]] if rest else b""
-
-
-def glb_build(doc: dict, binary: bytes) -> bytes:
-    j = json.dumps(doc).encode()
-    j += b" " * (-len(j) % 4)
-    out = struct.pack("<II", len(j), 0x4E4F534A) + j
-    if binary:
-        b = binary + b"\0" * (-len(binary) % 4)
-        out += struct.pack("<II", len(b), 0x004E4942) + b
-    return struct.pack("<4sII", b"glTF", 2, 12 + len(out)) + out
 
 
 def glb_from_bytes(data: bytes, name: str) -> Scene:
