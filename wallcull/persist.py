@@ -88,13 +88,17 @@ class StateFolder:
             self._db.execute(f"PRAGMA user_version={VERSION}")
 
     def add_wall(self, wid: str, created: float, spec: dict, grants: dict[str, Grant]) -> None:
-        with self._mutex:
+        with self._mutex:  # one transaction: the wall with its credentials, or nothing
             self._db.execute("BEGIN")
-            self._db.execute("INSERT INTO walls (id, created, spec) VALUES (?, ?, ?)",
-                             (wid, created, json.dumps(spec)))
-            self._db.executemany(
-                "INSERT INTO credentials (digest, wall, role, tiles) VALUES (?, ?, ?, ?)",
-                [(d, wid, g.role, json.dumps(sorted(g.tiles))) for d, g in grants.items()])
+            try:
+                self._db.execute("INSERT INTO walls (id, created, spec) VALUES (?, ?, ?)",
+                                 (wid, created, json.dumps(spec)))
+                self._db.executemany(
+                    "INSERT INTO credentials (digest, wall, role, tiles) VALUES (?, ?, ?, ?)",
+                    [(d, wid, g.role, json.dumps(sorted(g.tiles))) for d, g in grants.items()])
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
             self._db.execute("COMMIT")
 
     def remove_wall(self, wid: str) -> None:

@@ -406,10 +406,11 @@ async def loop(updates_mb: float = 1.0, nodes: int = 100_000) -> dict:
 
 
 async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
-                  seconds: float = 12.0, kill_at: float = 5.0, scene: str = "powerplant") -> dict:
-    """A wall of streaming nodes and a driver on the swap barrier-free walkthrough; the server
-    is killed (SIGKILL) ``kill_at`` seconds in and started again on the same port and state
-    folder. Reports the wall id before and after, how long after the restarted server
+                  seconds: float = 12.0, kill_at: float = 5.0, scene: str = "powerplant",
+                  mode: str = "ws") -> dict:
+    """A wall of nodes (streaming, or pulling with ``mode="pull"``) and a driver walking the
+    scene; the server is killed (SIGKILL) ``kill_at`` seconds in and started again on the same
+    port and state folder. Reports the wall id before and after, how long after the restarted server
     answered its health check every node had a frame again, and whether any node ever saw a
     frame number go backwards."""
     spec = _wall_spec(wall)
@@ -430,12 +431,13 @@ async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
             sys.executable, "-m", "wallcull.clients.sim", "--server", s.url, "--wall", info["id"],
             "--credentials", str(out / "credentials.json"), "--until-frame", str(frames - 1),
             "--idle-timeout", "20", "--out", str(out / "nodes.json"), "--quiet",
-            "--no-full-size", cwd=str(ROOT), env=env, stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE)
+            "--no-full-size", "--mode", mode, cwd=str(ROOT), env=env,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         procs.append(nodes)
         await nodes.stdout.readline()
-        async with Driver(s.url, TOKEN) as d:
-            await d.wait_clients(info["id"], info["tiles"], 60)
+        if mode == "ws":
+            async with Driver(s.url, TOKEN) as d:
+                await d.wait_clients(info["id"], info["tiles"], 60)
         driver = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "wallcull.clients.driver", "--server", s.url, "--wall-id",
             info["id"], "--token", info["credentials"]["driver"], "--rate", str(rate),
@@ -472,7 +474,7 @@ async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
         before.append(int(f[r < killed].max()) if (r < killed).any() else -1)
         later = r[(r > killed) & (f > before[-1])]
         resumed.append(float(later.min() - ready) if len(later) else float("inf"))
-    return {"scenario": "restart", "tiles": len(tiles), "wall_before": info["id"],
+    return {"scenario": "restart", "mode": mode, "tiles": len(tiles), "wall_before": info["id"],
             "wall_after": after["id"], "restart_s": ready - killed,
             "resume_after_ready_s": {"max": max(resumed, default=None),
                                      "median": float(np.median(resumed)) if resumed else None},

@@ -69,17 +69,16 @@ def bearer(authorization: str | None) -> str | None:
     return None
 
 
-def check(state: ServerState, role: str, token: str | None, params: Mapping[str, str]) -> str:
+def check(state: ServerState, role: str, token: str | None, params: Mapping[str, str]) -> None:
     """Refuse (401: no or unknown token; 403: a token that does not hold this) unless
-    ``token`` may call a route needing ``role`` with these path parameters; returns the role
-    the caller acts in (``"open"`` on a server without a token)."""
+    ``token`` may call a route needing ``role`` with these path parameters."""
     if state.open or role == OPEN:
-        return OPEN
+        return
     if token is None:
         raise Refused(401, "this request needs a token (Authorization: Bearer ...): the "
                            "operator's, or a credential issued with its wall")
     if state.is_operator(token):
-        return OPERATOR
+        return
     grant = state.walls.grant(token)
     if grant is None:
         raise Refused(401, "the token is not one this server holds")
@@ -96,4 +95,3 @@ def check(state: ServerState, role: str, token: str | None, params: Mapping[str,
         if not tile.isdigit() or int(tile) not in grant.tiles:
             raise Refused(403, f"this node credential holds tiles {sorted(grant.tiles)}, "
                                f"not tile {tile}")
-    return grant.role

@@ -83,8 +83,7 @@ class Gate:
                                   {"Allow": _allow(methods)})
                 return receive, False  # the router's 404
             token = bearer(headers.get("authorization"))
-        scope.setdefault("state", {})["acting"] = check(self.state, role_of(route.endpoint),
-                                                        token, params)
+        check(self.state, role_of(route.endpoint), token, params)
         query = scope.get("query_string", b"")
         if query:  # the schema lists every parameter a route takes: no others, like bodies
             unknown = {k for k, _ in parse_qsl(query.decode("latin-1"), keep_blank_values=True)
