@@ -6,7 +6,9 @@
 
 Issued tokens are random (192 bits) and shown once, when the wall is created; the server keeps
 only their SHA-256 digests, in memory and at rest. A token this long needs no slow hash: nobody
-can enumerate 2^192 guesses. Digests are compared in constant time.
+can enumerate 2^192 guesses. The operator's digest is compared in constant time; issued ones
+are looked up by digest, so what a lookup's timing could reveal is bits of a digest of the
+presented token, which say nothing about any real one.
 """
 
 from __future__ import annotations

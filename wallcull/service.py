@@ -194,7 +194,9 @@ def settled(obj=None):
     (``gc.freeze``). A server holds scenes of hundreds of thousands of objects for days; a
     full collection walks them all, holding the GIL for 50-100 ms, and any request that
     allocates a lot (a 1 MiB JSON body) can set one off mid-parse, stalling the event loop.
-    Frozen objects are still freed when nothing refers to them any more."""
+    Frozen objects are still freed by reference counting when nothing refers to them any more;
+    only a cycle among objects alive at a freeze (requests in flight while a scene loads, a
+    few kilobytes) is never collected. Costs one full collection (50-100 ms) per scene load."""
     gc.collect()
     gc.freeze()
     return obj
