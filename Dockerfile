@@ -8,7 +8,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
-    NUMBA_CACHE_DIR=/tmp/numba-cache
+    NUMBA_CACHE_DIR=/tmp/numba-cache \
+    WALLCULL_STATE=/var/lib/wallcull
 
 WORKDIR /app
 
@@ -23,11 +24,15 @@ COPY wallcull ./wallcull
 COPY examples ./examples
 RUN pip install --no-deps . \
  && useradd --create-home --uid 10001 wallcull \
- && mkdir -p /tmp/numba-cache && chown wallcull /tmp/numba-cache
+ && mkdir -p /tmp/numba-cache /var/lib/wallcull \
+ && chown wallcull /tmp/numba-cache /var/lib/wallcull
 USER wallcull
+# walls (SQLite), credentials' digests, frame numbers and uploads: kept across restarts
+VOLUME ["/var/lib/wallcull"]
 
 EXPOSE 8000
 HEALTHCHECK --interval=5s --timeout=4s --start-period=60s --retries=20 \
     CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/health', timeout=3)"]
-# The token comes from the environment: WALLCULL_TOKEN (read by `wallcull serve`).
+# The token comes from the environment: WALLCULL_TOKEN (read by `wallcull serve`); so do
+# WALLCULL_STATE, WALLCULL_CORS_ORIGINS and WALLCULL_LIMITS.
 CMD ["wallcull", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -202,7 +202,8 @@ def test_compose_commands_run_on_loopback(tmp_path):
     """server (until healthy, by its own health check), then nodes, then the driver: 60 frames
     of the default 4 x 4 wall with the barrier, every frame acknowledged by every tile."""
     port = free_port()
-    env = {**ENV, "WALLCULL_FRAMES": "60", "WALLCULL_IDLE_TIMEOUT": "3"}
+    env = {**ENV, "WALLCULL_FRAMES": "60", "WALLCULL_IDLE_TIMEOUT": "3",
+           "WALLCULL_STATE_DIR": str(tmp_path / "state")}
     proc_env = lambda service: {**os.environ, **environment(service, env)}  # noqa: E731
     health = SERVICES["server"]["healthcheck"]["test"][1:]
     health = run_python(on_loopback([a.replace(":8000/", f":{port}/") for a in health], port))

@@ -214,11 +214,13 @@ def test_full_size_arithmetic_matches_the_server(server):
         for tile in range(info["tiles"]):
             client = TileClient(server, info["id"], tile, scene, mode="pull", token=TOKEN)
             async with Connection(server, TOKEN) as conn:
-                base = await conn.request("GET", f"/walls/{info['id']}/tiles/{tile}/packets/3")
+                base = await conn.request("GET", f"/walls/{info['id']}/tiles/{tile}/packets/3",
+                                          auth=True)
                 await client.receive(base.data(), len(base.body), 0.0)  # acks frame 3
-                delta = await conn.request("GET", f"/walls/{info['id']}/tiles/{tile}/packets/11")
+                delta = await conn.request("GET", f"/walls/{info['id']}/tiles/{tile}/packets/11",
+                                           auth=True)
                 full = await conn.request(
-                    "GET", f"/walls/{info['id']}/tiles/{tile}/packets/11?full=1")
+                    "GET", f"/walls/{info['id']}/tiles/{tile}/packets/11?full=1", auth=True)
             assert delta.data()["base"] == 3 and full.data()["base"] is None
             await client.receive(delta.data(), len(delta.body), 0.0)
             assert client.stats.full_bytes[-1] == len(full.body)
@@ -243,9 +245,9 @@ def test_node_repairs_a_missing_base_with_a_full_list(server):
         await client.run(until=2, start=2)  # full packet of frame 2, acked
         client.lists.clear()  # forget it
         await client.run(until=5, start=5)  # frame 5 comes as a delta against 2
-        async with Connection(server) as conn:
+        async with Connection(server, TOKEN) as conn:
             truth = (await conn.call("GET", f"/walls/{info['id']}/tiles/{tile}/packets/5"
-                                            "?full=1"))["visible"]
+                                            "?full=1", auth=True))["visible"]
             acked = await conn.call("GET", f"/walls/{info['id']}/barrier/5?timeout=0")
         assert client.stats.base_misses == 1 and client.stats.repairs == 1
         assert client.stats.frame == [2, 5] and client.stats.full == [True, True]

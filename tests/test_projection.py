@@ -304,7 +304,9 @@ def oblique_cases(draw):
     m = infinite_frustum(*e[:5]) if infinite else frustum(*e)
     l, r, b, t, n, f = e
     # a plane through a point inside the frustum, camera on its negative side
-    s = draw(st.floats(1.2, 0.8 * f / n if not infinite else 50.0))
+    deepest = 0.8 * f / n if not infinite else 50.0
+    assume(deepest > 1.25)  # room for a point past the near plane
+    s = draw(st.floats(1.2, deepest))
     u, v = draw(st.floats(0.05, 0.95)), draw(st.floats(0.05, 0.95))
     point = np.array([(l + u * (r - l)) * s, (b + v * (t - b)) * s, -n * s])
     normal = np.array([draw(st.floats(-1, 1)), draw(st.floats(-1, 1)), -1.0])

@@ -3,7 +3,8 @@
     wallcull cull SCENE --wall WALL.json --frame FRAME.json [--method M] [--bounds B] [--leaves] [--json]
     wallcull bench SCENE --wall WALL.json [--frames N] [--methods a,b] [--json]
     wallcull walk SCENE [--wall WALL.json]      # the README's main job: a walkthrough, per tile
-    wallcull serve [--host 127.0.0.1] [--port 8000] [--scenes DIR]
+    wallcull serve [--host 127.0.0.1] [--port 8000] [--scenes DIR] [--token T] [--state DIR]
+                   [--cors-origin ORIGIN ...] [--limit NAME=VALUE ...]
     wallcull scenes
 """
 
@@ -212,10 +213,20 @@ def describe_wall(wall) -> str:
 
 
 def cmd_serve(args) -> int:
-    from .server import serve
+    from .server import serve, settings_from_env
 
-    token = args.token or os.environ.get("WALLCULL_TOKEN") or None
-    serve(args.host, args.port, args.scenes, token, args.log_level)
+    settings = settings_from_env()
+    if args.scenes:
+        settings["scene_folder"] = args.scenes
+    if args.token:
+        settings["token"] = args.token
+    if args.state:
+        settings["state"] = None if args.state.lower() == "none" else args.state
+    if args.cors_origin:
+        settings["origins"] = tuple(args.cors_origin)
+    for text in args.limit:
+        settings["limits"] = settings["limits"].with_text(text)
+    serve(args.host, args.port, args.log_level, **settings)
     return 0
 
 
@@ -301,8 +312,21 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--host", default="127.0.0.1")
     q.add_argument("--port", type=int, default=8000)
     q.add_argument("--scenes", help="folder of scene files clients may name and upload to")
-    q.add_argument("--token", help="require this bearer token for every request that changes "
-                                   "state (default: $WALLCULL_TOKEN; none: open)")
+    q.add_argument("--token", help="the operator's token: scenes and walls need it, and "
+                                   "frames, packets and acknowledgements need it or the wall's "
+                                   "credentials (default: $WALLCULL_TOKEN; none: no access "
+                                   "control at all)")
+    q.add_argument("--state", metavar="DIR",
+                   help="folder where walls survive restarts and uploads go without --scenes "
+                        "(default: $WALLCULL_STATE, else ~/.local/state/wallcull; 'none': "
+                        "walls in memory only)")
+    q.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
+                   help="a browser origin allowed to call the API and open streams, e.g. "
+                        "https://wall.lab.example (repeatable; '*': any; default: "
+                        "$WALLCULL_CORS_ORIGINS)")
+    q.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
+                   help="change a limit, e.g. upload=16M or streams_per_tile=2 (repeatable; "
+                        "see README; default: $WALLCULL_LIMITS)")
     q.add_argument("--log-level", default="info")
     q.set_defaults(func=cmd_serve)
 

@@ -453,7 +453,7 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
             i = ts[tp]
             mm = tm[tp]
             outside = False
-            for p in range(4):
+            for p in range(tile_planes.shape[1]):  # four for a grid, six for screens
                 if mm & (1 << p):
                     s, r = _sr(box, i, planes, tile_planes[tile, p])
                     tests += 1

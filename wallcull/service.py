@@ -2,30 +2,40 @@
 
 No HTTP here: :mod:`wallcull.server` maps routes onto these objects. Everything runs on the
 server's event loop; the culling of a frame (a millisecond or two) runs inline, scene loading
-(seconds) in a worker thread.
+(seconds) in a worker thread, and an upload's parse in a child process
+(:mod:`wallcull.uploads`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import gc
 import hashlib
-import io
+import logging
 import os
 import re
 import secrets
+import tempfile
 import time
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from . import encode, protocol
+from . import credentials, encode, protocol
+from .credentials import Grant
 from .errors import InputError
 from .fit import FitOptions
+from .limits import Limits
+from .persist import StateFolder
 from .pipeline import Session
 from .scene import Scene, load
-from .wall import Frame
+from .uploads import parse_sandboxed, usable
+from .wall import Frame, Wall
+
+log = logging.getLogger("wallcull")
 
 #: File types a scene folder may hold (what ``trimesh`` reads as a scene).
 SCENE_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".stl", ".off", ".3dxml", ".zip", ".dae")
@@ -53,16 +63,20 @@ class Gone(LookupError):
 
 
 class SceneStore:
-    """The bundled scenes plus the files of one folder; scenes load once and stay cached.
+    """The bundled scenes plus the files of one folder; scenes load once and stay cached while
+    a wall uses them or the cache's memory budget (``limits.scene_cache``) has room.
 
     Names resolve only to files directly inside the folder: no separators, no ``..``, and the
     resolved path must still lie in the folder (a symlink pointing out is refused).
     """
 
-    def __init__(self, folder: str | os.PathLike | None = None, max_upload: int = 64 << 20):
+    def __init__(self, folder: str | os.PathLike | None = None, limits: Limits = Limits(),
+                 in_use: Callable[[], set] = set):
         self.folder = Path(folder).resolve() if folder else None
-        self.max_upload = max_upload
-        self.cache: dict[str, Scene] = {}
+        self.limits = limits
+        self.max_upload = limits.upload
+        self.in_use = in_use  # names of the scenes walls use: never evicted
+        self.cache: OrderedDict[str, Scene] = OrderedDict()  # least recently used first
         self.uploaded: dict[str, Scene] = {}  # uploads kept in memory when there is no folder
         self._locks: dict[str, asyncio.Lock] = {}
 
@@ -93,6 +107,7 @@ class SceneStore:
         from wallcull import scenes as bundled
 
         if name in self.cache:
+            self.cache.move_to_end(name)
             return self.cache[name]
         if name in self.uploaded:
             return self.uploaded[name]
@@ -104,12 +119,17 @@ class SceneStore:
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
                 spec = name if name in bundled.BUNDLED else str(self.path(name))
-                self.cache[name] = await asyncio.to_thread(lambda: usable(load(spec)))
-                self.cache[name].name = name
+                scene = await asyncio.to_thread(lambda: settled(usable(load(spec))))
+                scene.name = name
+                self.remember(name, scene)
+                return scene
         return self.cache[name]
 
-    async def upload(self, name: str, data: bytes, replace: bool = False) -> Scene:
-        """Store a GLB: checked, parsed (nothing in it is executed), then saved atomically."""
+    # ------------------------------------------------------------------ uploads
+
+    def upload_name(self, name: str, replace: bool = False) -> str:
+        """The file name an upload called ``name`` gets, refused before its body is read when it
+        is not a plain name, is a bundled scene's, or exists and ``replace`` is false."""
         from wallcull import scenes as bundled
 
         if not name.lower().endswith(".glb"):
@@ -118,74 +138,102 @@ class SceneStore:
             raise InputError(f"invalid scene name {name!r}: letters, digits, '_', '-', '.' only")
         if name in bundled.BUNDLED:
             raise Conflict(f"{name!r} is a bundled scene")
-        if len(data) > self.max_upload:
-            raise InputError(f"upload of {len(data)} bytes exceeds {self.max_upload}")
-        if data[:4] != b"glTF":
-            raise InputError("an upload must be a binary glTF (.glb) file")
         exists = name in self.uploaded or (self.folder and (self.folder / name).exists())
         if exists and not replace:
             raise Conflict(f"scene {name!r} exists; pass replace=true to overwrite it")
-        scene = await asyncio.to_thread(_parse_glb, data, name)
+        return name
+
+    def spool(self):
+        """A temporary file for an upload's body, beside its destination (so that moving it
+        into the folder is atomic), or in the system's temporary folder without one."""
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
-            tmp = self.folder / f".{name}.{secrets.token_hex(4)}.tmp"
-            tmp.write_bytes(data)
-            os.replace(tmp, self.folder / name)
+        return tempfile.NamedTemporaryFile(prefix=".upload.", suffix=".tmp", delete=False,
+                                           dir=self.folder)
+
+    async def upload(self, name: str, path: Path) -> Scene:
+        """Store the GLB at ``path`` (an upload's spooled body, see :meth:`spool`) as scene
+        ``name`` (from :meth:`upload_name`): checked and parsed in a sandbox
+        (:mod:`wallcull.uploads`), then moved into the folder atomically."""
+        scene = await asyncio.to_thread(lambda: settled(parse_sandboxed(path, name,
+                                                                        self.limits)))
+        if self.folder is not None:
+            os.replace(path, self.folder / name)
         else:
             self.uploaded[name] = scene
-        self.cache[name] = scene
+        self.remember(name, scene)
         return scene
 
+    # ------------------------------------------------------------------ the memory budget
 
-def _parse_glb(data: bytes, name: str) -> Scene:
-    import trimesh
+    def remember(self, name: str, scene: Scene) -> None:
+        """Cache ``scene``, then evict what the budget no longer has room for (never
+        ``scene`` itself: whoever loaded it is about to use it)."""
+        self.cache[name] = scene
+        self.cache.move_to_end(name)
+        self.evict(keep=name)
 
-    try:
-        loaded = trimesh.load(io.BytesIO(data), file_type="glb")
-    except Exception as exc:  # noqa: BLE001 - a parser failure is bad input
-        raise InputError(f"cannot read the uploaded GLB: {exc}") from None
-    if not isinstance(loaded, trimesh.Scene):
-        loaded = trimesh.Scene(loaded)
-    if not loaded.geometry:
-        raise InputError("the uploaded GLB has no geometry")
-    try:
-        with np.errstate(all="ignore"):  # odd files overflow on their way to being refused
-            return usable(Scene.from_trimesh(loaded, name=name))
-    except InputError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - whatever an odd file trips is bad input
-        raise InputError(f"cannot use the uploaded GLB: {type(exc).__name__}: {exc}") from None
-
-
-def usable(scene: Scene) -> Scene:
-    """``scene``, once it is known to have leaves and finite bounds (computed here, in the
-    loading thread, rather than by the first wall): a file can be well formed and still carry
-    no drawable node, NaN vertices or transforms that overflow."""
-    if not len(scene.leaves):
-        raise InputError(f"scene {scene.name!r} has no node that carries geometry")
-    if not np.isfinite(scene.leaf_points[0]).all():
-        raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
-    try:
-        b = scene.bounds("obb")
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-        raise InputError(f"scene {scene.name!r} cannot be bounded: {exc}") from None
-    if not all(np.isfinite(a).all() for a in (b.center, b.axes, b.half, b.radius)):
-        raise InputError(f"scene {scene.name!r} is too large to bound in float64")
-    return scene
+    def evict(self, keep: str | None = None) -> list[str]:
+        """Drop the least recently used scenes that no wall uses (and that can be loaded again)
+        until the cache fits ``limits.scene_cache``; returns their names."""
+        sizes = {name: footprint(scene) for name, scene in self.cache.items()}
+        total, used, dropped = sum(sizes.values()), self.in_use(), []
+        for name in list(self.cache):
+            if total <= self.limits.scene_cache:
+                break
+            if name in used or name in self.uploaded or name == keep:
+                continue
+            total -= sizes[name]
+            del self.cache[name]
+            dropped.append(name)
+        return dropped
 
 
-def describe(scene: Scene, nodes: bool = True) -> dict:
-    """A scene's shape: stats, bounds, settings and (optionally) every node."""
+def settled(obj=None):
+    """``obj``, after moving every object alive now out of the garbage collector's sight
+    (``gc.freeze``). A server holds scenes of hundreds of thousands of objects for days; a
+    full collection walks them all, holding the GIL for 50-100 ms, and any request that
+    allocates a lot (a 1 MiB JSON body) can set one off mid-parse, stalling the event loop.
+    Frozen objects are still freed by reference counting when nothing refers to them any more;
+    only a cycle among objects alive at a freeze (requests in flight while a scene loads, a
+    few kilobytes) is never collected. Costs one full collection (50-100 ms) per scene load."""
+    gc.collect()
+    gc.freeze()
+    return obj
+
+
+def footprint(obj, _depth: int = 0) -> int:
+    """Bytes of the arrays, byte strings and text an object holds, through its attributes,
+    dicts, lists and tuples (an estimate of what evicting it frees; small objects count 0)."""
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if isinstance(obj, (bytes, bytearray, str)):
+        return len(obj)
+    if _depth > 6:
+        return 0
+    if isinstance(obj, dict):
+        return sum(footprint(k, _depth + 1) + footprint(v, _depth + 1) for k, v in obj.items())
+    if isinstance(obj, (list, tuple)):
+        if obj and isinstance(obj[0], (int, float)):
+            return 8 * len(obj)
+        return sum(footprint(v, _depth + 1) for v in obj)
+    if hasattr(obj, "__dict__"):
+        return footprint(vars(obj), _depth + 1)
+    return 0
+
+
+def describe(scene: Scene, nodes: bool = True, arrays: bool = False) -> dict:
+    """A scene's shape: stats, bounds, settings and (optionally) every node. ``arrays``: the
+    per-node columns stay numpy arrays (for an encoder that turns them into lists a piece at
+    a time: a 100,000-node scene is 2.3 million numbers)."""
     pts = scene.leaf_points[0]
     out = {"name": scene.name, "stats": scene.stats, "settings": scene.settings,
            "bounds": {"min": pts.min(0).tolist(), "max": pts.max(0).tolist()}}
     if nodes:
-        out["nodes"] = {
-            "name": list(scene.names), "parent": scene.parent.tolist(),
-            "leaf": scene.is_leaf.tolist(), "synthetic": scene.synthetic.tolist(),
-            "mesh": scene.geometry,
-            "world": scene.world.reshape(len(scene), 16).tolist(),
-        }
+        columns = {"parent": scene.parent, "leaf": scene.is_leaf, "synthetic": scene.synthetic,
+                   "world": scene.world.reshape(len(scene), 16)}
+        out["nodes"] = {"name": scene.names, "mesh": scene.geometry, **{
+            k: v if arrays else v.tolist() for k, v in columns.items()}}
     return out
 
 
@@ -227,9 +275,17 @@ class WallSession:
     acks: np.ndarray = None  # per tile, last acknowledged frame (-1: none)
     subscribers: int = 0
     closed: bool = False
+    #: the newest frame number handed out before a restart: numbers continue after it
+    floor: int = -1
+    #: called with every frame's number before the frame is published (in the frame's thread):
+    #: the state folder writes it down, so that a restart never reuses a number
+    on_number: Callable[[int], None] | None = None
+    streams: Counter = field(default_factory=Counter)  # open streams per tile
+    digests: set = field(default_factory=set)  # of its credentials
+    credentials: dict | None = None  # as issued, to be shown once (never kept on disk)
+    gone: asyncio.Event = field(default_factory=asyncio.Event)  # set when it is deleted
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
     _new_ack: asyncio.Event = field(default_factory=asyncio.Event)
-    _tile_acked: dict = field(default_factory=dict)  # tile -> Event its next ack sets
     _frame_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     _ever_moved: np.ndarray = None
 
@@ -247,14 +303,20 @@ class WallSession:
 
     @property
     def latest(self) -> int:
+        """The newest frame held (-1: none since the server started)."""
         return self.history.latest
+
+    @property
+    def newest(self) -> int:
+        """The newest frame number handed out, before a restart too."""
+        return max(self.history.latest, self.floor)
 
     def info(self) -> dict:
         s = self.session
         return {"id": self.id, "scene": self.scene.name, "wall": self.wall.to_dict(),
                 "tiles": self.wall.tiles, "method": s.method, "bounds": s.state.kind,
                 "pseudo_groups": s.culler.pseudo_groups, "shadow_fit": s.fit_options.shadow_fit,
-                "settings": s.raw_settings, "latest": self.latest,
+                "settings": s.raw_settings, "latest": self.newest,
                 "history": self.history.size, "subscribers": self.subscribers}
 
     def check_tile(self, tile: int) -> None:
@@ -268,9 +330,9 @@ class WallSession:
         (ms). Touches no asyncio object, so it may run in a worker thread; one at a time."""
         posted, t0 = time.time(), time.perf_counter()
         if number is None:
-            number = self.latest + 1
-        elif number <= self.latest:
-            raise Conflict(f"frame {number} is out of order: frame {self.latest} is already in")
+            number = self.newest + 1
+        elif number <= self.newest:
+            raise Conflict(f"frame {number} is out of order: frame {self.newest} is already in")
         # Validate the whole request before anything moves: a refused frame changes nothing.
         frame = Frame.from_dict(frame, self.wall)
         changed = np.zeros(0, dtype=np.int64)
@@ -285,6 +347,8 @@ class WallSession:
         posed = self._ever_moved
         record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed, posed,
                                       self.session.state.world[posed])
+        if self.on_number is not None:
+            self.on_number(number)
         return record, {"update_ms": (t1 - t0) * 1e3, **result.timings,
                         "total_ms": (time.perf_counter() - t0) * 1e3}
 
@@ -347,7 +411,7 @@ class WallSession:
     def close(self) -> None:
         """Wake everyone waiting on this wall: it is being deleted."""
         self.closed = True
-        for event in (self._new_frame, self._new_ack, *self._tile_acked.values()):
+        for event in (self._new_frame, self._new_ack, self.gone):
             event.set()
 
     def _base(self, tile: int, number: int, full: bool, since: int) -> int | None:
@@ -396,16 +460,6 @@ class WallSession:
             self.acks[tile] = number
             old, self._new_ack = self._new_ack, asyncio.Event()
             old.set()
-            waiter = self._tile_acked.pop(tile, None)
-            if waiter is not None:
-                waiter.set()
-
-    async def wait_acked(self, tile: int, number: int, timeout: float) -> bool:
-        """Wait until ``tile`` has acknowledged frame ``number`` or a later one (a stream's
-        flow control); False on timeout."""
-        return await self._wait(lambda: self.acks[tile] >= number,
-                                lambda: self._tile_acked.setdefault(tile, asyncio.Event()),
-                                timeout)
 
     def barrier_state(self, number: int) -> dict:
         acked = int((self.acks >= number).sum())
@@ -419,26 +473,93 @@ class WallSession:
         return self.barrier_state(number)
 
 
-class Walls:
-    """The wall sessions of a server, by id, with a cap on how many exist at once."""
+def spec_of(session: WallSession) -> dict:
+    """What a restart needs to make ``session`` again (the state folder keeps it as JSON)."""
+    s = session.session
+    fit = s.fit_options or FitOptions()
+    return {"wall": session.wall.to_dict(), "scene": session.scene.name, "method": s.method,
+            "bounds": s.state.kind, "pseudo_groups": s.culler.pseudo_groups,
+            "history": session.history.size, "depth": fit.depth, "reversed_z": fit.reversed_z,
+            "shadow_fit": fit.shadow_fit, "settings": s.raw_settings}
 
-    def __init__(self, limit: int = 32):
+
+class Walls:
+    """The wall sessions of a server, by id, with a cap on how many exist at once, the grants
+    of their credentials, and (with a state folder) what a restart needs to bring them back."""
+
+    def __init__(self, limit: int = 32, state: StateFolder | None = None):
         self.limit = limit
+        self.state = state
         self.sessions: dict[str, WallSession] = {}
+        self.grants: dict[str, Grant] = {}  # credential digest -> what it holds, every wall's
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
-               history: int, fit: FitOptions = FitOptions(),
+               history: int, fit: FitOptions = FitOptions(), nodes=None,
                settings: Mapping[str, Any] | None = None) -> WallSession:
+        """A new wall, with its credentials in ``.credentials``, to be shown this once:
+        ``{"driver": token, "nodes": [{"tiles", "token"}, ...]}`` (``nodes`` groups tiles
+        under one node credential; by default a node per tile). ``settings``: lights and
+        mirrors for this wall instead of the scene's own. With a state folder, the wall is
+        written down before it is returned."""
         if len(self.sessions) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
+        wid = secrets.token_hex(6)
+        session = self._session(wid, scene, wall, method, bounds, pseudo_groups, history, fit,
+                                settings)
+        session.credentials, grants = credentials.issue(wid, wall.tiles, nodes)
+        if self.state is not None:
+            self.state.add_wall(wid, session.created, spec_of(session), grants)
+        self._add(session, grants)
+        return session
+
+    @staticmethod
+    def _session(wid: str, scene: Scene, wall, method: str, bounds: str,
+                 pseudo_groups: bool, history: int, fit: FitOptions,
+                 settings: Mapping[str, Any] | None = None) -> WallSession:
         if history * wall.tiles > MAX_TILE_FRAMES:
             raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
                              f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
                              f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
         session = Session(scene, wall, method, bounds, pseudo_groups, fit, settings)
-        wid = secrets.token_hex(6)
-        self.sessions[wid] = WallSession(wid, session, protocol.History(history))
-        return self.sessions[wid]
+        return WallSession(wid, session, protocol.History(history))
+
+    def _add(self, session: WallSession, grants: dict[str, Grant]) -> None:
+        if self.state is not None:
+            state, wid = self.state, session.id
+            session.on_number = lambda number: state.set_last_frame(wid, number)
+        session.digests = set(grants)
+        self.grants.update(grants)
+        self.sessions[session.id] = session
+
+    async def restore(self, store: SceneStore) -> list[str]:
+        """Bring back the walls of the state folder, under their ids, with their credentials,
+        numbering frames after the last one handed out. A wall whose scene cannot be loaded
+        any more is dropped, with a warning. Returns the ids restored."""
+        if self.state is None:
+            return []
+        out = []
+        for row in self.state.walls():
+            try:
+                spec = row.spec
+                scene = await store.get(spec["scene"])
+                fit = FitOptions(spec["depth"], spec["reversed_z"],
+                                 spec.get("shadow_fit", "refined"))
+                session = self._session(row.id, scene, Wall.from_dict(spec["wall"]),
+                                        spec["method"], spec["bounds"], spec["pseudo_groups"],
+                                        spec["history"], fit, spec.get("settings"))
+            except (InputError, NotFound, KeyError, ValueError) as exc:
+                log.warning("wall %s cannot be restored and is dropped: %s", row.id, exc)
+                self.state.remove_wall(row.id)
+                continue
+            session.created, session.floor = row.created, row.last_frame
+            self._add(session, row.grants)
+            out.append(row.id)
+        return out
+
+    def grant(self, token: str) -> Grant | None:
+        """What an issued credential holds, or None."""
+        found = self.grants.get(credentials.digest(token))
+        return found if found is not None and found.wall in self.sessions else None
 
     def get(self, wid: str) -> WallSession:
         try:
@@ -447,5 +568,14 @@ class Walls:
             raise NotFound(f"no wall {wid!r}") from None
 
     def delete(self, wid: str) -> None:
-        self.get(wid)
+        session = self.get(wid)
+        session.close()
         del self.sessions[wid]
+        for d in session.digests:
+            self.grants.pop(d, None)
+        if self.state is not None:
+            self.state.remove_wall(wid)
+
+    def scene_names(self) -> set[str]:
+        """The scenes walls use (the scene cache keeps them)."""
+        return {w.scene.name for w in self.sessions.values()}

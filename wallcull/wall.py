@@ -44,6 +44,9 @@ class Wall:
     far: float
     resolution: tuple[int, int]
     given_as_screens: bool = False  # SPEC 2b's form of this grid: tiles have no row and col
+    #: A grid given as screens: its tiles' edges as given (x0s, x1s of the columns, y0s, y1s
+    #: of the rows), so that every plane and matrix comes from the corners themselves.
+    edges: tuple | None = None
     kind = "grid"
 
     @classmethod
@@ -128,15 +131,15 @@ class Wall:
                 and (bl[:, 1] == np.repeat(y0, cols)).all()
                 and (tl[:, 1] == np.repeat(y1, cols)).all()):
             return None
-        columns = _grid_axis(x0, x1, True)
-        lines = _grid_axis(y1, y0, False)
+        columns, lines = _grid_axis(x0, x1), _grid_axis(-y1, -y0)
         if columns is None or lines is None:
             return None
         (w, gx), (h, gy) = columns, lines
         res = screens.resolutions[0]
+        edges = tuple(tuple(map(float, e)) for e in (x0, x1, y0, y1))
         try:
             return cls(cols, rows, (w, h), (gx, gy), float(-z[0, 0]), screens.near, screens.far,
-                       (int(res[0]), int(res[1])), given_as_screens=True)
+                       (int(res[0]), int(res[1])), given_as_screens=True, edges=edges)
         except (ValueError, TypeError):
             return None
 
@@ -168,12 +171,17 @@ class Wall:
     @property
     def size(self) -> tuple[float, float]:
         """Total width and height ``(W, H)`` of the wall, meters."""
+        if self.edges is not None:
+            x0, x1, y0, y1 = self.edges
+            return x1[-1] - x0[0], y1[0] - y0[-1]
         (w, h), (gx, gy) = self.tile_size, self.gap
         return self.cols * w + (self.cols - 1) * gx, self.rows * h + (self.rows - 1) * gy
 
     @cached_property
     def col_edges(self) -> np.ndarray:
         """``(cols, 2)``: ``x0, x1`` of each column's visible area, display space."""
+        if self.edges is not None:
+            return np.array(self.edges[:2]).T
         w, gx = self.tile_size[0], self.gap[0]
         x0 = -self.size[0] / 2 + np.arange(self.cols) * (w + gx)
         return np.stack([x0, x0 + w], axis=1)
@@ -181,6 +189,8 @@ class Wall:
     @cached_property
     def row_edges(self) -> np.ndarray:
         """``(rows, 2)``: ``y0, y1`` of each row's visible area; row 0 is the top row."""
+        if self.edges is not None:
+            return np.array(self.edges[2:]).T
         h, gy = self.tile_size[1], self.gap[1]
         y1 = self.size[1] / 2 - np.arange(self.rows) * (h + gy)
         return np.stack([y1 - h, y1], axis=1)
@@ -204,38 +214,23 @@ class Wall:
         return FrustumHierarchy.build(self)
 
 
-def _grid_axis(first: np.ndarray, second: np.ndarray, columns: bool
-               ) -> tuple[float, float] | None:
-    """``(size, gap)`` with which :class:`Wall`'s formulas place the tiles of one axis exactly:
-    columns (``first`` left edges, ``second`` right edges: ``x0 = -W/2 + c (w + g)``,
-    ``x1 = x0 + w``) or rows from the top (``first`` top edges, ``second`` bottom edges:
-    ``y1 = H/2 - r (h + g)``, ``y0 = y1 - h``); None if none does. The size and gap read off
-    the corners may be an ulp from the ones that made them, so the floats around are tried."""
-    n = len(first)
-    size = abs(float(second[0] - first[0]))
-    total = 2 * abs(float(first[0]))  # the outer edge is at -total/2 (or +total/2): exact
-
-    def around(v, steps):
-        out, lo, hi = [v], v, v
-        for _ in range(steps):
-            lo, hi = np.nextafter(lo, -np.inf), np.nextafter(hi, np.inf)
-            out += [lo, hi]
-        return out
-
-    for a in around(size, 3):
-        # the gap that makes the extent come out: small against the tile, so search wider
-        gaps = around((total - n * a) / (n - 1), 64) if n > 1 else [0.0]
-        for g in gaps:
-            extent = n * a + (n - 1) * g
-            if columns:
-                lo = -extent / 2 + np.arange(n) * (a + g)
-                ok = np.array_equal(lo, first) and np.array_equal(lo + a, second)
-            else:
-                top = extent / 2 - np.arange(n) * (a + g)
-                ok = np.array_equal(top, first) and np.array_equal(top - a, second)
-            if ok and a > 0:
-                return float(a), float(g)
-    return None
+def _grid_axis(lo: np.ndarray, hi: np.ndarray) -> tuple[float, float] | None:
+    """``(size, gap)`` of one axis of a grid whose tiles span ``lo[i]..hi[i]`` in order, or
+    None if they are not a grid's: alike in size and spacing, centred on the display origin
+    (within 1e-9 of the wall's extent: corners read from a file are rounded). Gaps that
+    small are none (neighbours then share their split planes, as a grid's do); others must
+    not change sign (bezels, or overlap)."""
+    extent = float(hi[-1] - lo[0])
+    tol = 1e-9 * max(extent, abs(float(lo[0])), abs(float(hi[-1])))
+    sizes, gaps = hi - lo, lo[1:] - hi[:-1]
+    size = float(sizes.mean())
+    if np.ptp(sizes) > tol or abs(lo[0] + hi[-1]) > tol or size <= 0:
+        return None
+    if not len(gaps) or (np.abs(gaps) <= tol).all():
+        return size, 0.0
+    if np.ptp(gaps) > tol or not ((gaps > 0).all() or (gaps < 0).all()):
+        return None
+    return size, float(gaps.mean())
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:

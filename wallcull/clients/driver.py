@@ -10,8 +10,13 @@ earlier than ``t0 + k / rate``); a driver that falls behind posts at once rather
 The camera follows :func:`wallcull.paths.camera_path` around the scene's bounds (from
 ``GET /scenes/{name}``), one loop every ``path_frames`` frames.
 
+Every request is retried with backoff while the server is away (:mod:`.retry`); the driver
+fails with a message and a non-zero status when the server stays away longer than
+``--retry-for`` seconds or refuses a request for good.
+
     python -m wallcull.clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
-        --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly]
+        --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly] \\
+        [--credentials-out credentials.json]
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from wallcull.paths import PATHS, camera_path
 from wallcull.wall import Wall
 
 from .rawhttp import Connection, HTTPError, run
+from .retry import Backoff, ClientFailure, retrying
 
 PATH_FRAMES = 600  # one loop of the walkthrough: 10 s at 60 frames/s
 
@@ -65,12 +71,27 @@ def path_frames(kind: str, lo, hi, wall: dict, count: int, loop: int = PATH_FRAM
 
 
 class Driver:
-    """Posts frames to one wall of a server (see the module docstring)."""
+    """Posts frames to one wall of a server (see the module docstring). Every request is
+    retried with backoff while the server is away (a restart), for up to ``retry_for``
+    seconds; the server numbers frames on after the last one it handed out, so frames stay
+    in order across a restart (one whose answer was lost is posted again, as a new frame)."""
 
-    def __init__(self, server: str, token: str | None = None, timeout: float = 30.0):
+    def __init__(self, server: str, token: str | None = None, timeout: float = 30.0,
+                 retry_for: float = 60.0):
         self.server = server.rstrip("/")
         self.conn = Connection(server, token, timeout)
         self.log = FrameLog()
+        self.backoff = Backoff(retry_for)
+
+    @property
+    def retries(self) -> int:
+        """Requests sent again because the server was away."""
+        return self.backoff.total
+
+    async def call(self, method: str, target: str, payload=None, **kwargs):
+        """``Connection.call``, retried (see the class docstring)."""
+        return await retrying(lambda: self.conn.call(method, target, payload, **kwargs),
+                              self.backoff, f"{method} {target}")
 
     async def close(self) -> None:
         await self.conn.close()
@@ -84,21 +105,22 @@ class Driver:
     async def create_wall(self, scene: str, wall: dict, method: str = "adaptive",
                           bounds: str = "obb", history: int = 64, settings: dict | None = None,
                           shadow_fit: str = "refined") -> dict:
-        """``POST /walls``; returns the wall's info (``id``, ``tiles``, ...). ``settings``:
-        lights and mirrors for this wall instead of the scene's own."""
+        """``POST /walls``; returns the wall's info (``id``, ``tiles``, ...) and its
+        ``credentials`` (the driver's and one per node, shown this once). ``settings``: lights
+        and mirrors for this wall instead of the scene's own."""
         body = {"wall": wall, "scene": scene, "method": method, "bounds": bounds,
                 "history": history, "shadow_fit": shadow_fit}
         if settings is not None:
             body["settings"] = settings
-        return await self.conn.call("POST", "/walls", body, auth=True)
+        return await self.call("POST", "/walls", body, auth=True)
 
     async def wall_info(self, wid: str) -> dict:
-        return await self.conn.call("GET", f"/walls/{wid}")
+        return await self.call("GET", f"/walls/{wid}")
 
     async def frames(self, scene: str, wall: dict, kind: str, count: int,
                      loop: int = PATH_FRAMES) -> list[dict]:
         """The walkthrough's frames around the scene's bounds, as the server reports them."""
-        info = await self.conn.call("GET", f"/scenes/{quote(scene, safe='')}")
+        info = await self.call("GET", f"/scenes/{quote(scene, safe='')}")
         return path_frames(kind, info["bounds"]["min"], info["bounds"]["max"], wall, count,
                            loop, info.get("settings", {}).get("up", (0.0, 1.0, 0.0)))
 
@@ -112,11 +134,11 @@ class Driver:
             await asyncio.sleep(0.1)
 
     async def post(self, wid: str, frame: dict) -> dict:
-        return await self.conn.call("POST", f"/walls/{wid}/frames", {"frame": frame},
-                                    auth=True, body_format="msgpack")
+        return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame}, auth=True,
+                               body_format="msgpack")
 
     async def barrier(self, wid: str, number: int, timeout: float) -> dict:
-        return await self.conn.call("GET", f"/walls/{wid}/barrier/{number}?timeout={timeout:g}")
+        return await self.call("GET", f"/walls/{wid}/barrier/{number}?timeout={timeout:g}")
 
     async def run(self, wid: str, frames: list[dict], rate: float = 60.0, barrier: bool = False,
                   barrier_timeout: float = 1.0, on_event: Callable | None = None,
@@ -216,7 +238,13 @@ def parser() -> argparse.ArgumentParser:
                         "the wall (WebSocket nodes; pulling nodes need no wait)")
     p.add_argument("--wait-timeout", type=float, default=60.0)
     p.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
-                   help="the server's token (default: $WALLCULL_TOKEN)")
+                   help="the server's (operator's) token, or with --wall-id the wall's driver "
+                        "credential (default: $WALLCULL_TOKEN)")
+    p.add_argument("--credentials-out", metavar="FILE",
+                   help="write the created wall's credentials here (mode 0600) for the nodes "
+                        "(python -m wallcull.clients.sim --credentials FILE)")
+    p.add_argument("--retry-for", type=float, default=60.0, metavar="SECONDS",
+                   help="how long to keep retrying a lost server before failing")
     p.add_argument("--out", help="write the per-frame log to this JSON file")
     p.add_argument("--delete", action="store_true", help="delete the wall when done")
     return p
@@ -241,12 +269,15 @@ async def _main(args) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
     await _wait_server(args.server, args.wait_timeout)
-    async with Driver(args.server, args.token) as driver:
+    async with Driver(args.server, args.token, retry_for=args.retry_for) as driver:
         if args.wall_id:
             info = await driver.wall_info(args.wall_id)
         else:
             info = await driver.create_wall(args.scene, read_wall(args.wall), args.method,
                                             args.bounds, args.history)
+            if args.credentials_out:
+                write_private(args.credentials_out, {"wall": info["id"],
+                                                     "credentials": info["credentials"]})
         wid = info["id"]
         print(json.dumps({"wall": wid, "tiles": info["tiles"], "scene": info["scene"]}),
               flush=True)
@@ -258,16 +289,23 @@ async def _main(args) -> int:
             print(json.dumps({"subscribers": n}), flush=True)
         log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
                                stop=stop)
-        result = {"wall": wid, "summary": summary(log)}
+        result = {"wall": wid, "summary": {**summary(log), "retries": driver.retries}}
         if args.out:
             tmp = f"{args.out}.tmp"
             with open(tmp, "w") as f:
                 json.dump({**result, "log": log.to_dict(), "cpu_seconds": time.process_time()}, f)
             os.replace(tmp, args.out)
         if args.delete:
-            await driver.conn.call("DELETE", f"/walls/{wid}", auth=True)
+            await driver.call("DELETE", f"/walls/{wid}", auth=True)
         print(json.dumps(result), flush=True)
     return 0
+
+
+def write_private(path: str, data: dict) -> None:
+    """JSON readable by this user only (credentials)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f)
 
 
 def main(argv=None) -> int:
@@ -275,7 +313,7 @@ def main(argv=None) -> int:
     try:
         return run(_main(args))
     except (ConnectionError, OSError, asyncio.TimeoutError, HTTPError, ValueError,
-            InputError) as exc:
+            InputError, ClientFailure) as exc:
         print(f"clients.driver: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -89,14 +89,19 @@ def cpu_seconds(proc) -> float:
 
 
 class Server:
-    """``wallcull serve`` in a subprocess on a free loopback port."""
+    """``wallcull serve`` in a subprocess on a free loopback port, with a state folder of its
+    own (a temporary one unless ``state`` is given) and ``args`` added to its command line."""
 
     def __init__(self, token: str | None = None, port: int | None = None,
-                 log_level: str = "warning"):
+                 log_level: str = "warning", state: str | None = None, args=()):
         self.token = token
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.log_level = log_level
+        self._state = tempfile.TemporaryDirectory(prefix="wallcull-state-") if state is None \
+            else None
+        self.state = state or self._state.name
+        self.args = list(args)
         self.proc = None
         self.log = tempfile.TemporaryFile()
 
@@ -106,7 +111,8 @@ class Server:
         from wallcull.clients.rawhttp import Connection
 
         cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1",
-               "--port", str(self.port), "--log-level", self.log_level]
+               "--port", str(self.port), "--log-level", self.log_level, "--state", self.state,
+               *self.args]
         if self.token:
             cmd += ["--token", self.token]
         self.proc = await asyncio.create_subprocess_exec(*cmd, stdout=self.log, stderr=self.log)
@@ -138,6 +144,8 @@ class Server:
             except asyncio.TimeoutError:
                 self.proc.kill()
                 await self.proc.wait()
+        if self._state is not None:
+            self._state.cleanup()
 
     async def __aenter__(self):
         return await self.start()
@@ -147,15 +155,18 @@ class Server:
 
 
 @contextmanager
-def running_server(token: str | None = None, timeout: float = 120.0, env: dict | None = None):
-    """``wallcull serve`` on a free loopback port for the ``with`` block (no event loop
-    needed, for tests); yields its base URL."""
+def running_server(token: str | None = None, timeout: float = 120.0, env: dict | None = None,
+                   args=()):
+    """``wallcull serve`` on a free loopback port, with a temporary state folder, for the
+    ``with`` block (no event loop needed, for tests); yields its base URL."""
     import subprocess
     import urllib.request
 
     port = free_port()
+    state = tempfile.TemporaryDirectory(prefix="wallcull-state-")
     cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1", "--port",
-           str(port), "--log-level", "warning"] + (["--token", token] if token else [])
+           str(port), "--log-level", "warning", "--state", state.name, *args] + \
+        (["--token", token] if token else [])
     log = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                             env={**os.environ, **(env or {})})
@@ -184,6 +195,7 @@ def running_server(token: str | None = None, timeout: float = 120.0, env: dict |
             proc.kill()
             proc.wait()
         log.close()
+        state.cleanup()
 
 
 async def metrics(url: str) -> dict:
@@ -390,10 +402,14 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
             info = await d.create_wall(scene, wall, method, "obb", history, settings,
                                        shadow_fit)
         wid, tiles = info["id"], info["tiles"]
+        # least privilege, as a lab would run it: each node its own credential, the driver
+        # the wall's driver credential; the operator's token only created the wall
+        credentials = f"{tmp.name}/credentials.json"
+        Path(credentials).write_text(json.dumps(info["credentials"]))
         ranges = split(tiles, clients_procs)
         for k, (a, b) in enumerate(ranges):
             cmd = [sys.executable, "-m", "wallcull.clients.sim", "--server", url, "--wall", wid,
-                   "--tiles", f"{a}-{b}", "--mode", mode, "--token", token,
+                   "--tiles", f"{a}-{b}", "--mode", mode, "--credentials", credentials,
                    "--until-frame", str(frames - 1), "--idle-timeout", "5",
                    "--cache-bytes", str(cache_bytes), "--out", f"{tmp.name}/nodes-{k}.json",
                    "--quiet", "--draw-time", str(draw_time)] + (["--render"] if render else [])
@@ -411,8 +427,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         client_ps = [psutil.Process(p.pid) for p in procs]
         cmd = [sys.executable, "-m", "wallcull.clients.driver", "--server", url, "--wall-id", wid,
                "--rate", str(rate), "--frames", str(frames), "--path", path,
-               "--path-frames", str(path_frames or PATH_FRAMES), "--token", token,
-               "--out", f"{tmp.name}/driver.json"]
+               "--path-frames", str(path_frames or PATH_FRAMES),
+               "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
         if barrier:
             cmd += ["--barrier"]
         cpu0 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
@@ -560,9 +576,11 @@ def machine() -> dict:
 
 
 async def hammer(server: str, targets: list[str], total: int, concurrency: int,
-                 accept: str = "application/msgpack", duration: float | None = None) -> dict:
+                 accept: str = "application/msgpack", duration: float | None = None,
+                 token: str | None = None) -> dict:
     """``total`` GETs (or as many as fit in ``duration`` seconds) over ``concurrency``
-    keep-alive connections, connection ``i`` asking for ``targets[i % len(targets)]``."""
+    keep-alive connections, connection ``i`` asking for ``targets[i % len(targets)]``
+    (with ``token`` as a bearer token: packets need a credential)."""
     from wallcull.clients.rawhttp import Connection
 
     issued = 0
@@ -573,13 +591,13 @@ async def hammer(server: str, targets: list[str], total: int, concurrency: int,
 
     async def worker(i: int):
         nonlocal issued, received
-        conn = Connection(server, timeout=30)
+        conn = Connection(server, token, timeout=30)
         target = targets[i % len(targets)]
         try:
             while issued < total and (stop_at is None or time.perf_counter() < stop_at):
                 issued += 1
                 t = time.perf_counter()
-                r = await conn.request("GET", target, accept=accept)
+                r = await conn.request("GET", target, accept=accept, auth=True)
                 latencies.append(time.perf_counter() - t)
                 statuses[r.status] += 1
                 received += len(r.body)
@@ -628,7 +646,8 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
         t0 = time.monotonic()
         gen = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
                                                    stderr=asyncio.subprocess.PIPE,
-                                                   cwd=str(ROOT))
+                                                   cwd=str(ROOT),
+                                                   env={**os.environ, "WALLCULL_TOKEN": token})
         from rich.console import Console
         from rich.progress import Progress
 
@@ -675,6 +694,8 @@ def _hammer_main(argv=None) -> int:
     p.add_argument("--requests", type=int, default=10000)
     p.add_argument("--concurrency", type=int, default=64)
     p.add_argument("--duration", type=float)
+    p.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
+                   help="a token that may read the packets (default: $WALLCULL_TOKEN)")
     args = p.parse_args(argv)
     try:
         import uvloop
@@ -682,7 +703,7 @@ def _hammer_main(argv=None) -> int:
         uvloop = None
     targets = [f"/walls/{args.wall_id}/tiles/{t}/packets/latest" for t in range(args.tiles)]
     coro = hammer(args.server, targets, args.requests, args.concurrency,
-                  duration=args.duration)
+                  duration=args.duration, token=args.token)
     result = uvloop.run(coro) if uvloop else asyncio.run(coro)
     print(json.dumps(result))
     return 0

@@ -30,9 +30,17 @@ difference is the frame-to-tile latency; both are ``time.time()`` on the same cl
 and server share a host), the bytes received, whether it was full or a delta, and the size the
 same packet would have had as a full list (re-encoded exactly as the server would).
 
+Each node sends its own credential (``--credentials FILE``: the wall's credentials as
+``POST /walls`` answered them; or one ``--token`` for all). When the server goes away (a
+restart) a node reconnects with backoff (:mod:`.retry`) to the same wall, and its new stream
+starts from a full list; it fails with a message and a non-zero status when the server refuses
+it for good (the wall was deleted, the credential is refused) or stays away longer than
+``--reconnect-for`` seconds. It never exits silently.
+
 Run a wall of them::
 
-    python -m wallcull.clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws
+    python -m wallcull.clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws \
+        --credentials credentials.json
 """
 
 from __future__ import annotations
@@ -57,6 +65,7 @@ from wallcull import protocol
 from wallcull.errors import InputError
 
 from .rawhttp import MSGPACK, Connection, HTTPError, run
+from .retry import Backoff, ClientFailure, retrying
 
 try:
     from asyncio import timeout as _timeout  # Python 3.11+
@@ -227,6 +236,8 @@ class TileStats:
     mesh_not_modified: int = 0
     mesh_bytes: int = 0
     acks: int = 0
+    connects: int = 0  # streams opened (or pull loops started); more than one: reconnected
+    acks_lost: int = 0  # acknowledgements the server could not take (it restarted meanwhile)
 
     def to_dict(self) -> dict:
         return {k: v for k, v in self.__dict__.items()}
@@ -280,7 +291,8 @@ class TileClient:
                  mode: str = "ws", token: str | None = None, binary: bool = True,
                  cache_bytes: int = DEFAULT_CACHE, renderer=None, keep: int = KEEP,
                  measure_full: bool = True, wait: float = 5.0, draw_time: float = 0.0,
-                 on_list: Callable | None = None, on_event: Callable | None = None):
+                 on_list: Callable | None = None, on_event: Callable | None = None,
+                 reconnect_for: float = 60.0):
         if mode not in ("ws", "pull"):
             raise ValueError(f"mode must be ws or pull, got {mode!r}")
         self.server, self.wall_id, self.tile, self.scene = server.rstrip("/"), wall_id, tile, scene
@@ -304,6 +316,7 @@ class TileClient:
         self._ws = None
         self._accept = MSGPACK if binary else "application/json"
         self._base = f"/walls/{wall_id}/tiles/{tile}"
+        self.backoff = Backoff(reconnect_for)  # how long a lost server is waited for
 
     # ------------------------------------------------------------------ packets
 
@@ -392,9 +405,12 @@ class TileClient:
 
     async def _repair(self, number: int):
         """A full packet of frame ``number`` over HTTP, or None when it is gone."""
-        r = await self.http.request("GET", f"{self._base}/packets/{number}?full=1&wait=0",
-                                    accept=self._accept)
-        if r.status != 200:
+        try:
+            r = await self.http.request("GET", f"{self._base}/packets/{number}?full=1&wait=0",
+                                        accept=self._accept, auth=True)
+        except (ConnectionError, OSError, asyncio.TimeoutError):
+            r = None  # the server is restarting: the stream will reconnect and start full
+        if r is None or r.status != 200:
             await self._ask_full()
             return None
         return r.data(), len(r.body), time.time()
@@ -434,9 +450,9 @@ class TileClient:
         key = self.scene.keys[number]
         held = self.host.get(key)
         headers = {"if-none-match": held.etag} if held is not None and held.etag else None
-        r = await self.http.request(
+        r = await retrying(lambda: self.http.request(
             "GET", f"/scenes/{quote(self.scene.name, safe='')}/meshes/{quote(key, safe='')}",
-            accept=self._accept, headers=headers)
+            accept=self._accept, headers=headers), self.backoff, f"mesh {key}")
         if r.status == 304 and held is not None:
             self.stats.mesh_not_modified += 1
             mesh = held
@@ -462,7 +478,15 @@ class TileClient:
             await self._ws.send(protocol.encode({"ack": number}, self.binary)
                                 if self.binary else json.dumps({"ack": number}))
         else:
-            await self.http.call("POST", f"{self._base}/ack", {"frame": number}, auth=True)
+            try:
+                await retrying(lambda: self.http.call("POST", f"{self._base}/ack",
+                                                      {"frame": number}, auth=True),
+                               self.backoff, f"acknowledging frame {number}")
+            except HTTPError as exc:
+                if exc.status != 409:
+                    raise
+                self.stats.acks_lost += 1  # a frame from before a restart: nothing to ack
+                return
             if self.on_event is not None:
                 self.on_event("acked", self.tile, number)
         self.stats.acks += 1
@@ -486,6 +510,35 @@ class TileClient:
         return until is not None and self.last_frame >= until
 
     async def _run_ws(self, until, idle_timeout) -> None:
+        """Stream, reconnecting with backoff whenever the stream breaks (a server restart, a
+        closed idle stream); fail with :class:`ClientFailure` when the server refuses the
+        stream for good (wall deleted, credential refused) or stays away too long."""
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
+
+        while True:
+            try:
+                if await self._stream(until, idle_timeout):
+                    return
+                reason = "the stream ended"
+            except ConnectionClosed as exc:
+                code = exc.rcvd.code if exc.rcvd is not None else None
+                if code == 4404:
+                    raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted"
+                                        ) from None
+                reason = f"the stream closed (code {code})"
+            except InvalidStatus as exc:
+                status, body = exc.response.status_code, exc.response.body or b""
+                detail = body.decode(errors="replace")[:300]
+                if status not in (429, 500, 502, 503, 504):
+                    raise ClientFailure(f"tile {self.tile}: the server refused the stream: "
+                                        f"HTTP {status}: {detail}") from None
+                reason = f"HTTP {status}: {detail}"
+            except (OSError, asyncio.TimeoutError, InvalidHandshake) as exc:
+                reason = repr(exc)
+            await self.backoff.wait(f"tile {self.tile}: {reason}")
+
+    async def _stream(self, until, idle_timeout) -> bool:
+        """One stream, until frame ``until`` or ``idle_timeout`` (True: done)."""
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 
@@ -494,8 +547,10 @@ class TileClient:
         if self.token:
             query += f"&token={quote(self.token, safe='')}"
         async with connect(f"{scheme_url}{self._base}/stream?{query}", max_size=None,
-                           compression=None, open_timeout=30) as ws:
+                           compression=None, open_timeout=10) as ws:
             self._ws = ws
+            self.stats.connects += 1
+            self.backoff.reset()
             self.connected.set()
             try:
                 while not self._done(until):
@@ -509,25 +564,36 @@ class TileClient:
                         else:
                             message = await asyncio.wait_for(ws.recv(), timeout)
                     except asyncio.TimeoutError:
-                        return
-                    except ConnectionClosed:
-                        return
+                        return True
                     recv = time.time()
                     data = message if isinstance(message, bytes) else message.encode()
                     pkt = protocol.decode(data, self.binary)
                     await self.receive(pkt, len(data), recv)
+                return True
+            except ConnectionClosed as exc:
+                if exc.rcvd is not None and exc.rcvd.code == 1000 and self._done(until):
+                    return True
+                raise
             finally:
                 self._ws = None
 
     async def _run_pull(self, until, idle_timeout, start) -> None:
         number = None if start == "latest" else int(start)
         self.connected.set()
+        self.stats.connects += 1
         idle_since = time.monotonic()
         while not self._done(until):
             target = "latest" if number is None else str(number)
-            r = await self.http.request(
-                "GET", f"{self._base}/packets/{target}?wait={self.wait:g}", accept=self._accept)
+            try:
+                r = await self.http.request("GET", f"{self._base}/packets/{target}"
+                                                   f"?wait={self.wait:g}", accept=self._accept,
+                                            auth=True)
+            except (ConnectionError, OSError, asyncio.TimeoutError) as exc:
+                await self.backoff.wait(f"tile {self.tile}: GET packet {target}: {exc!r}")
+                idle_since = time.monotonic()
+                continue
             recv = time.time()
+            self.backoff.reset()
             if r.status == 200:
                 pkt = r.data()
                 await self.receive(pkt, len(r.body), recv)
@@ -537,10 +603,11 @@ class TileClient:
                 if (idle_timeout is not None and self.last_frame >= 0
                         and time.monotonic() - idle_since > idle_timeout):
                     return
-            elif r.status == 410:  # fell out of the history: skip to the newest
-                number = None
-            elif r.status == 404:  # the wall is gone
-                return
+            elif r.status in (410, 404) and r.detail().startswith(("frame", "there is no")):
+                number = None  # fell out of the history, or a number never posted: the newest
+            elif r.status in (401, 403, 404):
+                raise ClientFailure(f"tile {self.tile}: GET packet {target}: HTTP {r.status}: "
+                                    f"{r.detail()}")
             else:
                 self.stats.errors.append(f"GET packet {target}: HTTP {r.status}: {r.detail()}")
                 await asyncio.sleep(0.05)
@@ -589,6 +656,14 @@ async def find_wall(server: str, wall: str, timeout: float = 60.0) -> dict:
             await asyncio.sleep(0.2)
 
 
+def node_tokens(path: str) -> dict[int, str]:
+    """Tile -> node credential, from a file holding a wall's credentials (see ``--credentials``)."""
+    with open(path) as f:
+        data = json.load(f)
+    data = data.get("credentials", data)
+    return {t: node["token"] for node in data["nodes"] for t in node["tiles"]}
+
+
 def make_renderers(tiles, wall: dict, size: tuple[int, int] | None):
     from .render import TileRenderer
 
@@ -597,16 +672,19 @@ def make_renderers(tiles, wall: dict, size: tuple[int, int] | None):
 
 
 async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mode: str = "ws",
-                   token: str | None = None, binary: bool = True,
+                   token: str | None = None, tokens: dict[int, str] | None = None,
+                   binary: bool = True,
                    cache_bytes: int = DEFAULT_CACHE, render: bool = False,
                    render_size: tuple[int, int] | None = None, until: int | None = None,
                    idle_timeout: float | None = None, start: int | str = 0,
                    measure_full: bool = True, draw_time: float = 0.0, on_list=None,
                    on_event=None,
                    ready: Callable[[list[TileClient]], None] | None = None,
-                   stop: asyncio.Event | None = None) -> list[TileClient]:
+                   stop: asyncio.Event | None = None,
+                   reconnect_for: float = 60.0) -> list[TileClient]:
     """Run the nodes of ``tiles`` on wall ``wall`` (an id, or ``"auto"``) until they stop
-    (see :meth:`TileClient.run`) or ``stop`` is set; returns the clients with their stats."""
+    (see :meth:`TileClient.run`) or ``stop`` is set; returns the clients with their stats.
+    Each node sends ``tokens[tile]`` (its node credential) when given, else ``token``."""
     info = await find_wall(server, wall)
     ids = parse_tiles(tiles, info["tiles"]) if isinstance(tiles, str) else list(tiles)
     bad = [t for t in ids if not 0 <= t < info["tiles"]]
@@ -614,10 +692,11 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
         raise ValueError(f"wall {info['id']} has {info['tiles']} tiles; no tile {bad[0]}")
     scene = await shared_scene(server, info["scene"])
     renderers = make_renderers(ids, info["wall"], render_size) if render else {}
-    clients = [TileClient(server, info["id"], t, scene, mode=mode, token=token, binary=binary,
+    clients = [TileClient(server, info["id"], t, scene, mode=mode,
+                          token=(tokens or {}).get(t, token), binary=binary,
                           cache_bytes=cache_bytes, renderer=renderers.get(t),
                           measure_full=measure_full, draw_time=draw_time, on_list=on_list,
-                          on_event=on_event)
+                          on_event=on_event, reconnect_for=reconnect_for)
                for t in ids]
     tasks = [asyncio.create_task(c.run(until, idle_timeout, start)) for c in clients]
     waits = [asyncio.ensure_future(c.connected.wait()) for c in clients]
@@ -701,7 +780,13 @@ def parser() -> argparse.ArgumentParser:
                    help="ws: subscribe to the stream; pull: long-poll every frame number")
     p.add_argument("--format", choices=("msgpack", "json"), default="msgpack")
     p.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
-                   help="the server's token, needed to acknowledge (default: $WALLCULL_TOKEN)")
+                   help="the server's (operator's) token, for tiles --credentials does not "
+                        "cover (default: $WALLCULL_TOKEN)")
+    p.add_argument("--credentials", metavar="FILE",
+                   help="the wall's credentials as POST /walls answered them (JSON: the whole "
+                        "answer, or its 'credentials'); each tile uses its node's")
+    p.add_argument("--reconnect-for", type=float, default=60.0, metavar="SECONDS",
+                   help="how long a node keeps reconnecting to a lost server before it fails")
     p.add_argument("--cache-bytes", type=size_bytes, default=DEFAULT_CACHE,
                    help="mesh cache budget per node (LRU by bytes), e.g. 64M")
     p.add_argument("--render", action="store_true",
@@ -734,13 +819,14 @@ async def _main(args) -> int:
         print(json.dumps({"ready": True, "tiles": [c.tile for c in clients]}), flush=True)
 
     start = args.start if args.start == "latest" else int(args.start)
+    tokens = node_tokens(args.credentials) if args.credentials else None
     clients = await run_wall(args.server, args.wall, args.tiles, mode=args.mode,
-                             token=args.token, binary=args.format == "msgpack",
+                             token=args.token, tokens=tokens, binary=args.format == "msgpack",
                              cache_bytes=args.cache_bytes, render=args.render,
                              render_size=args.render_size, until=args.until_frame,
                              idle_timeout=args.idle_timeout, start=start,
                              measure_full=not args.no_full_size, draw_time=args.draw_time,
-                             ready=ready, stop=stop)
+                             ready=ready, stop=stop, reconnect_for=args.reconnect_for)
     if args.out:
         tmp = f"{args.out}.tmp"
         with open(tmp, "w") as f:
@@ -772,7 +858,8 @@ def main(argv=None) -> int:
         parser().error(str(exc))
     try:
         return run(_main(args))
-    except (ConnectionError, OSError, TimeoutError, HTTPError, ValueError) as exc:
+    except (ConnectionError, OSError, TimeoutError, HTTPError, ValueError,
+            ClientFailure) as exc:
         print(f"clients.sim: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

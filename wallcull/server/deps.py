@@ -1,16 +1,16 @@
 """What the routes share, reached through the app's state: the scene store, the walls, the
-metrics and the access check."""
+metrics, the limits and who may do what."""
 
 from __future__ import annotations
 
-import secrets
-from dataclasses import dataclass
-from typing import Annotated, Optional
+from dataclasses import InitVar, dataclass, field
+from typing import Annotated
 
-from fastapi import Depends, Header, Request
+from fastapi import Depends, Request
 
+from ..credentials import digest, same_digest
+from ..limits import Limits
 from ..service import SceneStore, Walls
-from .http import Refused
 from .metrics import Metrics
 
 
@@ -19,11 +19,24 @@ class ServerState:
     store: SceneStore
     walls: Walls
     metrics: Metrics
-    token: str | None
+    token: InitVar[str | None]  # the operator's token: only its digest is kept
+    limits: Limits = field(default_factory=Limits)
+    #: browser origins allowed (CORS and WebSocket ``Origin``); "*" allows any
+    origins: tuple[str, ...] = ()
+    streams: int = 0  # WebSocket streams open, on every wall
+    uploads: int = 0  # uploads being received or parsed
+    operator: str | None = field(init=False, default=None)
 
-    def authorized(self, value: str | None) -> bool:
-        return self.token is None or (value is not None and secrets.compare_digest(
-            value.encode(), self.token.encode()))
+    def __post_init__(self, token):
+        self.operator = None if token is None else digest(token)
+
+    @property
+    def open(self) -> bool:
+        """No token configured: a lab that wants no access control (every request allowed)."""
+        return self.operator is None
+
+    def is_operator(self, token: str) -> bool:
+        return self.operator is not None and same_digest(digest(token), self.operator)
 
 
 def server_state(request: Request) -> ServerState:
@@ -31,15 +44,3 @@ def server_state(request: Request) -> ServerState:
 
 
 State = Annotated[ServerState, Depends(server_state)]
-
-
-def require_token(state: State, authorization: Annotated[Optional[str], Header()] = None):
-    # the scheme is case-insensitive (RFC 9110, 11.1); the token is not
-    given = authorization[7:] if authorization and authorization[:7].lower() == "bearer " \
-        else None
-    if not state.authorized(given):
-        raise Refused(401, "this request needs the server's token (Authorization: Bearer)")
-
-
-#: ``dependencies=`` of every route that changes state.
-TOKEN = [Depends(require_token)]

@@ -1,17 +1,29 @@
-"""HTTP plumbing shared by the routes: content negotiation, the body codec middleware, refusals."""
+"""HTTP plumbing shared by the routes: content negotiation, bodies decoded and validated off the
+event loop, large answers encoded off it, refusals."""
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import json
-from typing import Any
+from typing import Any, Callable
 
-from fastapi import Request
+from fastapi import Depends, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from pydantic import ValidationError
 
 from .. import protocol
 from ..errors import InputError
 from .metrics import Metrics
+
+#: Bodies up to this size are decoded on the event loop; larger ones in a worker thread.
+INLINE_BODY = 16 << 10
+#: Lists longer than this are encoded piece by piece (each piece a short C call, so that the
+#: worker thread lets go of the GIL between them and the event loop keeps running).
+PIECE = 4096
+#: msgpack can nest deeper than anything the schema describes; refused beyond this.
+MAX_DEPTH = 32
 
 
 def reply(request: Request, payload: Any, status: int = 200, headers=None) -> Response:
@@ -23,85 +35,142 @@ def reply(request: Request, payload: Any, status: int = 200, headers=None) -> Re
                     media_type=protocol.JSON)
 
 
+async def reply_large(request: Request, build: Callable[[], Any]) -> Response:
+    """:func:`reply` with ``build()`` and its encoding done in a worker thread, in pieces."""
+    binary = protocol.wants_msgpack(request.headers.get("accept"))
+    body = await asyncio.to_thread(lambda: encode_in_pieces(build(), binary))
+    return Response(body, 200, media_type=protocol.MSGPACK if binary else protocol.JSON)
+
+
+def encode_in_pieces(obj: Any, binary: bool) -> bytes:
+    """The bytes :func:`reply` would send for ``obj``, long lists encoded a piece at a time;
+    numpy arrays (rows) are encoded as the nested lists ``tolist`` would give, a piece of
+    rows at a time."""
+    import msgpack
+    import numpy as np
+
+    parts: list[bytes] = []
+
+    def walk(value):
+        if isinstance(value, dict):
+            if binary:
+                parts.append(_msgpack_header(len(value), map_=True))
+            else:
+                parts.append(b"{")
+            for k, (key, item) in enumerate(value.items()):
+                if binary:
+                    parts.append(msgpack.packb(key, use_bin_type=True))
+                else:
+                    parts.append(b"," if k else b"")
+                    parts.append(json.dumps(key).encode() + b":")
+                walk(item)
+            if not binary:
+                parts.append(b"}")
+        elif isinstance(value, (list, np.ndarray)) and len(value) > PIECE:
+            parts.append(_msgpack_header(len(value)) if binary else b"[")
+            for k in range(0, len(value), PIECE):
+                piece = value[k:k + PIECE]
+                piece = piece.tolist() if isinstance(piece, np.ndarray) else piece
+                if binary:
+                    encoded = msgpack.packb(piece, use_bin_type=True)
+                    parts.append(encoded[len(_msgpack_header(len(piece))):])
+                else:
+                    parts.append((b"," if k else b"") + json.dumps(
+                        piece, default=_b64, separators=(",", ":"))[1:-1].encode())
+            if not binary:
+                parts.append(b"]")
+        elif isinstance(value, np.ndarray):
+            walk(value.tolist())
+        elif binary:
+            parts.append(msgpack.packb(value, use_bin_type=True))
+        else:
+            parts.append(json.dumps(value, default=_b64, separators=(",", ":")).encode())
+
+    walk(obj)
+    return b"".join(parts)
+
+
+def _msgpack_header(n: int, map_: bool = False) -> bytes:
+    import msgpack
+
+    packer = msgpack.Packer()
+    return packer.pack_map_header(n) if map_ else packer.pack_array_header(n)
+
+
 def _b64(value):
     if isinstance(value, (bytes, bytearray)):
         return base64.b64encode(value).decode()
     raise TypeError(f"cannot encode {type(value).__name__}")
 
 
-class BodyCodec:
-    """ASGI middleware: caps request bodies, and turns msgpack bodies into JSON so that one
-    set of typed models validates both."""
-
-    def __init__(self, app, max_body: int, max_upload: int, metrics: Metrics | None = None):
-        self.app, self.max_body, self.max_upload = app, max_body, max_upload
-        self.metrics = metrics
-
-    async def _refuse(self, send, status: int, detail: str):
-        if self.metrics is not None:
-            self.metrics.errors.labels(str(status)).inc()
-        await _error(send, status, detail)
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS"):
-            return await self.app(scope, receive, send)
-        upload = scope["path"] == "/scenes"
-        limit = self.max_upload if upload else self.max_body
-        headers = dict(scope["headers"])
-        declared = headers.get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > limit):
-            return await self._refuse(send, 413, f"request body over {limit} bytes")
-        chunks, size = [], 0
-        while True:
-            message = await receive()
-            if message["type"] == "http.disconnect":
-                return
-            chunk = message.get("body", b"")
-            size += len(chunk)
-            if size > limit:
-                return await self._refuse(send, 413, f"request body over {limit} bytes")
-            chunks.append(chunk)
-            if not message.get("more_body"):
-                break
-        body = b"".join(chunks)
-        ctype = headers.get(b"content-type", b"").split(b";")[0].strip().decode("latin-1").lower()
-        if ctype in (protocol.MSGPACK, "application/x-msgpack") and not upload:
-            try:
-                body = json.dumps(protocol.decode(body, True), allow_nan=True).encode()
-            except InputError as exc:
-                return await self._refuse(send, 400, str(exc))
-            except (TypeError, ValueError):
-                return await self._refuse(send, 400, "msgpack body holds values JSON cannot carry")
-            scope = dict(scope)
-            scope["headers"] = [(k, v) for k, v in scope["headers"]
-                                if k not in (b"content-type", b"content-length")] + [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode())]
-        sent = False
-
-        async def replay():
-            nonlocal sent
-            if sent:
-                return await receive()
-            sent = True
-            return {"type": "http.request", "body": body, "more_body": False}
-
-        await self.app(scope, replay, send)
+# --------------------------------------------------------------------------- request bodies
 
 
-async def _error(send, status: int, detail: str):
-    body = json.dumps({"detail": detail}).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": [(b"content-type", b"application/json"),
-                            (b"content-length", str(len(body)).encode())]})
-    await send({"type": "http.response.body", "body": body})
+def body_of(model) -> Any:
+    """A route parameter: the request body (JSON, or msgpack by ``Content-Type``) validated
+    as ``model`` (its ``from_body`` when it has one), off the event loop when it is large.
+    The OpenAPI document gets the model's schema from :mod:`.openapi`."""
+
+    async def parse(request: Request):
+        raw = await request.body()
+        ctype = request.headers.get("content-type", protocol.JSON).split(";")[0].strip().lower()
+        if len(raw) <= INLINE_BODY:
+            return decode_body(model, raw, ctype)
+        return await asyncio.to_thread(decode_body, model, raw, ctype)
+
+    parse.body_model = model
+    return Depends(parse)
+
+
+def decode_body(model, raw: bytes, ctype: str):
+    if ctype in (protocol.MSGPACK, "application/x-msgpack"):
+        try:
+            data = protocol.decode(raw, True)
+        except InputError as exc:
+            raise Refused(400, str(exc)) from None
+        _json_like(data)
+    elif ctype in (protocol.JSON, "", "*/*") or ctype.endswith("+json"):
+        try:
+            data = json.loads(raw)
+        except (ValueError, RecursionError) as exc:
+            raise RequestValidationError([{"loc": ("body",), "type": "json_invalid",
+                                           "msg": f"JSON decode error: {exc}"[:300]}]) from None
+    else:
+        raise Refused(415, f"a body is JSON or msgpack (application/msgpack), not {ctype!r}")
+    try:
+        return model.from_body(data) if hasattr(model, "from_body") else \
+            model.model_validate(data)
+    except ValidationError as exc:
+        raise RequestValidationError([{**e, "loc": ("body", *e["loc"])}
+                                      for e in exc.errors()]) from None
+
+
+def _json_like(data: Any) -> None:
+    """Refuse msgpack that JSON could not have said: bytes, or nesting deeper than
+    ``MAX_DEPTH`` (walked without recursion: the input may be 1,000 levels deep)."""
+    stack = [(data, 0)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, (bytes, bytearray)):
+            raise Refused(400, "msgpack body holds values JSON cannot carry (bytes)")
+        if isinstance(value, (dict, list)):
+            if depth >= MAX_DEPTH:
+                raise Refused(400, f"msgpack body nests deeper than {MAX_DEPTH} levels")
+            items = value.items() if isinstance(value, dict) else enumerate(value)
+            for k, v in items:
+                if isinstance(k, (bytes, bytearray)):
+                    raise Refused(400, "msgpack body holds values JSON cannot carry (bytes)")
+                stack.append((v, depth + 1))
+
+
+# --------------------------------------------------------------------------- refusals
 
 
 class Refused(Exception):
     """A refusal with a status and a one-line detail (401, 403, ...)."""
 
-    def __init__(self, status: int, detail: str):
-        self.status, self.detail = status, detail
+    def __init__(self, status: int, detail: str, headers: dict | None = None):
+        self.status, self.detail, self.headers = status, detail, headers
 
 
 def status_handler(status: int, metrics: Metrics):

@@ -1,53 +1,101 @@
-"""The typed bodies of the HTTP API: validation happens here, at the boundary, and nowhere else."""
+"""The typed bodies of the HTTP API: validation happens here, at the boundary, and nowhere else.
+
+The schema says what the server accepts, as far as JSON Schema can: ranges, lengths, patterns,
+and strict scalars (``true`` is not a number, ``"7"`` is not a number, ``7.5`` is not an
+integer). What it cannot say is checked by the core and answered 422 with a detail: that an
+orientation is a *unit* quaternion, that ``near < far`` and ``gap > -tile_size``, that
+``cols x rows`` is at most 65,536 and ``history x tiles`` at most 2^20, that the eye is in front
+of the wall, that a node name exists, that an update's matrix is invertible, that a spot
+light has a direction and a mirror a non-zero normal and an outline in its plane.
+"""
 
 from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, FiniteFloat
+from pydantic import (AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict,
+                      StringConstraints, TypeAdapter, ValidationError)
 
 from ..bounds import KINDS
 from ..cull import METHODS
 from ..errors import InputError
 from ..lowilie import EFFORTS
-from ..wall import MAX_TILES
+from ..validate import MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH
 
-Vec3 = tuple[FiniteFloat, FiniteFloat, FiniteFloat]
+def _whole(value):
+    """JSON Schema's integers: ``7`` and ``7.0`` (a number with no fraction), never ``true``."""
+    if isinstance(value, float) and value.is_integer() and abs(value) < 2.0 ** 63:
+        return int(value)
+    return value
 
 
-class WallSpec(BaseModel):
+def Int(**bounds) -> Any:
+    """An integer within ``bounds`` (``ge``, ``le``, ``lt``); never a bool or a string. (The
+    bounds go inside, next to the type, so that the schema states them as minimum/maximum.)"""
+    return Annotated[int, Strict(), Field(**bounds), BeforeValidator(_whole)]
+
+
+#: A number: an integer or a float, finite; never a bool or a string.
+Num = Annotated[float, Strict(), AllowInfNan(False)]
+Bool = Annotated[bool, Strict()]
+Coordinate = Annotated[Num, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+Length = Annotated[Num, Field(ge=MIN_LENGTH, le=MAX_LENGTH)]
+Offset = Annotated[Num, Field(ge=-MAX_LENGTH, le=MAX_LENGTH)]
+Unit = Annotated[Num, Field(ge=-1.0, le=1.0)]
+Vec3 = tuple[Coordinate, Coordinate, Coordinate]
+Quaternion = tuple[Unit, Unit, Unit, Unit]
+Tile = Int(ge=0, lt=MAX_TILES)
+FrameNumber = Int(ge=0, le=2**53)
+#: Scene names: plain file names, ASCII (what the scene folder can hold).
+SCENE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
+SceneName = Annotated[str, Strict(), StringConstraints(pattern=SCENE_NAME)]
+#: Wall ids, as the server makes them.
+WALL_ID = r"^[0-9a-f]{12}$"
+NodeName = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=1024)]
+Pixels = Int(ge=1, le=1 << 16)
+#: Each of cols and rows; their product is at most 65,536 (checked by the core).
+Count = Int(ge=1, le=256)
+
+Row = tuple[Num, Num, Num, Num]
+Zero, One = Annotated[Num, Field(ge=0, le=0)], Annotated[Num, Field(ge=1, le=1)]
+
+
+class Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class WallSpec(Body):
     """A wall (SPEC section 2)."""
 
-    model_config = ConfigDict(extra="forbid")
-    cols: int = Field(ge=1, le=MAX_TILES)
-    rows: int = Field(ge=1, le=MAX_TILES)
-    tile_size: tuple[FiniteFloat, FiniteFloat]
-    gap: tuple[FiniteFloat, FiniteFloat] = (0.0, 0.0)
-    distance: FiniteFloat
-    near: FiniteFloat = 0.1
-    far: FiniteFloat = 1000.0
-    resolution: tuple[Annotated[int, Field(ge=1, le=1 << 16)],
-                      Annotated[int, Field(ge=1, le=1 << 16)]] = (1920, 1080)
+    cols: Count
+    rows: Count
+    tile_size: tuple[Length, Length]
+    gap: tuple[Offset, Offset] = (0.0, 0.0)
+    distance: Length
+    #: at most 10^6 m: the eye must be farther than ``near - distance`` in front of the wall,
+    #: and an eye is at most 10^9 m from the display's origin
+    near: Annotated[Num, Field(gt=0, le=1e6)] = 0.1
+    far: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 1000.0
+    resolution: tuple[Pixels, Pixels] = (1920, 1080)
 
 
-class FrameSpec(BaseModel):
-    """A frame (SPEC section 3)."""
+class FrameSpec(Body):
+    """A frame (SPEC section 3). ``orientation`` must be a unit quaternion, and the eye in
+    front of the wall (``eye[2] > near - distance``)."""
 
-    model_config = ConfigDict(extra="forbid")
     position: Vec3
-    orientation: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
-    eye: Vec3 = (0.0, 0.0, 0.0)
+    orientation: Quaternion
+    eye: tuple[Offset, Offset, Offset] = (0.0, 0.0, 0.0)
 
 
-class NodeUpdate(BaseModel):
-    """A node's new local transform: ``matrix`` (4x4, row by row), or position, orientation
-    (unit quaternion w, x, y, z) and an optional scale."""
+class NodeUpdate(Body):
+    """A node's new local transform: ``matrix`` (4x4 affine, row by row), or position,
+    orientation (unit quaternion w, x, y, z) and an optional scale."""
 
-    model_config = ConfigDict(extra="forbid")
-    matrix: Optional[list[list[FiniteFloat]]] = None
+    matrix: Optional[tuple[Row, Row, Row, tuple[Zero, Zero, Zero, One]]] = None
     position: Optional[Vec3] = None
-    orientation: Optional[tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]] = None
-    scale: Optional[Vec3] = None
+    orientation: Optional[Quaternion] = None
+    scale: Optional[tuple[Length, Length, Length]] = None
 
     def value(self) -> Any:
         if self.matrix is not None:
@@ -60,35 +108,132 @@ class NodeUpdate(BaseModel):
         return out
 
 
-class WallCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+#: Updates of one frame at most. A 1 MiB body holds 85,000 empty ones; counted before any is
+#: validated, so that such a body costs one JSON parse (about 25 ms), not a validation that
+#: would hold the GIL (and so the event loop) for a quarter of a second.
+MAX_UPDATES = 10_000
+
+
+class LightSpec(Body):
+    """A light casting shadows (a spot light needs a ``direction``)."""
+
+    name: Optional[NodeName] = None
+    type: Literal["point", "spot"] = "point"
+    position: Vec3
+    direction: Optional[Vec3] = None
+    angle: Annotated[Num, Field(gt=0, lt=90)] = 45.0
+    resolution: tuple[Int(ge=1, le=1 << 15), Int(ge=1, le=1 << 15)] = (2048, 2048)
+    shadows: Bool = True
+
+
+class MirrorSpec(Body):
+    """A planar mirror: a point on it, its normal (toward the reflective side, not zero) and
+    an optional convex outline in its plane."""
+
+    name: Optional[NodeName] = None
+    point: Vec3
+    normal: Vec3
+    polygon: Optional[list[Vec3]] = Field(default=None, min_length=3, max_length=1024)
+
+
+class SettingsSpec(Body):
+    """Scene settings (see the README): what the wall asks for beyond the geometry."""
+
+    up: Optional[Vec3] = None
+    lights: list[LightSpec] = Field(default_factory=list, max_length=64)
+    mirrors: list[MirrorSpec] = Field(default_factory=list, max_length=64)
+
+
+class WallCreate(Body):
     wall: WallSpec
-    scene: str = Field(min_length=1, max_length=128)
+    scene: SceneName
     method: Literal[METHODS] = "adaptive"  # type: ignore[valid-type]
     bounds: Literal[KINDS] = "obb"  # type: ignore[valid-type]
-    pseudo_groups: bool = False
-    history: int = Field(default=64, ge=2, le=4096)
+    pseudo_groups: Bool = False
+    history: Int(ge=2, le=4096) = 64
     depth: Literal["tight", "wall"] = "tight"
-    reversed_z: bool = False
+    reversed_z: Bool = False
     shadow_fit: Literal[EFFORTS] = "refined"  # type: ignore[valid-type]
-    settings: Optional[dict[str, Any]] = Field(
-        default=None, description="Scene settings (lights, mirrors; see the README) for this "
-                                  "wall instead of the scene's own")
+    #: Lights and mirrors for this wall instead of the scene's own.
+    settings: Optional[SettingsSpec] = None
+    #: Tiles grouped under one node credential each (a node driving several tiles); tiles
+    #: no group names get a credential of their own.
+    nodes: Optional[list[Annotated[list[Tile], Field(min_length=1, max_length=MAX_TILES)]]] = \
+        Field(default=None, max_length=MAX_TILES)
 
 
-class FramePost(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class FramePost(Body):
     frame: FrameSpec
-    updates: dict[str, NodeUpdate] = Field(default_factory=dict, max_length=100_000)
-    number: Optional[int] = Field(default=None, ge=0, le=2**53)
+    updates: dict[NodeName, NodeUpdate] = Field(default_factory=dict, max_length=MAX_UPDATES)
+    number: Optional[FrameNumber] = None
     refit: Optional[Literal["obb", "aabb"]] = None
-    packets: bool = False
-    full: bool = False
+    packets: Bool = False
+    full: Bool = False
+
+    @classmethod
+    def from_body(cls, body: Any) -> "FramePost":
+        """Validate, the updates in pieces: one pydantic call over 10,000 of them holds the
+        GIL for 20-40 ms, which would stall the event loop even from a worker thread."""
+        updates = body.get("updates") if isinstance(body, dict) else None
+        if not isinstance(updates, dict) or len(updates) <= _PIECE:
+            return cls.model_validate(body)
+        if len(updates) > MAX_UPDATES:  # before validating any
+            raise ValidationError.from_exception_data(cls.__name__, [{
+                "type": "too_long", "loc": ("updates",),
+                "input": f"{len(updates)} updates",
+                "ctx": {"field_type": "Dictionary", "min_length": 0,
+                        "max_length": MAX_UPDATES, "actual_length": len(updates)}}])
+        out = cls.model_validate({**body, "updates": {}})
+        items, checked = list(updates.items()), {}
+        for k in range(0, len(items), _PIECE):
+            try:
+                checked.update(_UPDATES.validate_python(dict(items[k:k + _PIECE])))
+            except ValidationError as exc:
+                raise ValidationError.from_exception_data(cls.__name__, [
+                    {**e, "loc": ("updates", *e["loc"])} for e in exc.errors()]) from None
+        out.updates = checked
+        return out
 
 
-class Ack(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    frame: int = Field(ge=0, le=2**53)
+_PIECE = 2000
+_UPDATES = TypeAdapter(dict[NodeName, NodeUpdate])
+
+
+class Ack(Body):
+    frame: FrameNumber
+
+
+class NodeCredential(BaseModel):
+    tiles: list[int]
+    token: str
+
+
+class Credentials(BaseModel):
+    """Shown once, when the wall is created; the server keeps only their digests."""
+
+    driver: str
+    nodes: list[NodeCredential]
+
+
+class WallInfo(BaseModel):
+    id: str
+    scene: str
+    wall: dict
+    tiles: int
+    method: str
+    bounds: str
+    pseudo_groups: bool
+    latest: int
+    history: int
+    subscribers: int
+
+
+class WallCreated(WallInfo):
+    credentials: Credentials
+
+
+class WallList(BaseModel):
+    walls: list[WallInfo]
 
 
 class FrameAnswer(BaseModel):
@@ -127,9 +272,13 @@ class Detail(BaseModel):
 
 
 _REFUSALS = {304: "Not modified: the ETag matches", 400: "Malformed msgpack body",
-             401: "Missing or wrong token", 404: "No such scene, wall, tile, node or frame",
-             409: "Conflicts with the server's state", 410: "The frame left the history",
-             413: "Body too large", 422: "Invalid input"}
+             401: "No token, or one this server does not hold",
+             403: "The token does not hold this wall, role or tile",
+             404: "No such scene, wall, tile, node or frame",
+             408: "The body arrived too slowly", 409: "Conflicts with the server's state",
+             410: "The frame left the history", 413: "Body too large",
+             415: "Bodies are JSON or msgpack", 422: "Invalid input",
+             503: "Too many uploads at once; retry"}
 
 
 def refusals(*codes: int) -> dict:

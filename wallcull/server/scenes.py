@@ -2,51 +2,87 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path as FilePath
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Path, Query, Request
 
+from ..credentials import OPERATOR
+from ..errors import InputError
 from ..service import NotFound, describe, mesh_blob
-from .deps import TOKEN, State
-from .http import mesh_reply, reply
-from .models import refusals
+from .access import needs
+from .deps import State
+from .http import mesh_reply, reply, reply_large
+from .models import SCENE_NAME, refusals
 
 router = APIRouter(tags=["scenes"])
 
+SceneName = Annotated[str, Path(pattern=SCENE_NAME)]
+#: An upload's name; ``.glb`` is added when it does not end so.
+UploadName = Annotated[str, Query(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,123}$")]
 
-@router.get("/scenes")
+
+def upload(endpoint):
+    """Mark a route whose body is an upload (its own size limit and concurrency cap)."""
+    endpoint.wallcull_upload = True
+    return endpoint
+
+
+@router.get("/scenes", operation_id="listScenes")
 async def list_scenes(request: Request, state: State):
     return reply(request, {"scenes": state.store.names()})
 
 
-@router.post("/scenes", dependencies=TOKEN, status_code=201,
-             responses=refusals(401, 409, 413), openapi_extra={
+@router.post("/scenes", status_code=201, operation_id="uploadScene",
+             responses=refusals(401, 403, 408, 409, 413, 503), openapi_extra={
                  "requestBody": {"required": True, "content": {
                      "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}}}}})
-async def upload_scene(request: Request, state: State,
-                       name: Annotated[str, Query(min_length=1, max_length=128)],
-                       replace: bool = False):
-    """Upload a GLB into the scene folder (or memory, without one)."""
-    scene = await state.store.upload(name, await request.body(), replace)
+@needs(OPERATOR)
+@upload
+async def upload_scene(request: Request, state: State, name: UploadName, replace: bool = False):
+    """Upload a GLB into the scene folder (or memory, without one). Its body is spooled to a
+    file as it arrives, checked and parsed in a child process with a memory limit
+    (:mod:`wallcull.uploads`), then moved into the folder atomically."""
+    name = state.store.upload_name(name, replace)
+    spool = state.store.spool()
+    path = FilePath(spool.name)
+    try:
+        with spool:
+            async for chunk in request.stream():
+                spool.write(chunk)
+        with open(path, "rb") as f:
+            if f.read(4) != b"glTF":
+                raise InputError("an upload must be a binary glTF (.glb) file")
+        scene = await state.store.upload(name, path)
+    finally:
+        if path.exists():
+            os.unlink(path)
     return reply(request, describe(scene, nodes=False), 201)
 
 
-@router.get("/scenes/{name}", responses=refusals(404))
-async def scene_info(request: Request, state: State, name: str, nodes: bool = False):
+@router.get("/scenes/{name}", operation_id="getScene", responses=refusals(404))
+async def scene_info(request: Request, state: State, name: SceneName, nodes: bool = False):
     """A scene's stats, bounds and settings; ``nodes=true`` adds every node: name, parent,
     leaf flag, mesh key and rest world transform (row by row, flattened)."""
-    return reply(request, describe(await state.store.get(name), nodes))
+    scene = await state.store.get(name)
+    if nodes:  # a 100,000-node scene is megabytes of lists: built and encoded off the loop
+        return await reply_large(request, lambda: describe(scene, True, arrays=True))
+    return reply(request, describe(scene, False))
 
 
-@router.get("/scenes/{name}/meshes/{key}", responses=refusals(304, 404))
-async def mesh(request: Request, state: State, name: str, key: str):
+@router.get("/scenes/{name}/meshes/{key}", operation_id="getMesh", responses=refusals(304, 404))
+async def mesh(request: Request, state: State, name: SceneName,
+               key: Annotated[str, Path(max_length=1024)]):
     """A mesh as typed arrays (little-endian float32 vertices, uint32 faces); cache it by
     its ETag."""
     return mesh_reply(request, mesh_blob(await state.store.get(name), key))
 
 
-@router.get("/scenes/{name}/nodes/{node}/mesh", responses=refusals(304, 404))
-async def node_mesh(request: Request, state: State, name: str, node: int):
+@router.get("/scenes/{name}/nodes/{node}/mesh", operation_id="getNodeMesh",
+            responses=refusals(304, 404))
+async def node_mesh(request: Request, state: State, name: SceneName,
+                    node: Annotated[int, Path(ge=0, le=2**31)]):
     """The mesh of a leaf node, in the node's local coordinates (see ``nodes=true``)."""
     scene = await state.store.get(name)
     if not 0 <= node < len(scene) or scene.geometry[node] is None:

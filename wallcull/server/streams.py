@@ -4,57 +4,116 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import Annotated, Optional
 
-from fastapi import APIRouter, Query, WebSocket
+from fastapi import APIRouter, WebSocket
+from fastapi.responses import JSONResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from .. import protocol
+from ..credentials import NODE
 from ..errors import InputError
-from ..service import Conflict, NotFound
+from ..service import Conflict, NotFound, WallSession
+from .access import needs
 from .deps import ServerState
 from .http import Refused
-from .walls import MAX_WAIT
 
-#: Packets a stream may have sent and not yet seen acknowledged.
+#: Packets a stream may have sent and not yet seen acknowledged on it.
 STREAM_WINDOW = 8
+#: Close codes: the wall was deleted; the stream waited too long for an acknowledgement.
+GONE, IDLE = 4404, 4408
 
 router = APIRouter(tags=["streams"])
 
 
 @router.websocket("/walls/{wid}/tiles/{tile}/stream")
-async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack",
-                 token_param: Annotated[Optional[str], Query(alias="token")] = None):
+@needs(NODE)
+async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack"):
     """Push every new frame's packet (conflated: a slow node gets the newest). The node
-    sends ``{"ack": n}`` after drawing frame n (needs the token when one is set) and
-    ``{"full": true}`` to get a full list next. The first packet is full, and deltas are
-    only against frames acknowledged since: a node that reconnects starts afresh. The
-    stream closes with code 4404 when the wall is deleted."""
+    sends ``{"ack": n}`` after drawing frame n and ``{"full": true}`` to get a full list next.
+    The first packet is full, and deltas are only against frames acknowledged since: a node
+    that reconnects starts afresh.
+
+    With a server token, opening a stream needs the tile's node credential (``?token=`` or
+    ``Authorization: Bearer``). A stream that has sent ``STREAM_WINDOW`` packets it has not
+    seen acknowledged *on itself* is sent nothing more until an acknowledgement comes, and is
+    closed (code 4408) after ``limits.stream_idle`` seconds of that: an idle socket costs no
+    work per frame and frees its place. Streams are capped per tile, per wall and in all
+    (HTTP 429 at the handshake). The stream closes with code 4404 when the wall is deleted."""
     state: ServerState = ws.app.state.server
-    metrics = state.metrics
     try:
         session = state.walls.get(wid)
         session.check_tile(tile)
-    except NotFound:
-        await ws.close(code=4404)
+        _room(state, session, tile)
+    except (NotFound, Refused) as exc:
+        status = exc.status if isinstance(exc, Refused) else 404
+        state.metrics.errors.labels(str(status)).inc()
+        await ws.send_denial_response(JSONResponse({"detail": getattr(exc, "detail", str(exc))},
+                                                   status))
         return
-    binary = format != "json"
-    can_ack = state.authorized(token_param)
     await ws.accept()
-    session.subscribers += 1
-    metrics.clients.inc()
+    _count(state, session, tile, +1)
+    try:
+        reason = await _serve(ws, state, session, tile, binary=format != "json")
+    finally:
+        _count(state, session, tile, -1)
+    code = GONE if session.closed else IDLE if reason == "idle" else None
+    if code is not None and ws.application_state == WebSocketState.CONNECTED \
+            and ws.client_state == WebSocketState.CONNECTED:
+        try:
+            await ws.close(code=code, reason="the wall was deleted" if code == GONE else
+                           "no acknowledgement came: reconnect to resume")
+        except (RuntimeError, WebSocketDisconnect, OSError):
+            pass  # the node left at the same moment
+
+
+def _room(state: ServerState, session: WallSession, tile: int) -> None:
+    limits = state.limits
+    for open_, cap, where in ((state.streams, limits.streams, "the server"),
+                              (session.subscribers, limits.streams_per_wall, f"wall {session.id}"),
+                              (session.streams[tile], limits.streams_per_tile, f"tile {tile}")):
+        if open_ >= cap:
+            raise Refused(429, f"{where} already has {cap} streams open")
+
+
+def _count(state: ServerState, session: WallSession, tile: int, step: int) -> None:
+    state.streams += step
+    session.subscribers += step
+    session.streams[tile] += step
+    state.metrics.clients.inc(step)
+
+
+async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tile: int,
+                 binary: bool) -> str:
+    """Run the stream until the node leaves, the wall goes, or the stream idles; why."""
+    metrics, idle = state.metrics, state.limits.stream_idle
     wants = {"full": True}
+    acked = [-1]  # the newest frame acknowledged on this stream
+    ack_came = asyncio.Event()
+
+    async def acknowledged(number: int) -> bool:
+        """Wait until this stream has acknowledged ``number`` (False: idle too long)."""
+        while acked[0] < number and not session.closed:
+            ack_came.clear()
+            waits = [asyncio.ensure_future(ack_came.wait()),
+                     asyncio.ensure_future(session.gone.wait())]
+            done, pending = await asyncio.wait(waits, timeout=idle,
+                                               return_when=asyncio.FIRST_COMPLETED)
+            for w in pending:
+                w.cancel()
+            if not done:
+                return False
+        return True
 
     async def sender():
         last = since = -1
         while True:
             number = await session.next_frame(last)
-            if can_ack and since >= 0 and session.acks[tile] >= since:
-                # Flow control, for nodes that acknowledge: at most STREAM_WINDOW packets
-                # unacknowledged. A node that falls behind then gets the newest frame
-                # (conflation) instead of a queue of stale ones in socket buffers:
-                # uvicorn's send only blocks past the transport's 64 KiB high-water mark.
-                await session.wait_acked(tile, last - STREAM_WINDOW + 1, MAX_WAIT)
+            if last >= 0 and acked[0] < last - STREAM_WINDOW + 1:
+                # At most STREAM_WINDOW packets unacknowledged; a node that falls behind then
+                # gets the newest frame (conflation) instead of a queue of stale ones in
+                # socket buffers (uvicorn's send only blocks past 64 KiB).
+                if not await acknowledged(last - STREAM_WINDOW + 1):
+                    return "idle"
                 number = session.latest
             full = wants.pop("full", False)
             if binary:  # encoded once per frame for every tile (wallcull.encode)
@@ -72,7 +131,7 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack",
         while True:
             message = await ws.receive()
             if message["type"] == "websocket.disconnect":
-                return
+                return "left"
             raw = message.get("bytes")
             try:
                 msg = protocol.decode(raw, True) if raw is not None else \
@@ -82,20 +141,24 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack",
                 if msg.get("full"):
                     wants["full"] = True
                 if "ack" in msg:
-                    if not can_ack:
-                        raise Refused(401, "acknowledgements need the server's token")
                     if not isinstance(msg["ack"], int) or isinstance(msg["ack"], bool):
                         raise InputError("ack must be a frame number")
                     session.ack(tile, msg["ack"])
-            except (InputError, Conflict, NotFound, Refused) as exc:
+                    if msg["ack"] > acked[0]:
+                        acked[0] = msg["ack"]
+                        ack_came.set()
+            except (InputError, Conflict, NotFound) as exc:
                 metrics.errors.labels("ws").inc()
-                error = {"error": getattr(exc, "detail", str(exc))}
+                error = {"error": str(exc)}
                 await (ws.send_bytes(protocol.encode(error, True)) if binary
                        else ws.send_text(json.dumps(error)))
 
     tasks = [asyncio.create_task(sender()), asyncio.create_task(receiver())]
     try:
-        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finished = next(iter(done))
+        return finished.result() if not finished.cancelled() and \
+            finished.exception() is None else "left"
     finally:
         for task in tasks:
             task.cancel()
@@ -104,11 +167,3 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack",
                 await task
             except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError, NotFound):
                 pass  # the node went away, or the wall was deleted
-        session.subscribers -= 1
-        metrics.clients.dec()
-    if session.closed and ws.application_state == WebSocketState.CONNECTED \
-            and ws.client_state == WebSocketState.CONNECTED:
-        try:
-            await ws.close(code=4404, reason="the wall was deleted")
-        except (RuntimeError, WebSocketDisconnect, OSError):
-            pass  # the node left at the same moment

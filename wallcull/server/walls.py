@@ -2,63 +2,92 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import Response
 
 from .. import settings as cfg
+from ..credentials import DRIVER, NODE, OPERATOR
 from ..fit import FitOptions
 from ..service import NotFound
 from ..wall import Wall
-from .deps import TOKEN, State
-from .http import reply
-from .models import Ack, Barrier, FrameAnswer, FramePost, Packet, WallCreate, refusals
+from .access import needs
+from .deps import State
+from .http import body_of, reply
+from .models import (WALL_ID, Ack, Barrier, FrameAnswer, FramePost, Packet, WallCreate,
+                     WallCreated, WallInfo, WallList, refusals)
+from .openapi import FRAME_LINKS, WALL_LINKS
 
 #: Seconds a request may wait for a frame or the barrier.
 MAX_WAIT = 10.0
+#: Updates converted on the event loop at most; more go to a worker thread.
+INLINE_UPDATES = 2000
 
 router = APIRouter(tags=["walls"])
 
+WallId = Annotated[str, Path(pattern=WALL_ID)]
+TileId = Annotated[int, Path(ge=0, lt=1 << 16)]
 
-@router.post("/walls", dependencies=TOKEN, status_code=201,
-             responses=refusals(400, 401, 404, 409, 413))
-async def create_wall(request: Request, state: State, body: WallCreate):
+
+@router.post("/walls", status_code=201, operation_id="createWall", response_model=WallCreated,
+             responses={**refusals(400, 401, 403, 404, 408, 409, 413, 415),
+                        201: {"description": "The wall, with its credentials (shown once)",
+                              "links": WALL_LINKS}})
+@needs(OPERATOR)
+async def create_wall(request: Request, state: State,
+                      body: Annotated[WallCreate, body_of(WallCreate)]):
+    """A wall culling a scene. The answer carries the wall's credentials, shown this once:
+    the driver's (posting frames) and one per node (its tiles' packets, streams and
+    acknowledgements)."""
     wall = Wall.from_dict(body.wall.model_dump())
-    if body.settings is not None:
-        cfg.parse(body.settings)  # refused here, with its reason, not at the first frame
+    settings = None if body.settings is None else body.settings.model_dump(exclude_unset=True, exclude_none=True)
+    if settings is not None:
+        cfg.parse(settings)  # refused here, with its reason, not at the first frame
     scene = await state.store.get(body.scene)
     session = state.walls.create(scene, wall, body.method, body.bounds, body.pseudo_groups,
                                  body.history,
                                  FitOptions(body.depth, body.reversed_z, body.shadow_fit),
-                                 body.settings)
-    return reply(request, session.info(), 201)
+                                 body.nodes, settings)
+    credentials, session.credentials = session.credentials, None  # shown once
+    return reply(request, {**session.info(), "credentials": credentials}, 201)
 
 
-@router.get("/walls")
+@router.get("/walls", operation_id="listWalls", response_model=WallList)
 async def list_walls(request: Request, state: State):
     return reply(request, {"walls": [w.info() for w in state.walls.sessions.values()]})
 
 
-@router.get("/walls/{wid}", responses=refusals(404))
-async def wall_info(request: Request, state: State, wid: str):
+@router.get("/walls/{wid}", operation_id="getWall", response_model=WallInfo,
+            responses=refusals(404))
+async def wall_info(request: Request, state: State, wid: WallId):
     return reply(request, state.walls.get(wid).info())
 
 
-@router.delete("/walls/{wid}", dependencies=TOKEN, status_code=204,
-               responses=refusals(400, 401, 404, 413))
-async def delete_wall(state: State, wid: str):
-    state.walls.get(wid).close()
+@router.delete("/walls/{wid}", status_code=204, operation_id="deleteWall",
+               responses=refusals(401, 403, 404))
+@needs(OPERATOR)
+async def delete_wall(state: State, wid: WallId):
     state.walls.delete(wid)
+    state.store.evict()  # its scene may be one no wall uses now
     return Response(status_code=204)
 
 
-@router.post("/walls/{wid}/frames", dependencies=TOKEN, response_model=FrameAnswer,
-             responses=refusals(400, 401, 404, 409, 413))
-async def post_frame(request: Request, state: State, wid: str, body: FramePost):
+@router.post("/walls/{wid}/frames", operation_id="postFrame", response_model=FrameAnswer,
+             responses={**refusals(400, 401, 403, 404, 408, 409, 413, 415),
+                        200: {"description": "The frame's number and timings",
+                              "links": FRAME_LINKS}})
+@needs(DRIVER)
+async def post_frame(request: Request, state: State, wid: WallId,
+                     body: Annotated[FramePost, body_of(FramePost)]):
     """Cull (and fit) a frame; answer its number and, with ``packets``, every tile's packet."""
     session = state.walls.get(wid)
-    updates = {name: u.value() for name, u in body.updates.items()}
+
+    def moves():
+        return {name: u.value() for name, u in body.updates.items()}
+
+    updates = moves() if len(body.updates) <= INLINE_UPDATES else await asyncio.to_thread(moves)
     number, timings = await session.post_frame_async(body.frame.model_dump(), updates,
                                                      body.number, body.refit)
     metrics = state.metrics
@@ -71,16 +100,18 @@ async def post_frame(request: Request, state: State, wid: str, body: FramePost):
     return reply(request, out)
 
 
-@router.get("/walls/{wid}/tiles/{tile}/packets/{frame}", response_model=Packet,
-            responses=refusals(404, 410))
-async def get_packet(request: Request, state: State, wid: str, tile: int,
+@router.get("/walls/{wid}/tiles/{tile}/packets/{frame}", operation_id="getPacket",
+            response_model=Packet, responses=refusals(401, 403, 404, 410))
+@needs(NODE)
+async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
                      frame: Annotated[str, Path(pattern=r"^(latest|\d{1,15})$")],
                      full: bool = False,
                      wait: Annotated[float, Query(ge=0, le=MAX_WAIT)] = 1.0):
     """Tile ``tile``'s packet of frame ``frame`` (a number or ``latest``): a delta against
     the frame the tile last acknowledged, or a full list. Waits up to ``wait`` seconds for a
     frame that is not ready yet. A node that lost its lists asks with ``full=true`` and
-    acknowledges that frame before asking for deltas again."""
+    acknowledges that frame before asking for deltas again. Packets carry the tracked head's
+    pose: with a server token, reading one needs the tile's node credential."""
     session = state.walls.get(wid)
     session.check_tile(tile)
     if frame == "latest":
@@ -90,23 +121,26 @@ async def get_packet(request: Request, state: State, wid: str, tile: int,
     else:
         number = int(frame)
         if not await session.wait_frame(number, wait):
-            raise NotFound(f"frame {number} is not ready (latest {session.latest})")
+            raise NotFound(f"frame {number} is not ready (latest {session.newest})")
     pkt = session.packet(tile, number, full)
     response = reply(request, pkt)
     state.metrics.packet(pkt["base"] is not None, len(response.body), "http")
     return response
 
 
-@router.post("/walls/{wid}/tiles/{tile}/ack", dependencies=TOKEN, status_code=204,
-             responses=refusals(400, 401, 404, 409, 413))
-async def ack(state: State, wid: str, tile: int, body: Ack):
-    """The tile has drawn frame ``frame`` (the swap barrier counts these)."""
+@router.post("/walls/{wid}/tiles/{tile}/ack", status_code=204, operation_id="acknowledge",
+             responses=refusals(400, 401, 403, 404, 408, 409, 413, 415))
+@needs(NODE)
+async def ack(state: State, wid: WallId, tile: TileId, body: Annotated[Ack, body_of(Ack)]):
+    """The tile has drawn frame ``frame`` (the swap barrier counts these). With a server
+    token, only the tile's node credential (or the operator) may say so."""
     state.walls.get(wid).ack(tile, body.frame)
     return Response(status_code=204)
 
 
-@router.get("/walls/{wid}/barrier/{frame}", response_model=Barrier, responses=refusals(404))
-async def barrier(request: Request, state: State, wid: str,
+@router.get("/walls/{wid}/barrier/{frame}", operation_id="barrier", response_model=Barrier,
+            responses=refusals(404))
+async def barrier(request: Request, state: State, wid: WallId,
                   frame: Annotated[int, Path(ge=0, le=2**53)],
                   timeout: Annotated[float, Query(ge=0, le=MAX_WAIT)] = 1.0):
     """Wait until every tile has acknowledged ``frame``, or ``timeout`` seconds."""

@@ -1,0 +1,227 @@
+"""Who may do what (wallcull.server.access, .gate): the operator's token, a wall's driver and
+node credentials, each held to its wall, role and tiles; a server without a token lets all
+through; browsers only from allowed origins; OPTIONS, 405 and strict types at the boundary."""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketDenialResponse
+
+from wallcull.server import create_app
+
+TOKEN = "operator-t0ken"
+OPERATOR = {"Authorization": f"Bearer {TOKEN}"}
+WALL = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0}
+FRAME = {"position": [0.0, 20.0, 300.0], "orientation": [1.0, 0.0, 0.0, 0.0]}
+ORIGIN = "https://wall.lab.example"
+
+
+def bearer(token: str) -> dict:
+    return {"Authorization": f"Bearer {token}"}
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(create_app(None, token=TOKEN, origins=(ORIGIN,))) as c:
+        yield c
+
+
+@pytest.fixture
+def wall(client):
+    """A wall whose tiles 2 and 3 share one node credential; its answer, with credentials."""
+    r = client.post("/walls", json={"wall": WALL, "scene": "fatehpur", "nodes": [[2, 3]]},
+                    headers=OPERATOR)
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert client.post(f"/walls/{info['id']}/frames", json={"frame": FRAME},
+                       headers=OPERATOR).status_code == 200
+    yield info
+    client.delete(f"/walls/{info['id']}", headers=OPERATOR)
+
+
+def node(info, tile: int) -> dict:
+    return bearer(next(n["token"] for n in info["credentials"]["nodes"] if tile in n["tiles"]))
+
+
+def test_credentials_are_issued_with_the_wall(wall):
+    creds = wall["credentials"]
+    assert sorted(map(tuple, (n["tiles"] for n in creds["nodes"]))) == [(0,), (1,), (2, 3)]
+    tokens = [creds["driver"], *(n["token"] for n in creds["nodes"])]
+    assert len(set(tokens)) == 4 and all(len(t) > 30 for t in tokens)
+
+
+def test_each_credential_holds_its_role_wall_and_tiles(client, wall):
+    wid, creds = wall["id"], wall["credentials"]
+    driver = bearer(creds["driver"])
+    other = client.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
+                        headers=OPERATOR).json()
+    try:
+        client.post(f"/walls/{other['id']}/frames", json={"frame": FRAME}, headers=OPERATOR)
+        cases = [  # (method, path, body, headers, status)
+            ("POST", f"/walls/{wid}/frames", {"frame": FRAME}, driver, 200),
+            ("POST", f"/walls/{wid}/frames", {"frame": FRAME}, node(wall, 0), 403),
+            ("POST", f"/walls/{other['id']}/frames", {"frame": FRAME}, driver, 403),
+            ("POST", "/walls", {"wall": WALL, "scene": "fatehpur"}, driver, 403),
+            ("DELETE", f"/walls/{wid}", None, node(wall, 0), 403),
+            ("GET", f"/walls/{wid}/tiles/0/packets/0", None, node(wall, 0), 200),
+            ("GET", f"/walls/{wid}/tiles/1/packets/0", None, node(wall, 0), 403),
+            ("GET", f"/walls/{wid}/tiles/3/packets/0", None, node(wall, 2), 200),
+            ("GET", f"/walls/{wid}/tiles/0/packets/0", None, driver, 403),
+            ("GET", f"/walls/{other['id']}/tiles/0/packets/0", None, node(wall, 0), 403),
+            ("GET", f"/walls/{other['id']}/tiles/0/packets/0", None, node(other, 0), 200),
+            ("POST", f"/walls/{wid}/tiles/1/ack", {"frame": 0}, node(wall, 0), 403),
+            ("POST", f"/walls/{wid}/tiles/1/ack", {"frame": 0}, driver, 403),
+            ("POST", f"/walls/{wid}/tiles/0/ack", {"frame": 0}, node(wall, 0), 204),
+            ("POST", f"/walls/{wid}/tiles/2/ack", {"frame": 0}, node(wall, 3), 204),
+            ("POST", f"/walls/{wid}/tiles/1/ack", {"frame": 0}, bearer("wcn_forged"), 401),
+            ("POST", f"/walls/{wid}/tiles/1/ack", {"frame": 0}, {}, 401),
+        ]
+        for method, path, body, headers, status in cases:
+            r = client.request(method, path, json=body, headers=headers)
+            assert r.status_code == status, (method, path, r.text)
+            if status in (401, 403):
+                assert r.json()["detail"]
+        # only tiles 0 and 2 were acknowledged, by their nodes: no rogue completed the barrier
+        assert client.get(f"/walls/{wid}/barrier/0?timeout=0").json()["acked"] == 2
+    finally:
+        client.delete(f"/walls/{other['id']}", headers=OPERATOR)
+
+
+def test_a_deleted_walls_credentials_die_with_it(client):
+    info = client.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
+                       headers=OPERATOR).json()
+    driver = bearer(info["credentials"]["driver"])
+    assert client.post(f"/walls/{info['id']}/frames", json={"frame": FRAME},
+                       headers=driver).status_code == 200
+    assert client.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == 204
+    r = client.post(f"/walls/{info['id']}/frames", json={"frame": FRAME}, headers=driver)
+    assert r.status_code == 401
+
+
+def test_credentials_are_checked_before_the_body_is_read(client, wall):
+    """A refused request's body is never read: a declared 1 GB body gets its 401 or 403 at
+    once, not a 413, and a malformed one not a 422."""
+    for headers, status in (({}, 401), (node(wall, 0), 403)):
+        r = client.post(f"/walls/{wall['id']}/frames", content=b"{not json",
+                        headers={**headers, "Content-Type": "application/json"})
+        assert r.status_code == status
+        r = client.post("/scenes?name=big", content=b"glTF",
+                        headers={**headers, "Content-Length": str(1 << 30)})
+        assert r.status_code == (401 if not headers else 403)
+
+
+def test_streams_need_the_tiles_node_credential(client, wall):
+    wid = wall["id"]
+    for token, status in ((None, 401), ("nope", 401), (wall["credentials"]["driver"], 403),
+                          (node(wall, 1)["Authorization"][7:], 403)):
+        query = f"?token={token}" if token else ""
+        with pytest.raises(WebSocketDenialResponse) as denied:
+            with client.websocket_connect(f"/walls/{wid}/tiles/0/stream{query}"):
+                pass
+        assert denied.value.status_code == status
+    with client.websocket_connect(f"/walls/{wid}/tiles/0/stream",
+                                  headers=node(wall, 0)) as ws:  # the header works too
+        assert msgpack.unpackb(ws.receive_bytes())["frame"] == 0
+
+
+def test_a_server_without_a_token_lets_everyone_through():
+    with TestClient(create_app(None)) as c:
+        info = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}).json()
+        assert "credentials" in info  # issued all the same, for clients written for both
+        wid = info["id"]
+        assert c.post(f"/walls/{wid}/frames", json={"frame": FRAME}).status_code == 200
+        assert c.get(f"/walls/{wid}/tiles/1/packets/0").status_code == 200
+        assert c.post(f"/walls/{wid}/tiles/1/ack", json={"frame": 0}).status_code == 204
+        with c.websocket_connect(f"/walls/{wid}/tiles/0/stream") as ws:
+            assert msgpack.unpackb(ws.receive_bytes())["frame"] == 0
+        assert "bearer" not in c.get("/openapi.json").text.lower()
+
+
+def test_options_and_methods_a_path_does_not_take(client, wall):
+    r = client.options(f"/walls/{wall['id']}")
+    assert r.status_code == 204 and r.headers["allow"] == "DELETE, GET, OPTIONS"
+    r = client.options("/walls")
+    assert r.headers["allow"] == "GET, OPTIONS, POST"
+    assert client.options("/nowhere").status_code == 404
+    r = client.patch(f"/walls/{wall['id']}", headers=OPERATOR)
+    assert r.status_code == 405 and r.headers["allow"] == "DELETE, GET"
+
+
+def test_cors_answers_allowed_origins_only(client):
+    preflight = {"Origin": ORIGIN, "Access-Control-Request-Method": "POST",
+                 "Access-Control-Request-Headers": "authorization, content-type"}
+    r = client.options("/walls", headers=preflight)
+    assert r.status_code == 200 and r.headers["access-control-allow-origin"] == ORIGIN
+    assert "authorization" in r.headers["access-control-allow-headers"].lower()
+    r = client.options("/walls", headers={**preflight, "Origin": "https://evil.example"})
+    assert r.status_code == 400 and "access-control-allow-origin" not in r.headers
+    r = client.get("/walls", headers={"Origin": ORIGIN})
+    assert r.headers["access-control-allow-origin"] == ORIGIN
+    assert "access-control-allow-origin" not in client.get(
+        "/walls", headers={"Origin": "https://evil.example"}).headers
+
+
+def test_websocket_origins_are_checked(client, wall):
+    path = f"/walls/{wall['id']}/tiles/0/stream?token={TOKEN}"
+    with pytest.raises(WebSocketDenialResponse) as denied:
+        with client.websocket_connect(path, headers={"Origin": "https://evil.example"}):
+            pass
+    assert denied.value.status_code == 403 and "origin" in denied.value.json()["detail"]
+    for origin in (ORIGIN, "http://testserver"):  # allowed, and the server's own pages
+        with client.websocket_connect(path, headers={"Origin": origin}) as ws:
+            assert msgpack.unpackb(ws.receive_bytes())["frame"] == 0
+
+
+@pytest.mark.parametrize("body,where", [
+    ({"frame": False}, "body.frame"), ({"frame": "7"}, "body.frame"),
+    ({"frame": 1.5}, "body.frame")])
+def test_numbers_are_numbers(client, wall, body, where):
+    r = client.post(f"/walls/{wall['id']}/tiles/0/ack", json=body, headers=OPERATOR)
+    assert r.status_code == 422 and where in r.json()["detail"]
+
+
+@pytest.mark.parametrize("frame", [
+    {**FRAME, "position": [True, 0, 0]}, {**FRAME, "position": ["1", 0, 0]},
+    {**FRAME, "orientation": [1, 0, 0, 2]}])
+def test_frames_are_held_to_their_schema(client, wall, frame):
+    r = client.post(f"/walls/{wall['id']}/frames", json={"frame": frame, "number": 7},
+                    headers=OPERATOR)
+    assert r.status_code == 422
+    r = client.post(f"/walls/{wall['id']}/frames", json={"frame": FRAME, "number": "7"},
+                    headers=OPERATOR)
+    assert r.status_code == 422 and "number" in r.json()["detail"]
+
+
+def test_msgpack_nested_1000_deep_is_a_400(client, wall):
+    deep: dict = {"frame": FRAME}
+    inner = deep
+    for _ in range(1000):
+        inner["x"] = {}
+        inner = inner["x"]
+    for body in (msgpack.packb(deep), b"\x91" * 1000 + b"\xc0"):
+        r = client.post(f"/walls/{wall['id']}/frames", content=body,
+                        headers={**OPERATOR, "Content-Type": "application/msgpack"})
+        assert r.status_code == 400 and "deeper" in r.json()["detail"], r.text
+    r = client.post(f"/walls/{wall['id']}/frames", content=b"{}",
+                    headers={**OPERATOR, "Content-Type": "text/plain"})
+    assert r.status_code == 415
+
+
+def test_the_schema_declares_security_links_and_bodies(client):
+    doc = client.get("/openapi.json").json()
+    assert doc["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    paths = doc["paths"]
+    assert paths["/walls"]["post"]["security"] == [{"bearer": []}]
+    assert "security" not in paths["/walls"]["get"]
+    assert paths["/walls/{wid}/tiles/{tile}/packets/{frame}"]["get"]["security"]
+    links = paths["/walls"]["post"]["responses"]["201"]["links"]
+    assert {ln["operationId"] for ln in links.values()} >= {
+        "getWall", "postFrame", "getPacket", "acknowledge", "barrier", "deleteWall"}
+    assert paths["/walls/{wid}/frames"]["post"]["responses"]["200"]["links"]
+    body = paths["/walls/{wid}/frames"]["post"]["requestBody"]["content"]["application/json"]
+    assert body["schema"]["$ref"] == "#/components/schemas/FramePost"
+    spec = doc["components"]["schemas"]["WallSpec"]["properties"]
+    assert spec["tile_size"]["prefixItems"][0]["minimum"] > 0
+    assert doc["components"]["schemas"]["WallCreate"]["properties"]["scene"]["pattern"]

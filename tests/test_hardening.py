@@ -1,0 +1,168 @@
+"""Issue 10's failures, each a regression test against a real ``wallcull serve`` on loopback
+(a subprocess with a state folder of its own), through the hostile clients of
+:mod:`wallcull.clients.hostile`. Bounds here are generous properties (memory grows by less
+than 50 MB, every node comes back); the timings are measured by the same functions run at
+full size (``python -m wallcull.clients.hostile all``, README) and, as the 8 x 8 soak,
+``@pytest.mark.slow``."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import msgpack
+import pytest
+
+from wallcull.clients import hostile
+from wallcull.clients.driver import Driver
+from wallcull.clients.rawhttp import Connection
+
+MiB = 1 << 20
+WALL = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0}
+
+
+def run(coro):
+    return asyncio.run(coro)
+
+
+def test_a_1kb_glb_declaring_1e8_vertices_is_refused_and_memory_stays_flat():
+    r = run(hostile.glb_bomb(10 ** 8))
+    assert r["file_bytes"] < 1024 and r["status"] == 422 and "declares" in r["detail"]
+    assert r["growth_mb"] < 50, r
+
+
+def test_unauthenticated_uploads_are_refused_before_their_bodies_are_read():
+    """Ten at once, 60 MB each: 401 as soon as the headers are in, nothing held."""
+    r = run(hostile.uploads(10, 60 * MiB))
+    assert r["statuses"] == [401] * 10 and r["healthy_after"]
+    assert r["growth_mb"] < 50, r
+    assert r["sent_mb"] < 100  # the server answered long before the bodies were sent
+
+
+def test_stalled_uploads_time_out_and_are_capped():
+    """Authorized uploads that stop sending after 1 MB: 408 after ``body_idle``; beyond
+    ``uploads`` at once, 503 without reading anything."""
+    r = run(hostile.uploads(3, 8 * MiB, token=hostile.TOKEN, stall=True,
+                            args=["--limit", "body_idle=1,uploads=2"]))
+    assert r["statuses"] == [408, 408, 503], r
+    assert r["seconds_max"] < 20 and r["healthy_after"]
+
+
+def test_stream_opens_without_a_credential_are_refused():
+    async def go():
+        async with hostile.server() as s:
+            async with Driver(s.url, hostile.TOKEN) as d:
+                wid = (await d.create_wall("fatehpur", WALL))["id"]
+            codes = []
+            for k in range(0, 1000, 100):
+                codes += await asyncio.gather(*(hostile.open_stream(
+                    s.url, f"/walls/{wid}/tiles/{j % 4}/stream") for j in range(k, k + 100)))
+            async with Connection(s.url) as conn:
+                info = await conn.call("GET", f"/walls/{wid}")
+                health = await conn.call("GET", "/health")
+        return codes, info, health
+
+    codes, info, health = run(go())
+    assert codes == [401] * 1000 and info["subscribers"] == 0 and health["status"] == "ok"
+
+
+def test_streams_are_capped_and_an_idle_one_stops_being_sent_to():
+    """A server without a token: per tile, two streams at most (``--limit``); a stream that
+    never acknowledges gets ``STREAM_WINDOW`` packets and then nothing, however many frames
+    follow, and is closed with 4408 after ``stream_idle``; one that acknowledges gets all."""
+    from websockets.asyncio.client import connect
+    from websockets.exceptions import ConnectionClosed
+
+    from wallcull.server.streams import STREAM_WINDOW
+
+    async def go():
+        args = ["--limit", "streams_per_tile=2,stream_idle=2"]
+        async with hostile.server(None, args=args) as s:
+            async with Driver(s.url) as d:
+                info = await d.create_wall("fatehpur", WALL)
+                frames = await d.frames("fatehpur", WALL, "orbit", 30)
+            url = "ws" + s.url[4:] + f"/walls/{info['id']}/tiles/0/stream"
+            async with connect(url) as idle, connect(url) as busy:
+                assert await hostile.open_stream(s.url, f"/walls/{info['id']}/tiles/0/stream"
+                                                 ) == 429
+                got_busy = []
+                async with Driver(s.url) as d:
+                    for f in frames:
+                        await d.post(info["id"], f)
+                        pkt = msgpack.unpackb(await asyncio.wait_for(busy.recv(), 10))
+                        got_busy.append(pkt["frame"])
+                        await busy.send(msgpack.packb({"ack": pkt["frame"]}))
+                got_idle = []
+                try:
+                    while True:
+                        got_idle.append(msgpack.unpackb(await asyncio.wait_for(
+                            idle.recv(), 10))["frame"])
+                except ConnectionClosed as exc:
+                    closed = exc.rcvd.code
+            return got_idle, got_busy, closed
+
+    got_idle, got_busy, closed = run(go())
+    assert got_busy == list(range(30))
+    assert len(got_idle) == STREAM_WINDOW and closed == 4408
+
+
+def test_an_ack_with_another_tiles_credential_is_403():
+    r = run(hostile.acks())
+    assert r["ack_tile_1_with"] == {"node 0": 403, "driver": 403, "node 1": 204}
+    assert r["barrier_acked"] == 1
+
+
+def test_msgpack_nested_1000_deep_is_a_400_on_a_real_server():
+    async def go():
+        async with hostile.server() as s:
+            async with Driver(s.url, hostile.TOKEN) as d:
+                wid = (await d.create_wall("fatehpur", WALL))["id"]
+            async with Connection(s.url, hostile.TOKEN) as conn:
+                r = await conn.request("POST", f"/walls/{wid}/frames", b"\x91" * 1000 + b"\xc0",
+                                       "application/msgpack", auth=True)
+                health = await conn.call("GET", "/health")
+        return r, health
+
+    r, health = run(go())
+    assert r.status == 400 and "deeper" in r.detail() and health["status"] == "ok"
+
+
+def test_big_bodies_and_big_answers_leave_the_event_loop_free():
+    """A 1 MiB body of empty updates (issue 10: the loop blocked 0.45 s) and the node list of
+    a 50,000-node scene (0.8 s at 100,000): a probe keeps being answered. The bound is loose
+    (the machine is shared); ``python -m wallcull.clients.hostile loop`` measures it."""
+    r = run(hostile.loop(1.0, 50_000))
+    assert r["updates"]["status"] == 422  # more than 10,000 updates, refused unvalidated
+    assert r["nodes"]["upload_status"] == 201 and r["nodes"]["status"] == 200
+    assert r["updates"]["worst_ms"] < 200, r
+    assert r["nodes"]["worst_ms"] < 200, r
+
+
+def _check_restart(r, tiles):
+    assert r["tiles"] == tiles and r["wall_after"] == r["wall_before"]
+    assert r["frames_backwards"] == 0, r
+    assert r["node_errors"] == 0 and r["nodes_exit"] == 0 and r["driver_exit"] == 0, r
+    assert r["driver_retries"] > 0
+    if r["mode"] == "ws":
+        assert r["reconnects"] >= tiles
+    return r
+
+
+@pytest.mark.parametrize("mode", ["ws", "pull"])
+def test_a_server_killed_mid_run_comes_back_on_the_same_wall(mode):
+    """SIGKILL in the middle of a run: every node (streaming or pulling) comes back to the same
+    wall id and goes on, the driver retries, and no node ever sees a frame number go
+    backwards."""
+    wall, tiles = (WALL_4x4, 16) if mode == "ws" else (json.dumps(WALL), 4)
+    r = _check_restart(run(hostile.restart(wall, rate=30, seconds=6, kill_at=3, mode=mode)),
+                       tiles)
+    assert r["resume_after_ready_s"]["max"] < 10, r
+
+
+@pytest.mark.slow
+def test_a_server_killed_mid_run_of_64_nodes_resumes_them_within_2_s():
+    r = _check_restart(run(hostile.restart()), 64)
+    assert r["resume_after_ready_s"]["max"] < 2.0, r
+
+
+WALL_4x4 = "examples/wall-4x4.json"

@@ -1,0 +1,185 @@
+"""Uploaded GLBs (wallcull.uploads): every declaration checked against the bytes present and
+against the limits before a parser sees the file, and the parse itself in a child process
+whose memory and time are limited."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from wallcull.clients.hostile import glb, many_nodes, vertex_bomb
+from wallcull.errors import InputError
+from wallcull.limits import Limits
+from wallcull.uploads import check_glb, glb_chunks, parse_sandboxed
+
+BOX_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], "<f4")
+BOX_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5]], "<u4")
+
+
+def box_doc(**change) -> tuple[dict, bytes]:
+    """A one-node GLB document (positions and indices in one buffer) and its binary chunk."""
+    v, f = BOX_V.tobytes(), BOX_F.tobytes()
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"name": "box", "mesh": 0}],
+           "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+           "buffers": [{"byteLength": len(v) + len(f)}],
+           "bufferViews": [{"buffer": 0, "byteLength": len(v)},
+                           {"buffer": 0, "byteOffset": len(v), "byteLength": len(f)}],
+           "accessors": [{"bufferView": 0, "componentType": 5126, "type": "VEC3", "count": 8,
+                          "min": [0, 0, 0], "max": [1, 1, 1]},
+                         {"bufferView": 1, "componentType": 5125, "type": "SCALAR",
+                          "count": 12}]}
+    doc.update(change)
+    return doc, v + f
+
+
+def changed(path: str, value) -> bytes:
+    """The box GLB with one value of its JSON replaced (``path``: keys and indices by dots)."""
+    doc, binary = box_doc()
+    keys = [int(k) if k.isdigit() else k for k in path.split(".")]
+    target = doc
+    for k in keys[:-1]:
+        target = target[k]
+    if value is DELETE:
+        del target[keys[-1]]
+    else:
+        target[keys[-1]] = value
+    return glb(doc, binary)
+
+
+DELETE = object()
+SPARSE = {"count": 2, "indices": {"bufferView": 1, "componentType": 5125},
+          "values": {"bufferView": 0}}
+
+REFUSED = [  # (id, GLB, detail)
+    ("buffer-uri", changed("buffers.0.uri", "/etc/passwd"), "uri"),
+    ("data-uri", changed("buffers.0.uri", "data:application/octet-stream;base64,AAAA"), "uri"),
+    ("buffer-longer-than-chunk", changed("buffers.0.byteLength", 10_000), "binary chunk holds"),
+    ("view-past-buffer", changed("bufferViews.1.byteOffset", 100), "ends at byte"),
+    ("view-negative-offset", changed("bufferViews.0.byteOffset", -4), "byteOffset"),
+    ("view-bad-buffer", changed("bufferViews.0.buffer", 3), "buffer"),
+    ("stride-too-small", changed("bufferViews.0.byteStride", 2), "byteStride"),
+    ("stride-not-aligned", changed("bufferViews.0.byteStride", 14), "multiple of 4"),
+    ("stride-overlaps", changed("bufferViews.0.byteStride", 8), "overlap"),
+    ("stride-runs-past", changed("bufferViews.0.byteStride", 16), "reads"),
+    ("count-past-view", changed("accessors.0.count", 9), "reads"),
+    ("offset-past-view", changed("accessors.1.byteOffset", 8), "reads"),
+    ("count-zero", changed("accessors.0.count", 0), "count"),
+    ("count-float", changed("accessors.0.count", 8.0), "count"),
+    ("count-bool", changed("accessors.0.count", True), "count"),
+    ("component-type", changed("accessors.0.componentType", 5130), "componentType"),
+    ("element-type", changed("accessors.0.type", "VEC7"), "type"),
+    ("view-index", changed("accessors.0.bufferView", 7), "bufferView"),
+    ("sparse-indices-past", changed("accessors.0.sparse", {**SPARSE, "count": 4,
+                                                           "indices": {"bufferView": 1,
+                                                                       "byteOffset": 40,
+                                                                       "componentType": 5125}}),
+     "sparse"),
+    ("sparse-more-than-count", changed("accessors.0.sparse", {**SPARSE, "count": 9}), "sparse"),
+    ("sparse-index-type", changed("accessors.0.sparse", {
+        **SPARSE, "indices": {"bufferView": 1, "componentType": 5126}}), "sparse"),
+    ("sparse-malformed", changed("accessors.0.sparse", [1, 2]), "sparse"),
+    ("mesh-index", changed("nodes.0.mesh", 4), "mesh"),
+    ("attribute-index", changed("meshes.0.primitives.0.attributes.POSITION", 9), "POSITION"),
+    ("child-index", changed("nodes.0.children", [5]), "child"),
+    ("own-child", changed("nodes.0.children", [0]), "tree"),
+    ("scene-root", changed("scenes.0.nodes", [3]), "scene 0 node"),
+    ("required-extension", changed("extensionsRequired", ["KHR_draco_mesh_compression"]),
+     "extensions"),
+    ("vertex-bomb", vertex_bomb(10 ** 8), "declares"),
+    ("issue-10-file", vertex_bomb(9_999_999), "draws 9,999,999 vertices"),
+]
+
+
+@pytest.mark.parametrize("data,detail", [r[1:] for r in REFUSED], ids=[r[0] for r in REFUSED])
+def test_declarations_are_checked_against_the_bytes_and_limits(data, detail):
+    with pytest.raises(InputError, match=detail):
+        check_glb(data, Limits())
+
+
+def test_a_good_box_and_a_good_sparse_accessor_pass():
+    check_glb(glb(*box_doc()), Limits())
+    doc, binary = box_doc()
+    doc["accessors"].append({"componentType": 5126, "type": "VEC3", "count": 8,
+                             "sparse": {"count": 2, "indices": {"bufferView": 1,
+                                                                "componentType": 5125},
+                                        "values": {"bufferView": 0}}})
+    check_glb(glb(doc, binary), Limits())
+
+
+def test_two_parents_and_cycles_are_refused():
+    doc, binary = box_doc(nodes=[{"name": "a", "children": [2]}, {"name": "b", "children": [2]},
+                                 {"name": "c", "mesh": 0}], scenes=[{"nodes": [0, 1]}])
+    with pytest.raises(InputError, match="two parents"):
+        check_glb(glb(doc, binary), Limits())
+    doc, binary = box_doc(nodes=[{"name": "a", "children": [1], "mesh": 0},
+                                 {"name": "b", "children": [2]}, {"name": "c", "children": [0]}])
+    with pytest.raises(InputError, match="cycle"):
+        check_glb(glb(doc, binary), Limits())
+
+
+def test_instances_count_against_the_limits():
+    """A mesh drawn by many nodes counts once per node: 1,000 nodes of one 8-vertex box."""
+    data = many_nodes(1000, per=50)
+    check_glb(data, Limits())
+    with pytest.raises(InputError, match="8,000 vertices"):
+        check_glb(data, Limits(vertices=7999))
+    with pytest.raises(InputError, match="12,000 triangles"):
+        check_glb(data, Limits(faces=11_999))
+    with pytest.raises(InputError, match="1,021 nodes"):
+        check_glb(data, Limits(nodes=1000))
+    with pytest.raises(InputError, match="declares 240 bytes"):
+        check_glb(data, Limits(scene_bytes=239))
+
+
+@pytest.mark.parametrize("data", [b"", b"glTF", b"glTF" + bytes(8), b"glTF\x01\x00\x00\x00" +
+                                  bytes(12), glb(*box_doc())[:40]])
+def test_truncated_headers_and_chunks_are_refused(data):
+    with pytest.raises(InputError):
+        glb_chunks(data)
+
+
+def test_the_parse_runs_in_a_child_with_a_memory_limit(tmp_path):
+    """A file within every declared limit whose parse needs more memory than the child may
+    have: the child runs out and the upload is refused; this process is untouched."""
+    import resource
+
+    doc, binary = box_doc()
+    doc["accessors"][0] = {"componentType": 5126, "type": "VEC3", "count": 3_000_000,
+                           "min": [0, 0, 0], "max": [1, 1, 1]}  # zeros, no buffer view
+    doc["meshes"][0]["primitives"][0].pop("indices")
+    path = tmp_path / "big.glb"
+    path.write_bytes(glb(doc, binary))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InputError, match="memory|parser died"):
+        parse_sandboxed(path, "big.glb", Limits(parse_memory=64 << 20))
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 20_000  # KiB
+
+
+def test_the_child_gives_back_a_usable_scene_and_dies_on_a_deadline(tmp_path):
+    s = trimesh.Scene()
+    for k in range(3):
+        m = np.eye(4)
+        m[:3, 3] = [3 * k, 0, -10]
+        s.add_geometry(trimesh.creation.box(), node_name=f"b{k}", geom_name=f"b{k}",
+                       transform=m)
+    path = tmp_path / "three.glb"
+    path.write_bytes(s.export(file_type="glb"))
+    scene = parse_sandboxed(path, "three.glb", Limits())
+    assert scene.name == "three.glb" and scene.stats["leaves"] == 3
+    assert np.isfinite(scene.bounds("obb").half).all()
+    with pytest.raises(InputError, match="took over"):
+        parse_sandboxed(path, "three.glb", Limits(parse_seconds=1e-4))
+
+
+def test_the_json_chunk_is_parsed_in_the_child_too():
+    """A JSON chunk that is not an object, or nests too deep for the parser."""
+    for text in (b"[1, 2]", b"[" * 100_000):
+        data = b"glTF" + (2).to_bytes(4, "little") + (20 + len(text)).to_bytes(4, "little") + \
+            len(text).to_bytes(4, "little") + (0x4E4F534A).to_bytes(4, "little") + text
+        with pytest.raises(InputError, match="JSON"):
+            check_glb(data, Limits())
+    assert json.loads(glb_chunks(glb(*box_doc()))[0])["asset"]["version"] == "2.0"

@@ -1,0 +1,181 @@
+"""The gate: ASGI middleware every request passes before a route sees it (behind CORS).
+
+In this order, each step refusing with a status and a ``detail``, the way an attacker's
+request costs least:
+
+1. ``OPTIONS`` is answered here (204, ``Allow``), and a method the path does not take gets 405
+   with ``Allow``;
+2. a WebSocket whose ``Origin`` is not allowed (``--cors-origin``; same-origin always is) is
+   denied 403 before the handshake completes;
+3. the caller's token is checked against the route's role (:mod:`.access`): 401 or 403,
+   **before a byte of the body is read**; then a query parameter the route does not declare
+   is refused (422), as an unknown key of a body is;
+4. a body is capped (``Content-Length`` first, then as it arrives: 413), must keep arriving
+   (``limits.body_idle`` seconds between chunks, ``limits.body_seconds`` in all: 408), and
+   uploads are limited to ``limits.uploads`` at once (503 with ``Retry-After``).
+
+The route reads the body itself, through the capped ``receive``; nothing is buffered here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from urllib.parse import parse_qs, parse_qsl, urlsplit
+
+from starlette.routing import Match
+
+from .access import bearer, check, leaf_routes, query_names, role_of
+from .deps import ServerState
+from .http import Refused
+
+BODY_METHODS = ("POST", "PUT", "PATCH", "DELETE")
+
+
+class Gate:
+    def __init__(self, app, state: ServerState):
+        self.app, self.state = app, state
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        try:
+            admitted = self._admit(scope, receive)
+        except Refused as exc:
+            self.state.metrics.errors.labels(str(exc.status)).inc()
+            return await refuse(scope, receive, send, exc)
+        if isinstance(admitted, set):  # OPTIONS, answered here with the path's methods
+            await send({"type": "http.response.start", "status": 204,
+                        "headers": [(b"allow", _allow(admitted | {"OPTIONS"}).encode())]})
+            return await send({"type": "http.response.body", "body": b""})
+        receive, upload = admitted
+        if not upload:
+            return await self.app(scope, receive, send)
+        self.state.uploads += 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.state.uploads -= 1
+
+    def _admit(self, scope, receive):
+        """``(receive, is_upload)`` for a request that may go on to its route, the path's
+        methods for an ``OPTIONS`` to answer here; raises :class:`Refused` for the others."""
+        route, params, methods = _route(scope)
+        headers = _headers(scope)
+        if scope["type"] == "websocket":
+            if route is None:
+                return receive, False  # the router refuses it
+            origin = headers.get("origin")
+            if origin is not None and not origin_allowed(origin, headers.get("host"),
+                                                         self.state.origins):
+                raise Refused(403, f"origin {origin!r} is not allowed (--cors-origin)")
+            query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
+            token = query.get("token", [None])[0] or bearer(headers.get("authorization"))
+        else:
+            if scope["method"] == "OPTIONS":
+                if not methods:
+                    raise Refused(404, "Not Found")
+                return methods
+            if route is None:
+                if methods:
+                    raise Refused(405, f"{scope['method']} is not a method of this path",
+                                  {"Allow": _allow(methods)})
+                return receive, False  # the router's 404
+            token = bearer(headers.get("authorization"))
+        check(self.state, role_of(route.endpoint), token, params)
+        query = scope.get("query_string", b"")
+        if query:  # the schema lists every parameter a route takes: no others, like bodies
+            unknown = {k for k, _ in parse_qsl(query.decode("latin-1"), keep_blank_values=True)
+                       } - query_names(route)
+            if unknown:
+                raise Refused(422, f"unknown query parameter(s): {', '.join(sorted(unknown))}")
+        if scope["type"] == "websocket" or scope["method"] not in BODY_METHODS:
+            return receive, False
+        upload = getattr(route.endpoint, "wallcull_upload", False)
+        limits = self.state.limits
+        limit = limits.upload if upload else limits.body
+        declared = headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            raise Refused(413, f"request body over {limit} bytes")
+        if upload and self.state.uploads >= limits.uploads:
+            raise Refused(503, f"{limits.uploads} uploads are in progress; retry",
+                          {"Retry-After": "2"})
+        return _capped(receive, limit, limits), upload
+
+
+def _route(scope):
+    """The route a request reaches, its path parameters, and the methods its path takes."""
+    methods: set[str] = set()
+    app = scope["app"]
+    routes = app.__dict__.get("wallcull_routes")
+    if routes is None:  # the routes are all in place by the first request
+        routes = app.wallcull_routes = leaf_routes(app.router.routes)
+    for route in routes:
+        match, child = route.matches(scope)
+        if match == Match.FULL:
+            return route, child.get("path_params", {}), methods
+        if match == Match.PARTIAL and getattr(route, "methods", None):
+            methods |= route.methods
+    return None, {}, methods
+
+
+def _headers(scope) -> dict[str, str]:
+    return {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
+
+
+def _allow(methods) -> str:
+    return ", ".join(sorted(methods))
+
+
+def origin_allowed(origin: str, host: str | None, allowed) -> bool:
+    """Whether a browser page from ``origin`` may open a stream: listed, ``*`` listed, or the
+    page came from this server (same host and port)."""
+    return "*" in allowed or origin in allowed or (host is not None and
+                                                    urlsplit(origin).netloc == host)
+
+
+def _capped(receive, limit: int, limits):
+    """``receive`` for a body of at most ``limit`` bytes that keeps arriving."""
+    deadline = time.monotonic() + limits.body_seconds
+    state = {"size": 0, "done": False}
+
+    async def capped():
+        if state["done"]:  # the body is in: what follows is the disconnect
+            return await receive()
+        left = deadline - time.monotonic()
+        try:
+            message = await asyncio.wait_for(receive(), min(limits.body_idle, max(left, 0.0)))
+        except asyncio.TimeoutError:
+            raise Refused(408, f"the body did not arrive in time ({limits.body_idle:g} s without "
+                               f"a byte, or {limits.body_seconds:g} s in all)") from None
+        if message["type"] == "http.request":
+            state["size"] += len(message.get("body", b""))
+            if state["size"] > limit:
+                raise Refused(413, f"request body over {limit} bytes")
+            state["done"] = not message.get("more_body", False)
+        return message
+
+    return capped
+
+
+async def refuse(scope, receive, send, exc: Refused) -> None:
+    """Answer a refusal: JSON with a ``detail``; on a WebSocket, an HTTP denial of the
+    handshake (or close code 1008 where the server cannot send one)."""
+    body = json.dumps({"detail": exc.detail}).encode()
+    headers = [(b"content-type", b"application/json"),
+               (b"content-length", str(len(body)).encode())]
+    headers += [(k.lower().encode(), v.encode()) for k, v in (exc.headers or {}).items()]
+    if scope["type"] == "http":
+        await send({"type": "http.response.start", "status": exc.status, "headers": headers})
+        await send({"type": "http.response.body", "body": body})
+        return
+    message = await receive()  # websocket.connect
+    if message["type"] != "websocket.connect":
+        return
+    if "websocket.http.response" in scope.get("extensions", {}):
+        await send({"type": "websocket.http.response.start", "status": exc.status,
+                    "headers": headers})
+        await send({"type": "websocket.http.response.body", "body": body})
+    else:
+        await send({"type": "websocket.close", "code": 1008, "reason": exc.detail[:120]})

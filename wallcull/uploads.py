@@ -1,0 +1,377 @@
+"""Uploaded scenes, taken apart safely: a GLB is checked against the bytes it holds and against
+what a scene may declare, then parsed in a child process with a memory limit.
+
+A GLB is a JSON document plus a binary chunk, and the JSON can declare far more than the file
+holds: an accessor with no buffer view and a ``count`` of 10^8 is 1 kB of JSON that a reader
+turns into gigabytes of zeros (and trimesh into more). So before any reader sees the file,
+:func:`check_glb` walks the document:
+
+* every buffer is the GLB's own binary chunk (no ``uri``: no files, no URLs, no data URIs), and
+  no longer than the bytes present;
+* every buffer view lies inside its buffer, with a legal ``byteStride``;
+* every accessor (and the index and value parts of a sparse one) lies inside its buffer view,
+  with a known component type and element type;
+* nodes form a forest (no node with two parents, no cycle, no index out of range);
+* the totals stay within :class:`wallcull.limits.Limits`: nodes, vertices and triangles counted
+  once per node that draws them, and the bytes every accessor declares.
+
+Whatever a check misses, the parse itself (trimesh, then :meth:`Scene.from_trimesh` and the
+bounds) runs in a child process forked from a small server process that has the parser
+already imported (multiprocessing's ``forkserver``), with ``RLIMIT_AS`` (address space) and
+``RLIMIT_CPU`` set, and a wall-clock deadline: a file that makes the parser allocate too much,
+loop, or crash costs a 422 and a dead child, never the server. The scene comes back pickled.
+Materials and textures are never decoded (``skip_materials``): culling needs none. (The child
+runs as the same user: it contains memory, time and crashes, not code execution.)
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import struct
+import threading
+from multiprocessing import spawn
+from pathlib import Path
+
+from .errors import InputError
+from .limits import Limits
+
+GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
+COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
+ELEMENT_SIZE = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+INDEX_TYPES = (5121, 5123, 5125)
+#: glTF counts and offsets are unsigned 32-bit at most in practice; anything larger is a lie.
+MAX_INT = 1 << 32
+
+
+# --------------------------------------------------------------------------- the checks
+
+
+def glb_chunks(data: bytes) -> tuple[bytes, bytes]:
+    """The JSON and binary chunks of a GLB, after checking its header and chunk lengths."""
+    if data[:4] != GLB_MAGIC:
+        raise InputError("an upload must be a binary glTF (.glb) file")
+    if len(data) < 20:
+        raise InputError("cannot read the uploaded GLB: it ends inside its header")
+    _, version, length = struct.unpack_from("<4sII", data)
+    if version != 2:
+        raise InputError(f"cannot read the uploaded GLB: glTF version {version}; only 2 is read")
+    if length > len(data):
+        raise InputError(f"cannot read the uploaded GLB: its header declares {length} bytes, "
+                         f"{len(data)} arrived")
+    chunks, offset = [], 12
+    while offset + 8 <= length:
+        size, kind = struct.unpack_from("<II", data, offset)
+        if offset + 8 + size > length:
+            raise InputError(f"cannot read the uploaded GLB: a chunk of {size} bytes runs past "
+                             "the end of the file")
+        chunks.append((kind, data[offset + 8:offset + 8 + size]))
+        offset += 8 + size
+    if not chunks or chunks[0][0] != JSON_CHUNK:
+        raise InputError("cannot read the uploaded GLB: its first chunk is not JSON")
+    binary = next((c for k, c in chunks[1:] if k == BIN_CHUNK), b"")
+    return chunks[0][1], binary
+
+
+def _int(value, what: str, low: int = 0, high: int = MAX_INT) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+        raise InputError(f"the uploaded GLB's {what} must be a whole number in [{low}, {high}], "
+                         f"got {value!r}")
+    return value
+
+
+def _list(doc: dict, key: str) -> list:
+    value = doc.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise InputError(f"the uploaded GLB's {key} must be a list of objects")
+    return value
+
+
+def _index(value, items: list, what: str) -> int:
+    if not items:
+        raise InputError(f"the uploaded GLB's {what} points at nothing")
+    return _int(value, what, 0, len(items) - 1)
+
+
+def _span(view: dict, offset: int, count: int, element: int, stride: int, what: str) -> None:
+    """Refuse ``count`` elements of ``element`` bytes, ``stride`` apart from ``offset``, that
+    do not fit in the buffer view."""
+    end = offset + stride * (count - 1) + element
+    if end > view["byteLength"]:
+        raise InputError(f"the uploaded GLB's {what} reads {end} bytes of a buffer view of "
+                         f"{view['byteLength']}")
+
+
+def check_glb(data: bytes, limits: Limits) -> dict:
+    """Check an uploaded GLB (see the module docstring); returns its JSON document."""
+    text, binary = glb_chunks(data)
+    try:
+        doc = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise InputError(f"cannot read the uploaded GLB: its JSON is malformed: {exc}") from None
+    if not isinstance(doc, dict):
+        raise InputError("cannot read the uploaded GLB: its JSON is not an object")
+    required = doc.get("extensionsRequired") or []
+    if required:
+        raise InputError(f"cannot use the uploaded GLB: it requires extensions "
+                         f"{required!r}, which wallcull does not read")
+    buffers, views = _list(doc, "buffers"), _list(doc, "bufferViews")
+    accessors, meshes, nodes = _list(doc, "accessors"), _list(doc, "meshes"), _list(doc, "nodes")
+    sizes = []
+    for i, buf in enumerate(buffers):
+        if "uri" in buf:
+            raise InputError(f"cannot use buffer {i} of the uploaded GLB: it names a uri; an "
+                             "upload carries its data in the GLB's binary chunk")
+        if i > 0:
+            raise InputError("cannot use the uploaded GLB: only its binary chunk can be a buffer")
+        sizes.append(_int(buf.get("byteLength"), f"buffer {i} byteLength"))
+        if sizes[-1] > len(binary):
+            raise InputError(f"cannot use the uploaded GLB: buffer {i} declares {sizes[-1]} "
+                             f"bytes; its binary chunk holds {len(binary)}")
+    for i, view in enumerate(views):
+        what = f"bufferView {i}"
+        b = _index(view.get("buffer"), buffers, f"{what} buffer")
+        offset = _int(view.get("byteOffset", 0), f"{what} byteOffset")
+        length = _int(view.get("byteLength"), f"{what} byteLength", 1)
+        if offset + length > sizes[b]:
+            raise InputError(f"the uploaded GLB's {what} ends at byte {offset + length} of a "
+                             f"buffer of {sizes[b]}")
+        if "byteStride" in view:
+            stride = _int(view["byteStride"], f"{what} byteStride", 4, 252)
+            if stride % 4:
+                raise InputError(f"the uploaded GLB's {what} byteStride must be a multiple of 4")
+    declared = 0
+    for i, acc in enumerate(accessors):
+        what = f"accessor {i}"
+        kind = acc.get("componentType")
+        if kind not in COMPONENT_BYTES:
+            raise InputError(f"the uploaded GLB's {what} componentType {kind!r} is unknown")
+        if acc.get("type") not in ELEMENT_SIZE:
+            raise InputError(f"the uploaded GLB's {what} type {acc.get('type')!r} is unknown")
+        element = COMPONENT_BYTES[kind] * ELEMENT_SIZE[acc["type"]]
+        count = _int(acc.get("count"), f"{what} count", 1)
+        declared += count * element
+        if "bufferView" in acc:
+            view = views[_index(acc["bufferView"], views, f"{what} bufferView")]
+            offset = _int(acc.get("byteOffset", 0), f"{what} byteOffset")
+            _span(view, offset, count, element, view.get("byteStride", element), what)
+            if view.get("byteStride", element) < element:
+                raise InputError(f"the uploaded GLB's {what} elements overlap (stride "
+                                 f"{view['byteStride']} < {element} bytes)")
+        sparse = acc.get("sparse")
+        if sparse is not None:
+            if not isinstance(sparse, dict) or not isinstance(sparse.get("indices"), dict) \
+                    or not isinstance(sparse.get("values"), dict):
+                raise InputError(f"the uploaded GLB's {what} sparse part is malformed")
+            n = _int(sparse.get("count"), f"{what} sparse count", 1, count)
+            indices, values = sparse["indices"], sparse["values"]
+            if indices.get("componentType") not in INDEX_TYPES:
+                raise InputError(f"the uploaded GLB's {what} sparse indices have an unknown "
+                                 "componentType")
+            for part, size in ((indices, COMPONENT_BYTES[indices["componentType"]]),
+                               (values, element)):
+                view = views[_index(part.get("bufferView"), views, f"{what} sparse bufferView")]
+                offset = _int(part.get("byteOffset", 0), f"{what} sparse byteOffset")
+                _span(view, offset, n, size, size, f"{what} sparse part")
+    if declared > limits.scene_bytes:
+        raise InputError(f"the uploaded GLB declares {declared:,} bytes of data; a scene may "
+                         f"declare at most {limits.scene_bytes:,}")
+    per_mesh = [_mesh_size(m, k, accessors) for k, m in enumerate(meshes)]
+    if len(nodes) > limits.nodes:
+        raise InputError(f"the uploaded GLB has {len(nodes):,} nodes; a scene may have at most "
+                         f"{limits.nodes:,}")
+    parents = [-1] * len(nodes)
+    vertices = faces = 0
+    for i, node in enumerate(nodes):
+        for child in node.get("children", []):
+            c = _index(child, nodes, f"node {i} child")
+            if parents[c] != -1 or c == i:
+                raise InputError(f"the uploaded GLB's node {c} has two parents or is its own: "
+                                 "glTF nodes form a tree")
+            parents[c] = i
+        if "mesh" in node:
+            v, f = per_mesh[_index(node["mesh"], meshes, f"node {i} mesh")]
+            vertices, faces = vertices + v, faces + f
+    _no_cycle(parents)
+    for k, scene in enumerate(_list(doc, "scenes")):
+        for root in scene.get("nodes", []):
+            _index(root, nodes, f"scene {k} node")
+    if vertices > limits.vertices or faces > limits.faces:
+        raise InputError(f"the uploaded GLB draws {vertices:,} vertices and {faces:,} triangles "
+                         f"(once per node); a scene may draw at most {limits.vertices:,} and "
+                         f"{limits.faces:,}")
+    return doc
+
+
+def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int]:
+    """Vertices and triangles one instance of mesh ``k`` declares."""
+    vertices = faces = 0
+    prims = mesh.get("primitives", [])
+    if not isinstance(prims, list) or not all(isinstance(p, dict) for p in prims):
+        raise InputError(f"the uploaded GLB's mesh {k} primitives are malformed")
+    for p in prims:
+        attributes = p.get("attributes", {})
+        if not isinstance(attributes, dict):
+            raise InputError(f"the uploaded GLB's mesh {k} attributes are malformed")
+        for name, a in attributes.items():
+            _index(a, accessors, f"mesh {k} attribute {name}")
+        n = accessors[attributes["POSITION"]]["count"] if "POSITION" in attributes else 0
+        vertices += n
+        if "indices" in p:
+            faces += accessors[_index(p["indices"], accessors, f"mesh {k} indices")]["count"] // 3
+        else:
+            faces += n // 3
+    return vertices, faces
+
+
+def _no_cycle(parents: list[int]) -> None:
+    """Every node's chain of parents reaches a root (each node has one parent at most, so a
+    chain that comes back to itself is the only way not to)."""
+    state = [0] * len(parents)  # 0: not seen, 1: on the chain being walked, 2: reaches a root
+    for i in range(len(parents)):
+        chain, j = [], i
+        while j != -1 and state[j] == 0:
+            state[j] = 1
+            chain.append(j)
+            j = parents[j]
+        if j != -1 and state[j] == 1:
+            raise InputError("the uploaded GLB's nodes form a cycle")
+        for k in chain:
+            state[k] = 2
+
+
+def usable(scene):
+    """``scene``, once it is known to have leaves and finite bounds (computed here, in the
+    loading process or thread, rather than by the first wall): a file can be well formed and
+    still carry no drawable node, NaN vertices or transforms that overflow."""
+    import numpy as np
+
+    if not len(scene.leaves):
+        raise InputError(f"scene {scene.name!r} has no node that carries geometry")
+    if not np.isfinite(scene.leaf_points[0]).all():
+        raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
+    try:
+        b = scene.bounds("obb")
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        raise InputError(f"scene {scene.name!r} cannot be bounded: {exc}") from None
+    if not all(np.isfinite(a).all() for a in (b.center, b.axes, b.half, b.radius)):
+        raise InputError(f"scene {scene.name!r} is too large to bound in float64")
+    return scene
+
+
+# --------------------------------------------------------------------------- the parse
+
+
+def parse_glb(path: str, name: str, limits: Limits):
+    """Check and parse a GLB file into a usable :class:`~wallcull.scene.Scene` (in this process:
+    call :func:`parse_sandboxed` for untrusted files)."""
+    import numpy as np
+    import trimesh
+
+    from .scene import Scene
+
+    data = Path(path).read_bytes()
+    check_glb(data, limits)
+    import io
+
+    try:
+        loaded = trimesh.load(io.BytesIO(data), file_type="glb", skip_materials=True)
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a parser failure is bad input
+        raise InputError(f"cannot read the uploaded GLB: {exc}") from None
+    del data
+    if not isinstance(loaded, trimesh.Scene):
+        loaded = trimesh.Scene(loaded)
+    if not loaded.geometry:
+        raise InputError("the uploaded GLB has no geometry")
+    try:
+        with np.errstate(all="ignore"):  # odd files overflow on their way to being refused
+            return usable(Scene.from_trimesh(loaded, name=name))
+    except (InputError, MemoryError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - whatever an odd file trips is bad input
+        raise InputError(f"cannot use the uploaded GLB: {type(exc).__name__}: {exc}") from None
+
+
+def _child(conn, path: str, name: str, limits: Limits) -> None:
+    """The child's side: limits first, then the parse; the answer goes back on ``conn``."""
+    import resource
+
+    with open("/proc/self/status") as f:
+        vm = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+    resource.setrlimit(resource.RLIMIT_AS, (vm + limits.parse_memory, vm + limits.parse_memory))
+    cpu = int(limits.parse_seconds) + 1
+    resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
+    try:
+        answer = ("scene", parse_glb(path, name, limits))
+    except InputError as exc:
+        answer = ("refused", str(exc))
+    except MemoryError:
+        answer = ("refused", f"parsing the uploaded GLB needs more than "
+                             f"{limits.parse_memory:,} bytes of memory")
+    except RecursionError:
+        answer = ("refused", "the uploaded GLB nests too deeply to parse")
+    try:
+        conn.send(answer)
+    except MemoryError:
+        conn.send(("refused", "the uploaded GLB's scene is too large to hand back"))
+    conn.close()
+
+
+_context_lock = threading.Lock()
+_context = None
+CHILD = "wallcull-parse"
+
+
+def _forkserver():
+    """The forkserver context, with the parser imported once in its server process."""
+    global _context
+    with _context_lock:
+        if _context is None:
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload(["numpy", "trimesh", "wallcull.scene", "wallcull.uploads"])
+            spawn.get_preparation_data = _without_main
+            _context = ctx
+    return _context
+
+
+def _without_main(name, _original=spawn.get_preparation_data):
+    """multiprocessing's data for a new child, less ``__main__`` for a parse child: it needs
+    nothing from it, and importing it again there would run a script without a main guard
+    (or fail on ``python - < script``)."""
+    data = _original(name)
+    if name.startswith(CHILD):
+        data.pop("init_main_from_name", None)
+        data.pop("init_main_from_path", None)
+    return data
+
+
+def parse_sandboxed(path: str | os.PathLike, name: str, limits: Limits):
+    """:func:`parse_glb` in a child process with ``limits.parse_memory`` bytes of address space
+    and ``limits.parse_seconds`` of time. Blocking: call it from a worker thread. Whatever goes
+    wrong in the child is an :class:`InputError`."""
+    ctx = _forkserver()
+    receive, send = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(send, str(path), name, limits), daemon=True,
+                       name=f"{CHILD}-{name}")
+    proc.start()
+    send.close()
+    try:
+        if not receive.poll(limits.parse_seconds):
+            raise InputError(f"parsing the uploaded GLB took over {limits.parse_seconds:g} s")
+        try:
+            kind, value = receive.recv()
+        except (EOFError, OSError):
+            proc.join(5)
+            raise InputError(f"the parser died on the uploaded GLB (exit status "
+                             f"{proc.exitcode}): the file is refused") from None
+    finally:
+        receive.close()
+        if proc.is_alive():
+            proc.kill()
+        proc.join(5)
+    if kind == "refused":
+        raise InputError(value)
+    return value
