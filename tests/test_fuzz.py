@@ -130,6 +130,13 @@ def _glb(ctx, value):
 
 # --------------------------------------------------------------------------- what a schema cannot say
 
+CAVE = {"screens": [  # three walls of a 3 m cube around the origin
+    {"bottom_left": [-1.5, -1.5, -1.5], "bottom_right": [1.5, -1.5, -1.5],
+     "top_left": [-1.5, 1.5, -1.5], "resolution": [64, 64]},
+    {"bottom_left": [-1.5, -1.5, 1.5], "bottom_right": [-1.5, -1.5, -1.5],
+     "top_left": [-1.5, 1.5, 1.5], "resolution": [64, 64]},
+    {"bottom_left": [1.5, -1.5, -1.5], "bottom_right": [1.5, -1.5, 1.5],
+     "top_left": [1.5, 1.5, -1.5], "resolution": [64, 64]}], "near": 0.05}
 MOVE = {"left": {"position": [1.0, 0.0, -10.0], "orientation": [0.0, 0.0, 1.0, 0.0]}}
 VALID_BODIES = {  # bodies that get past validation, so that the work behind it runs too
     ("POST", "/walls"): [{"wall": WALL, "scene": "tiny.glb"},
@@ -143,7 +150,8 @@ VALID_BODIES = {  # bodies that get past validation, so that the work behind it 
     ("POST", "/walls/{wid}/frames"): [
         {"frame": FRAME}, {"frame": FRAME, "packets": True, "full": True},
         {"frame": {**FRAME, "eye": [0.1, -0.2, 0.5]}, "updates": MOVE, "packets": True,
-         "refit": "aabb"}],
+         "refit": "aabb"},
+        {"frame": {**FRAME, "stereo": {"ipd": 0.064}}, "packets": True}],
 }
 
 
@@ -163,6 +171,11 @@ def repair(case) -> None:
     body = case.body = copy.deepcopy(case.body)
     if key == ("POST", "/walls"):
         w = body["wall"]
+        if "screens" in w:  # perpendicular edges, an eye in front: a known CAVE instead
+            body["wall"] = copy.deepcopy(CAVE)
+            body.pop("nodes", None)
+            body.pop("settings", None)
+            return
         tile = w["tile_size"]
         w["gap"] = [max(-0.5 * t, min(g, t)) for g, t in zip(w.get("gap", (0, 0)), tile)]
         near, far = w.get("near", 0.1), w.get("far", 1000.0)
@@ -176,11 +189,21 @@ def repair(case) -> None:
         q = np.asarray(frame["orientation"], dtype=float)
         frame["orientation"] = (q / np.linalg.norm(q)).tolist() if np.linalg.norm(q) > 1e-3 \
             else [1.0, 0.0, 0.0, 0.0]
+        stereo = frame.get("stereo")
+        if stereo is not None:
+            h = np.asarray(stereo.get("head", (1, 0, 0, 0)), dtype=float)
+            stereo["head"] = (h / np.linalg.norm(h)).tolist() if np.linalg.norm(h) > 1e-3 \
+                else [1.0, 0.0, 0.0, 0.0]
+        half = stereo["ipd"] / 2 if stereo is not None else 0.0
         session = APP.state.server.walls.sessions.get(case.path_parameters.get("wid"))
-        if session is not None:
+        if session is not None and session.wall.kind != "grid":
+            frame["eye"] = [0.0, 0.0, 0.0]  # the CAVE's centre: in front of every screen
+            if stereo is not None:
+                stereo["ipd"] = min(stereo["ipd"], 0.5)
+        elif session is not None:
             wall = session.wall
             eye = list(frame.get("eye", (0.0, 0.0, 0.0)))
-            least = wall.near - wall.distance
+            least = wall.near - wall.distance + half
             eye[2] = min(max(eye[2], least + max(1e-3, 1e-6 * abs(least))), 1e9)
             frame["eye"] = eye
         body["updates"] = {}

@@ -152,9 +152,12 @@ def test_msgpack_ints_len_is_exact(n, hi):
 def test_tiles_and_splits():
     assert parse_tiles("0-3,7, 9-10") == [0, 1, 2, 3, 7, 9, 10]
     assert parse_tiles("all", 4) == [0, 1, 2, 3]
-    for bad in ("", "a-b", "3-", "-1"):
+    assert parse_tiles("3,1-2,2") == [1, 2, 3]
+    for bad in ("", "a-b", "3-", "-1", "5-3", "99999999999"):
         with pytest.raises(ValueError):
             parse_tiles(bad)
+    with pytest.raises(ValueError, match="0-63"):
+        parse_tiles("60-64", 64)
     assert split(64, 3) == [(0, 20), (21, 42), (43, 63)]
     assert split(2, 5) == [(0, 0), (1, 1)]
 

@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from wallcull.cull import METHODS, cull
 from wallcull.errors import InputError
 from wallcull.fit import FitOptions
-from wallcull.oracle import (screen_planes_display, tile_frusta, tiles_of, to_display,
-                             visible_leaves)
+from wallcull.oracle import (eyes_of, screen_planes_display, tile_frusta, tiles_of,
+                             to_display, visible_leaves)
 from wallcull.pipeline import Session, tile_records
 from wallcull.scene import Scene, SceneState
 from wallcull.screens import BOUNDS, SPLIT, ScreensWall
@@ -233,6 +233,46 @@ def test_no_method_misses_a_leaf_either_eye_sees_on_a_grid(seed):
     except InputError:
         return
     check(scene, wall, frame)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), stereo=st.booleans())
+def test_tight_depth_never_cuts_what_a_screen_shows(seed, stereo):
+    """Every vertex of a listed leaf inside a screen's frustum (the oracle's, the wall's near
+    and far) lies between that tile's fitted near and far planes: its distance from the eye
+    along the screen's normal; for each eye of a stereo frame, with that eye's range."""
+    rng = np.random.default_rng(seed)
+    wall = random_screens(rng)
+    scene = Scene.from_trimesh(random_scene(seed, leaves=int(rng.integers(5, 30))))
+    center = scene.leaf_points[0].mean(axis=0)
+    q = Rotation.random(random_state=seed % 2**31).as_quat()
+    frame = {"position": (center + rng.normal(size=3) * 2).tolist(),
+             "orientation": [q[3], *q[:3]], "eye": (rng.normal(size=3) * 0.05).tolist()}
+    if stereo:
+        frame["stereo"] = stereo_of(rng) | {"ipd": float(rng.uniform(0.01, 0.08))}
+    try:
+        Frame.from_dict(frame, Wall.from_dict(wall))
+    except InputError:
+        return
+    result = Session(scene, Wall.from_dict(wall), fit=FitOptions()).frame(frame)
+    mono = {k: v for k, v in frame.items() if k != "stereo"}
+    for t, fits in enumerate(result.fits):
+        s = wall["screens"][t]
+        bl, br, tl = (np.asarray(s[k], float) for k in ("bottom_left", "bottom_right", "top_left"))
+        normal = np.cross(br - bl, tl - bl)
+        normal /= np.linalg.norm(normal)
+        parts = [(mono, fits)] + ([({**mono, "eye": e.tolist()}, fits[k])
+                                   for e, k in zip(eyes_of(frame), ("left", "right"))]
+                                  if stereo else [])
+        for one_eye, fitted in parts:
+            planes = tile_frusta(wall, one_eye, t)[0]
+            eye = np.asarray(one_eye.get("eye", (0, 0, 0)), float)
+            for leaf in result.visibility.tile_leaves(t):
+                v = to_display(frame, scene.leaf_vertices(leaf))
+                inside = (v @ planes[:, :3].T + planes[:, 3] >= 0).all(axis=1)
+                depth = (eye - v[inside]) @ normal
+                assert (depth >= fitted["near"]).all() and (depth <= fitted["far"]).all(), \
+                    (t, leaf, depth.min(), depth.max(), fitted["near"], fitted["far"])
 
 
 # ------------------------------------------------------------------- a grid given as screens

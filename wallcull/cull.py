@@ -728,7 +728,7 @@ def _expand(start, nodes, leaf_start, leaf_count, leaves):
 def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
     """Per region, the smallest and largest depth along unit ``forward[q]`` from ``origin[q]``
     reached by its nodes' bounds (``lo_default``/``hi_default`` for an empty region); one row
-    of ``forward``/``origin`` serves every region."""
+    of ``forward`` (or ``origin``) serves every region, or one row each."""
     m = start.shape[0] - 1
     lo = np.full(m, lo_default)
     hi = np.full(m, hi_default)
@@ -736,8 +736,9 @@ def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
         if start[t + 1] == start[t]:
             continue
         q = t if forward.shape[0] > 1 else 0
+        o = t if origin.shape[0] > 1 else 0
         fx, fy, fz = forward[q, 0], forward[q, 1], forward[q, 2]
-        ox, oy, oz = origin[q, 0], origin[q, 1], origin[q, 2]
+        ox, oy, oz = origin[o, 0], origin[o, 1], origin[o, 2]
         a = np.inf
         b = -np.inf
         for j in range(start[t], start[t + 1]):

@@ -1,18 +1,25 @@
-"""Packets as bytes: the ``encode`` arrow of DESIGN.md, compiled.
+"""Packets and node messages as bytes: the ``encode`` arrow of DESIGN.md, compiled.
 
 A tile's packet (:mod:`wallcull.protocol`) is a msgpack map; building it as a Python dict and
-packing it costs about 10 us a tile, 40 ms for a 64 x 64 wall. Here a frame is encoded in two
+packing it costs about 10 us a tile, 40 ms for a 64 x 64 wall. Here a frame is encoded in
 compiled passes over its arrays, with no Python object per tile:
 
-* :func:`fit_segments`, once per frame: every tile's fitted frusta (``view``, ``projection``,
-  ``near``, ``far``, any ``shadows`` and ``mirrors``) as msgpack key/value pairs. They do not
-  depend on what a packet's delta is against, so every packet of the frame copies them.
+* the fits' segments, once per frame (:func:`_fit_segments`): every tile's fitted frusta
+  (``view``, ``projection``, ``near``, ``far``, any ``shadows`` and ``mirrors``, ``left`` and
+  ``right``) as msgpack key/value pairs. They do not depend on what a packet's delta is
+  against, so every packet of the frame copies them;
 * :func:`packets`: the packets of any tiles, each its header (frame, tile, time, base), its
-  list (full, or a delta against the base) and its tile's segment.
+  list (full, or a delta against the base) and its tile's segment;
+* node messages (several tiles of one render node in one message): every tile's entry against
+  a base once per frame (:func:`node_entries`: its list, its compact frusta), then a node's
+  message is the frame's shared head and its tiles' entries, one slice when its tiles are
+  consecutive (:func:`node_message`).
 
-The bytes decode to exactly the dict :func:`wallcull.protocol.packet` builds (a test holds
-this); floats are float64, integers the shortest msgpack form, as ``msgpack.packb`` writes
-them. JSON, and the rare packet that carries moved transforms, still go through the dict.
+The bytes decode to exactly the dicts :func:`wallcull.protocol.packet` and
+:func:`wallcull.protocol.node_message` build (a test holds this). In packets floats are
+float64 and integers take the shortest msgpack form, as ``msgpack.packb`` writes them; in node
+messages a depth that float32 holds exactly goes as float32. JSON, and the moved transforms of
+a dynamic scene, still go through dicts.
 """
 
 from __future__ import annotations
@@ -23,14 +30,17 @@ import msgpack
 import numpy as np
 from numba import njit
 
+from . import protocol
 from .fit import CUBE, FRUSTUM, Fits
 
 _KEYS = ("frame", "tile", "time", "base", "visible", "added", "removed", "count", "view",
          "projection", "near", "far", "shadows", "mirrors", "light", "cube", "views", "coverage",
-         "casters", "mirror", "front_face", "cw", "left", "right")
+         "casters", "mirror", "front_face", "cw", "left", "right", "rotation", "translation",
+         "extent", "depth")
 (K_FRAME, K_TILE, K_TIME, K_BASE, K_VISIBLE, K_ADDED, K_REMOVED, K_COUNT, K_VIEW,
  K_PROJECTION, K_NEAR, K_FAR, K_SHADOWS, K_MIRRORS, K_LIGHT, K_CUBE, K_VIEWS, K_COVERAGE,
- K_CASTERS, K_MIRROR, K_FRONT_FACE, V_CW, K_LEFT, K_RIGHT) = range(len(_KEYS))
+ K_CASTERS, K_MIRROR, K_FRONT_FACE, V_CW, K_LEFT, K_RIGHT, K_ROTATION, K_TRANSLATION, K_EXTENT,
+ K_DEPTH) = range(len(_KEYS))
 
 
 def _pack_each(items) -> tuple[np.ndarray, np.ndarray]:
@@ -164,7 +174,44 @@ def _mat4(buf, p, m, bits):
     return p
 
 
+@njit(cache=True)
+def _short_float(buf, p, v, bits, bits32):
+    """A float as msgpack float32 when that is exact, else float64: the same value either way."""
+    bits32[0] = v
+    if np.float64(bits32[0]) != v:
+        return _float(buf, p, v, bits)
+    u = bits32.view(np.uint32)[0]
+    buf[p] = 0xCA
+    buf[p + 1] = (u >> 24) & 0xFF
+    buf[p + 2] = (u >> 16) & 0xFF
+    buf[p + 3] = (u >> 8) & 0xFF
+    buf[p + 4] = u & 0xFF
+    return p + 5
+
+
+@njit(cache=True)
+def _floats(buf, p, values, bits):
+    p = _array(buf, p, values.shape[0])
+    for i in range(values.shape[0]):
+        p = _float(buf, p, values[i], bits)
+    return p
+
+
+@njit(cache=True)
+def _rigid(buf, p, q, t, bits):
+    """A rigid view: ``{"rotation": [w, x, y, z], "translation": [x, y, z]}``."""
+    p = _map(buf, p, 2)
+    p = _key(buf, p, K_ROTATION)
+    p = _floats(buf, p, q, bits)
+    p = _key(buf, p, K_TRANSLATION)
+    return _floats(buf, p, t, bits)
+
+
 # --------------------------------------------------------------------------- fits
+#
+# A frame's fits travel to the kernels as tuples of arrays (see _FitArrays): F the main
+# view and projection, S the shadows (one light per row), M the mirrors, E the eyes of a
+# stereo frame, C the compact forms of the node messages.
 
 
 @njit(cache=True, inline="always")
@@ -176,20 +223,119 @@ def _view(out, p, views, shared, t, bits):
 
 
 @njit(cache=True)
-def _fit_segments(views, view_bytes, projection, near, far, s_kind, s_view, s_projection,
-                  s_near, s_far, s_coverage, s_start, s_casters, s_names, s_name_off, s_cube,
-                  s_cube_off, m_shown, m_views, m_view_bytes, m_view_off, m_projection,
-                  m_start, m_visible, m_names, m_name_off, e_views, e_view_bytes, e_view_off,
-                  e_projection, e_near, e_far, e_m_views, e_m_projection, e_m_shown, out,
-                  out_start, out_pairs):
-    """Every tile's fitted frusta as msgpack key/value pairs into ``out`` (see
-    :func:`fit_segments` for the arguments)."""
+def _shadows(out, p, t, S, bits):
+    """Tile ``t``'s ``shadows`` pair, if it has any shadow frustum: ``(p, pairs written)``."""
+    (s_kind, s_view, s_projection, s_near, s_far, s_coverage, s_start, s_casters, s_names,
+     s_name_off, s_cube, s_cube_off) = S
+    shadows = 0
+    for q in range(s_kind.shape[0]):
+        shadows += s_kind[q, t] != 0
+    if not shadows:
+        return p, 0
+    p = _key(out, p, K_SHADOWS)
+    p = _array(out, p, shadows)
+    for q in range(s_kind.shape[0]):
+        kind = s_kind[q, t]
+        if kind == 0:
+            continue
+        p = _map(out, p, 7)
+        p = _key(out, p, K_LIGHT)
+        p = _copy(out, p, s_names, s_name_off[q], s_name_off[q + 1])
+        if kind == CUBE:
+            p = _key(out, p, K_CUBE)
+            out[p] = 0xC3  # true
+            p += 1
+            p = _key(out, p, K_VIEWS)
+            p = _copy(out, p, s_cube, s_cube_off[q], s_cube_off[q + 1])
+        else:
+            p = _key(out, p, K_VIEW)
+            p = _mat4(out, p, s_view[q, t], bits)
+        p = _key(out, p, K_PROJECTION)
+        p = _mat4(out, p, s_projection[q, t], bits)
+        p = _key(out, p, K_NEAR)
+        p = _float(out, p, s_near[q, t], bits)
+        p = _key(out, p, K_FAR)
+        p = _float(out, p, s_far[q, t], bits)
+        if kind == FRUSTUM:  # (a cube map has "cube" and "views" instead)
+            p = _key(out, p, K_COVERAGE)
+            p = _float(out, p, s_coverage[q, t], bits)
+        p = _key(out, p, K_CASTERS)
+        p = _ints(out, p, s_casters, s_start[q, t], s_start[q, t + 1])
+    return p, 1
+
+
+@njit(cache=True)
+def _mirrors(out, p, t, M, bits):
+    """Tile ``t``'s ``mirrors`` pair, if it sees any mirror: ``(p, pairs written)``."""
+    (m_shown, m_views, m_view_bytes, m_view_off, m_projection, m_start, m_visible, m_names,
+     m_name_off) = M
+    mirrors = 0
+    for q in range(m_shown.shape[0]):
+        mirrors += m_shown[q, t]
+    if not mirrors:
+        return p, 0
+    p = _key(out, p, K_MIRRORS)
+    p = _array(out, p, mirrors)
+    for q in range(m_shown.shape[0]):
+        if not m_shown[q, t]:
+            continue
+        p = _map(out, p, 5)
+        p = _key(out, p, K_MIRROR)
+        p = _copy(out, p, m_names, m_name_off[q], m_name_off[q + 1])
+        p = _key(out, p, K_VIEW)
+        p = _view(out, p, m_views[q], m_view_bytes[m_view_off[q]:m_view_off[q + 1]], t, bits)
+        p = _key(out, p, K_PROJECTION)
+        p = _mat4(out, p, m_projection[q, t], bits)
+        p = _key(out, p, K_FRONT_FACE)
+        p = _key(out, p, V_CW)
+        p = _key(out, p, K_VISIBLE)
+        p = _ints(out, p, m_visible, m_start[q, t], m_start[q, t + 1])
+    return p, 1
+
+
+@njit(cache=True, inline="always")
+def _eye_sees(M, E, e, t):
+    """How many mirrors eye ``e`` of tile ``t`` sees."""
+    seen = 0
+    for q in range(M[0].shape[0]):
+        seen += M[0][q, t] and E[8][e, q, t]
+    return seen
+
+
+@njit(cache=True)
+def _eye_mirrors(out, p, e, t, M, E, bits):
+    """Eye ``e``'s ``mirrors`` pair of tile ``t``, if it sees any."""
+    m_shown, m_names, m_name_off = M[0], M[7], M[8]
+    e_m_views, e_m_projection, e_m_shown = E[6], E[7], E[8]
+    seen = _eye_sees(M, E, e, t)
+    if not seen:
+        return p
+    p = _key(out, p, K_MIRRORS)
+    p = _array(out, p, seen)
+    for q in range(m_shown.shape[0]):
+        if not (m_shown[q, t] and e_m_shown[e, q, t]):
+            continue
+        p = _map(out, p, 3)
+        p = _key(out, p, K_MIRROR)
+        p = _copy(out, p, m_names, m_name_off[q], m_name_off[q + 1])
+        p = _key(out, p, K_VIEW)
+        p = _mat4(out, p, e_m_views[e, q, 0 if e_m_views.shape[2] == 1 else t], bits)
+        p = _key(out, p, K_PROJECTION)
+        p = _mat4(out, p, e_m_projection[e, q, t], bits)
+    return p
+
+
+@njit(cache=True)
+def _fit_segments(F, S, M, E, out, out_start, out_pairs):
+    """Every tile's fitted frusta, as a packet carries them, as msgpack key/value pairs into
+    ``out``: ``out_start`` (T + 1) offsets, ``out_pairs`` (T) pairs per tile."""
+    views, view_bytes, projection, near, far = F
+    e_views, e_view_bytes, e_view_off, e_projection, e_near, e_far = E[:6]
     bits = np.empty(1)
     tiles = projection.shape[0]
     p = 0
     for t in range(tiles):
         out_start[t] = p
-        pairs = 4
         p = _key(out, p, K_VIEW)
         p = _view(out, p, views, view_bytes, t, bits)
         p = _key(out, p, K_PROJECTION)
@@ -198,69 +344,11 @@ def _fit_segments(views, view_bytes, projection, near, far, s_kind, s_view, s_pr
         p = _float(out, p, near[t], bits)
         p = _key(out, p, K_FAR)
         p = _float(out, p, far[t], bits)
-        shadows = 0
-        for q in range(s_kind.shape[0]):
-            shadows += s_kind[q, t] != 0
-        if shadows:
-            pairs += 1
-            p = _key(out, p, K_SHADOWS)
-            p = _array(out, p, shadows)
-            for q in range(s_kind.shape[0]):
-                kind = s_kind[q, t]
-                if kind == 0:
-                    continue
-                p = _map(out, p, 7)
-                p = _key(out, p, K_LIGHT)
-                p = _copy(out, p, s_names, s_name_off[q], s_name_off[q + 1])
-                if kind == CUBE:
-                    p = _key(out, p, K_CUBE)
-                    out[p] = 0xC3  # true
-                    p += 1
-                    p = _key(out, p, K_VIEWS)
-                    p = _copy(out, p, s_cube, s_cube_off[q], s_cube_off[q + 1])
-                else:
-                    p = _key(out, p, K_VIEW)
-                    p = _mat4(out, p, s_view[q, t], bits)
-                p = _key(out, p, K_PROJECTION)
-                p = _mat4(out, p, s_projection[q, t], bits)
-                p = _key(out, p, K_NEAR)
-                p = _float(out, p, s_near[q, t], bits)
-                p = _key(out, p, K_FAR)
-                p = _float(out, p, s_far[q, t], bits)
-                if kind == FRUSTUM:  # (a cube map has "cube" and "views" instead)
-                    p = _key(out, p, K_COVERAGE)
-                    p = _float(out, p, s_coverage[q, t], bits)
-                p = _key(out, p, K_CASTERS)
-                p = _ints(out, p, s_casters, s_start[q, t], s_start[q, t + 1])
-        mirrors = 0
-        for q in range(m_shown.shape[0]):
-            mirrors += m_shown[q, t]
-        if mirrors:
-            pairs += 1
-            p = _key(out, p, K_MIRRORS)
-            p = _array(out, p, mirrors)
-            for q in range(m_shown.shape[0]):
-                if not m_shown[q, t]:
-                    continue
-                p = _map(out, p, 5)
-                p = _key(out, p, K_MIRROR)
-                p = _copy(out, p, m_names, m_name_off[q], m_name_off[q + 1])
-                p = _key(out, p, K_VIEW)
-                p = _view(out, p, m_views[q], m_view_bytes[m_view_off[q]:m_view_off[q + 1]], t,
-                          bits)
-                p = _key(out, p, K_PROJECTION)
-                p = _mat4(out, p, m_projection[q, t], bits)
-                p = _key(out, p, K_FRONT_FACE)
-                p = _key(out, p, V_CW)
-                p = _key(out, p, K_VISIBLE)
-                p = _ints(out, p, m_visible, m_start[q, t], m_start[q, t + 1])
+        p, has_shadows = _shadows(out, p, t, S, bits)
+        p, has_mirrors = _mirrors(out, p, t, M, bits)
         for e in range(e_views.shape[0]):  # a stereo frame: "left", "right"
-            pairs += 1
             p = _key(out, p, K_LEFT + e)
-            seen = 0
-            for q in range(m_shown.shape[0]):
-                seen += m_shown[q, t] and e_m_shown[e, q, t]
-            p = _map(out, p, 4 + (seen > 0))
+            p = _map(out, p, 4 + (_eye_sees(M, E, e, t) > 0))
             p = _key(out, p, K_VIEW)
             p = _view(out, p, e_views[e], e_view_bytes[e_view_off[e]:e_view_off[e + 1]], t,
                       bits)
@@ -270,21 +358,8 @@ def _fit_segments(views, view_bytes, projection, near, far, s_kind, s_view, s_pr
             p = _float(out, p, e_near[e, t], bits)
             p = _key(out, p, K_FAR)
             p = _float(out, p, e_far[e, t], bits)
-            if seen:
-                p = _key(out, p, K_MIRRORS)
-                p = _array(out, p, seen)
-                for q in range(m_shown.shape[0]):
-                    if not (m_shown[q, t] and e_m_shown[e, q, t]):
-                        continue
-                    p = _map(out, p, 3)
-                    p = _key(out, p, K_MIRROR)
-                    p = _copy(out, p, m_names, m_name_off[q], m_name_off[q + 1])
-                    p = _key(out, p, K_VIEW)
-                    p = _mat4(out, p, e_m_views[e, q, 0 if e_m_views.shape[2] == 1 else t],
-                              bits)
-                    p = _key(out, p, K_PROJECTION)
-                    p = _mat4(out, p, e_m_projection[e, q, t], bits)
-        out_pairs[t] = pairs
+            p = _eye_mirrors(out, p, e, t, M, E, bits)
+        out_pairs[t] = 4 + has_shadows + has_mirrors + e_views.shape[0]
     out_start[tiles] = p
 
 
@@ -293,62 +368,68 @@ def _views(view: np.ndarray) -> np.ndarray:
     return view[None] if view.ndim == 2 else view
 
 
-def fit_segments(fits: Fits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every tile's fitted frusta as msgpack key/value pairs: ``(data (uint8), start (T + 1,),
-    pairs (T,))``; tile ``t``'s ``pairs[t]`` pairs are ``data[start[t]:start[t + 1]]``."""
-    tiles = len(fits)
-    shadows, mirrors, eyes = fits.shadows, fits.mirrors, fits.eyes
-    shared = fits.view.ndim == 2
-    vshape = (1 if shared else tiles, 4, 4)
-    # one light's arrays per row; casters offset into one concatenated array
-    s_kind = np.array([s.kind for s in shadows], np.int64).reshape(len(shadows), tiles)
-    s_view = np.array([s.view for s in shadows]).reshape(len(shadows), tiles, 4, 4)
-    s_projection = np.array([s.projection for s in shadows]).reshape(len(shadows), tiles, 4, 4)
-    s_near, s_far, s_coverage = (np.array([getattr(s, k) for s in shadows]).reshape(
-        len(shadows), tiles) for k in ("near", "far", "coverage"))
-    offsets = np.cumsum([0] + [len(s.casters) for s in shadows])
-    s_start = np.array([s.casters_start + o for s, o in zip(shadows, offsets)],
-                       np.int64).reshape(len(shadows), tiles + 1)
-    s_casters = np.concatenate([s.casters for s in shadows] or [np.zeros(0, np.int64)])
-    s_names, s_name_off = _pack_each([s.light.name for s in shadows])
-    s_cube, s_cube_off = _pack_each([s.cube_views.tolist() if s.cube_views is not None else []
-                                     for s in shadows])
-    m_shown = np.array([m.shown for m in mirrors], np.bool_).reshape(len(mirrors), tiles)
-    m_views = np.array([_views(m.view) for m in mirrors]).reshape(len(mirrors), *vshape)
-    m_view_bytes, m_view_off = _pack_each([m.view.tolist() if shared else [] for m in mirrors])
-    m_projection = np.array([m.projection for m in mirrors]).reshape(len(mirrors), tiles, 4, 4)
-    offsets = np.cumsum([0] + [len(m.visible) for m in mirrors])
-    m_start = np.array([m.visible_start + o for m, o in zip(mirrors, offsets)],
-                       np.int64).reshape(len(mirrors), tiles + 1)
-    m_visible = np.concatenate([m.visible for m in mirrors] or [np.zeros(0, np.int64)])
-    m_names, m_name_off = _pack_each([m.mirror.name for m in mirrors])
-    e_views = np.array([_views(e.view) for e in eyes]).reshape(len(eyes), *vshape)
-    e_view_bytes, e_view_off = _pack_each([e.view.tolist() if shared else [] for e in eyes])
-    e_projection = np.array([e.projection for e in eyes]).reshape(len(eyes), tiles, 4, 4)
-    e_near = np.array([e.near for e in eyes]).reshape(len(eyes), tiles)
-    e_far = np.array([e.far for e in eyes]).reshape(len(eyes), tiles)
-    e_m_views = np.array([[_views(v) for v, _, _ in e.mirrors] for e in eyes]).reshape(
-        len(eyes), len(mirrors), *vshape)
-    e_m_projection = np.array([[pr for _, pr, _ in e.mirrors] for e in eyes]).reshape(
-        len(eyes), len(mirrors), tiles, 4, 4)
-    e_m_shown = np.array([[ok for _, _, ok in e.mirrors] for e in eyes], np.bool_).reshape(
-        len(eyes), len(mirrors), tiles)
-    view_bytes = np.frombuffer(msgpack.packb(fits.view.tolist()) if shared else b"", np.uint8)
-    # an upper bound: every matrix, number, key and name a tile may carry
-    entries = 1 + len(shadows) + len(mirrors) * (1 + len(eyes)) + len(eyes)
-    size = tiles * (entries * (2 * MAT4 + 4 * NUMBER + 256)) + int(s_cube_off[-1]) * tiles \
-        + NUMBER * (len(s_casters) + len(m_visible)) \
-        + (int(s_name_off[-1]) + int(m_name_off[-1]) * (1 + len(eyes))) * tiles
-    out = np.empty(size, np.uint8)
-    start = np.empty(tiles + 1, np.int64)
-    pairs = np.empty(tiles, np.int64)
-    _fit_segments(_views(fits.view), view_bytes, fits.projection, fits.near, fits.far, s_kind,
-                  s_view, s_projection, s_near, s_far, s_coverage, s_start, s_casters, s_names,
-                  s_name_off, s_cube, s_cube_off, m_shown, m_views, m_view_bytes, m_view_off,
-                  m_projection, m_start, m_visible, m_names, m_name_off, e_views, e_view_bytes,
-                  e_view_off, e_projection, e_near, e_far, e_m_views, e_m_projection, e_m_shown,
-                  out, start, pairs)
-    return out[:start[-1]], start, pairs
+class _FitArrays:
+    """A frame's :class:`~wallcull.fit.Fits` as the kernels' tuples of arrays, built once per
+    frame (kept on its record) for its packets and node messages alike."""
+
+    def __init__(self, fits: Fits):
+        tiles = len(fits)
+        shadows, mirrors, eyes = fits.shadows, fits.mirrors, fits.eyes
+        shared = fits.view.ndim == 2
+        vshape = (1 if shared else tiles, 4, 4)
+        L, Q = len(shadows), len(mirrors)
+        offsets = np.cumsum([0] + [len(s.casters) for s in shadows])
+        self.S = (
+            np.array([s.kind for s in shadows], np.int64).reshape(L, tiles),
+            np.array([s.view for s in shadows]).reshape(L, tiles, 4, 4),
+            np.array([s.projection for s in shadows]).reshape(L, tiles, 4, 4),
+            *(np.array([getattr(s, k) for s in shadows]).reshape(L, tiles)
+              for k in ("near", "far", "coverage")),
+            np.array([s.casters_start + o for s, o in zip(shadows, offsets)],
+                     np.int64).reshape(L, tiles + 1),
+            np.concatenate([s.casters for s in shadows] or [np.zeros(0, np.int64)]),
+            *_pack_each([s.light.name for s in shadows]),
+            *_pack_each([s.cube_views.tolist() if s.cube_views is not None else []
+                         for s in shadows]))
+        offsets = np.cumsum([0] + [len(m.visible) for m in mirrors])
+        self.M = (
+            np.array([m.shown for m in mirrors], np.bool_).reshape(Q, tiles),
+            np.array([_views(m.view) for m in mirrors]).reshape(Q, *vshape),
+            *_pack_each([m.view.tolist() if shared else [] for m in mirrors]),
+            np.array([m.projection for m in mirrors]).reshape(Q, tiles, 4, 4),
+            np.array([m.visible_start + o for m, o in zip(mirrors, offsets)],
+                     np.int64).reshape(Q, tiles + 1),
+            np.concatenate([m.visible for m in mirrors] or [np.zeros(0, np.int64)]),
+            *_pack_each([m.mirror.name for m in mirrors]))
+        E = len(eyes)
+        e_views = np.array([_views(e.view) for e in eyes]).reshape(E, *vshape)
+        e_projection = np.array([e.projection for e in eyes]).reshape(E, tiles, 4, 4)
+        e_near = np.array([e.near for e in eyes]).reshape(E, tiles)
+        e_far = np.array([e.far for e in eyes]).reshape(E, tiles)
+        self.E = (
+            e_views, *_pack_each([e.view.tolist() if shared else [] for e in eyes]),
+            e_projection, e_near, e_far,
+            np.array([[_views(v) for v, _, _ in e.mirrors] for e in eyes]).reshape(E, Q, *vshape),
+            np.array([[pr for _, pr, _ in e.mirrors] for e in eyes]).reshape(E, Q, tiles, 4, 4),
+            np.array([[ok for _, _, ok in e.mirrors] for e in eyes], np.bool_).reshape(E, Q, tiles))
+        views = _views(fits.view)
+        self.F = (views, np.frombuffer(msgpack.packb(fits.view.tolist()) if shared else b"",
+                                       np.uint8), fits.projection, fits.near, fits.far)
+        self.C = tuple(fits.compact)  # node messages: rigid views, extents
+        self.tiles = tiles
+        entries = 1 + L + Q * (1 + E) + E
+        names = len(self.S[8]) + len(self.M[7]) * (1 + E)
+        #: an upper bound on a frame's fits in bytes: every matrix, number, key and name
+        self.bound = tiles * (entries * (2 * MAT4 + 4 * NUMBER + 256) + names
+                              + len(self.S[10])) + NUMBER * (len(self.S[7]) + len(self.M[6]))
+
+
+def fit_arrays(record) -> _FitArrays:
+    """The record's fits as the kernels take them (built once, kept on the record)."""
+    found = record.__dict__.get("_fit_arrays")
+    if found is None:
+        found = record.__dict__["_fit_arrays"] = _FitArrays(record.fits)
+    return found
 
 
 # --------------------------------------------------------------------------- packets
@@ -423,7 +504,12 @@ def packets(record, tiles: np.ndarray, base: int | None = None,
     fits' segments are encoded once and kept on it."""
     segments = record.__dict__.get("_segments")
     if segments is None:
-        segments = record.__dict__["_segments"] = fit_segments(record.fits)
+        arrays = fit_arrays(record)
+        data = np.empty(arrays.bound, np.uint8)
+        seg_start = np.empty(arrays.tiles + 1, np.int64)
+        seg_pairs = np.empty(arrays.tiles, np.int64)
+        _fit_segments(arrays.F, arrays.S, arrays.M, arrays.E, data, seg_start, seg_pairs)
+        segments = record.__dict__["_segments"] = (data[:seg_start[-1]], seg_start, seg_pairs)
     data, seg_start, seg_pairs = segments
     tiles = np.asarray(tiles, np.int64)
     zero = np.zeros(1, np.int64)
@@ -455,8 +541,6 @@ def frame_packets(history, number: int, tiles, base: int | None = None) -> Encod
     """Frame ``number``'s msgpack packets for ``tiles``, as :func:`wallcull.protocol.packet`
     would build and pack them: deltas against frame ``base`` when it is given and still held,
     else full lists."""
-    from . import protocol
-
     record = history.frames[number]
     tiles = np.asarray(tiles, np.int64)
     prior = history.get(base) if base is not None and base < number else None
@@ -471,3 +555,168 @@ def frame_packets(history, number: int, tiles, base: int | None = None) -> Encod
             if moved is not None:
                 extras[t] = (msgpack.packb("transforms") + msgpack.packb(moved), 1)
     return packets(record, tiles, None if prior is None else base, delta, extras)
+
+
+# --------------------------------------------------------------------------- node messages
+
+
+@njit(cache=True)
+def _compact_eye(out, p, t, e, own_view, sends, C, E, M, bits, bits32):
+    """Eye ``e``'s record of tile ``t`` in a node message (``sends``: its extent, its depth)."""
+    e_q, e_t, e_tangents, e_depth = C[4], C[5], C[6], C[7]
+    p = _key(out, p, K_LEFT + e)
+    p = _map(out, p, own_view + sends[0] + sends[1] + (_eye_sees(M, E, e, t) > 0))
+    if own_view:
+        p = _key(out, p, K_VIEW)
+        p = _rigid(out, p, e_q[e, t], e_t[e, t], bits)
+    p = _extent_depth(out, p, sends, e_tangents[e, t], e_depth[e, t], bits, bits32)
+    return _eye_mirrors(out, p, e, t, M, E, bits)
+
+
+@njit(cache=True)
+def _extent_depth(out, p, sends, tangents, depth, bits, bits32):
+    if sends[0]:
+        p = _key(out, p, K_EXTENT)
+        p = _floats(out, p, tangents, bits)
+    if sends[1]:
+        p = _key(out, p, K_DEPTH)
+        out[p] = 0x92
+        p = _short_float(out, p + 1, depth[0], bits, bits32)
+        p = _short_float(out, p, depth[1], bits, bits32)
+    return p
+
+
+@njit(cache=True)
+def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_start, sends, C,
+             S, M, E, out, out_start):
+    """Every tile's node-message entry into ``out``: its id, its list (full, or the delta's
+    non-empty parts when they are shorter than the list), its count, its view where it has its own, its extent and depth range
+    where ``sends`` (T, 2) says, its shadows, mirrors and eyes."""
+    q, tr, tangents, depth = C[0], C[1], C[2], C[3]
+    tiles = leaf_start.shape[0] - 1
+    own_view = q.shape[0] > 1
+    eyes = E[0].shape[0]
+    bits = np.empty(1)
+    bits32 = np.empty(1, np.float32)
+    p = 0
+    for t in range(tiles):
+        out_start[t] = p
+        n_added = added_start[t + 1] - added_start[t] if delta else 0
+        n_removed = removed_start[t + 1] - removed_start[t] if delta else 0
+        whole = not delta or n_added + n_removed >= leaf_start[t + 1] - leaf_start[t]
+        if whole:  # a delta no shorter than the list: the list
+            n_added = n_removed = 0
+        shadows = 0
+        for k in range(S[0].shape[0]):
+            shadows += S[0][k, t] != 0
+        mirrors = 0
+        for k in range(M[0].shape[0]):
+            mirrors += M[0][k, t]
+        p = _map(out, p, 2 + whole + (n_added > 0) + (n_removed > 0) + own_view
+                 + sends[t, 0] + sends[t, 1] + (shadows > 0) + (mirrors > 0) + eyes)
+        p = _key(out, p, K_TILE)
+        p = _int(out, p, t)
+        if whole:
+            p = _key(out, p, K_VISIBLE)
+            p = _ints(out, p, leaves, leaf_start[t], leaf_start[t + 1])
+        if n_added:
+            p = _key(out, p, K_ADDED)
+            p = _ints(out, p, added, added_start[t], added_start[t + 1])
+        if n_removed:
+            p = _key(out, p, K_REMOVED)
+            p = _ints(out, p, removed, removed_start[t], removed_start[t + 1])
+        p = _key(out, p, K_COUNT)
+        p = _int(out, p, leaf_start[t + 1] - leaf_start[t])
+        if own_view:
+            p = _key(out, p, K_VIEW)
+            p = _rigid(out, p, q[t], tr[t], bits)
+        p = _extent_depth(out, p, sends[t], tangents[t], depth[t], bits, bits32)
+        p, _ = _shadows(out, p, t, S, bits)
+        p, _ = _mirrors(out, p, t, M, bits)
+        for e in range(eyes):
+            p = _compact_eye(out, p, t, e, own_view, sends[t], C, E, M, bits, bits32)
+    out_start[tiles] = p
+
+
+class NodeEntries:
+    """One frame's node-message parts against one base: every tile's entry (``data``,
+    ``start``) and what every message of the frame shares (``head``: its key/value pairs,
+    ``head_pairs`` of them)."""
+
+    def __init__(self, data: bytes, start: list, head: bytes, head_pairs: int):
+        self.data, self.start, self.head, self.head_pairs = data, start, head, head_pairs
+        self._view = memoryview(data)
+
+    def body(self, tiles: np.ndarray) -> bytes | memoryview:
+        """The entries of ``tiles`` (sorted), concatenated: one slice when they are
+        consecutive."""
+        first, last = int(tiles[0]), int(tiles[-1])
+        if last - first + 1 == len(tiles):
+            return self._view[self.start[first]:self.start[last + 1]]
+        return b"".join(self._view[self.start[t]:self.start[t + 1]] for t in tiles.tolist())
+
+
+def node_entries(history, number: int, base: int | None) -> NodeEntries:
+    """Frame ``number``'s :class:`NodeEntries` against ``base`` (held, and older; None: full
+    lists), kept on its record: every node of the wall takes its message from these."""
+    record = history.frames[number]
+    cache = record.__dict__.setdefault("_entries", {})
+    found = cache.get(base)
+    if found is not None:
+        return found
+    arrays = fit_arrays(record)
+    tiles = arrays.tiles
+    zero = np.zeros(1, np.int64)
+    if base is None:
+        delta, lists = (zero, zero, zero, zero), len(record.leaves)
+        sends = np.ones((tiles, 2), np.bool_)
+    else:
+        prior = history.frames[base]
+        delta = protocol.tile_deltas(record, prior)
+        lists = len(delta[0]) + len(delta[2])
+        sends = record.fits.compact.changed(prior.fits.compact)
+    out = np.empty(NUMBER * (lists + 2 * tiles) + 64 * tiles + arrays.bound, np.uint8)
+    out_start = np.empty(tiles + 1, np.int64)
+    _entries(base is not None, record.leaves, record.start, *delta, sends, arrays.C, arrays.S,
+             arrays.M, arrays.E, out, out_start)
+    head = protocol.node_head(record.number, record.time, record.fits, base)
+    packed = b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in head.items())
+    found = cache[base] = NodeEntries(out[:out_start[-1]].tobytes(), out_start.tolist(),
+                                      packed, len(head))
+    while len(cache) > 4:
+        cache.pop(next(iter(cache)))
+    return found
+
+
+def node_message(history, number: int, tiles, base: int | None = None) -> bytes:
+    """Frame ``number``'s node message for ``tiles`` (sorted) as msgpack, equal to
+    :func:`wallcull.protocol.node_message` packed: deltas against frame ``base`` when it is
+    given and still held, else full lists."""
+    record = history.frames[number]
+    prior = history.get(base) if base is not None and base < number else None
+    base = None if prior is None else base
+    parts = node_entries(history, number, base)
+    tiles = np.asarray(tiles, np.int64)
+    pairs, moved = parts.head_pairs + 1, b""
+    if len(record.posed):  # a dynamic scene: the moved leaves any of the tiles may lack
+        added = None
+        if base is not None:
+            d = protocol.tile_deltas(record, prior)
+            added = np.unique(np.concatenate([d[0][d[1][t]:d[1][t + 1]] for t in tiles]))
+        found = protocol.transforms(history, record, tiles, base, added)
+        if found is not None:
+            moved, pairs = _TRANSFORMS_KEY + msgpack.packb(found), pairs + 1
+    return b"".join((_map_header(pairs), parts.head, moved, _TILES_KEY,
+                     _array_header(len(tiles)), parts.body(tiles)))
+
+
+_TRANSFORMS_KEY, _TILES_KEY = msgpack.packb("transforms"), msgpack.packb("tiles")
+
+
+def _map_header(n: int) -> bytes:
+    return bytes([0x80 | n]) if n < 16 else b"\xde" + n.to_bytes(2, "big")
+
+
+def _array_header(n: int) -> bytes:
+    return bytes([0x90 | n]) if n < 16 else b"\xdc" + n.to_bytes(2, "big") if n < 65536 \
+        else b"\xdd" + n.to_bytes(4, "big")

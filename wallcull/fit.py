@@ -31,15 +31,17 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
 from . import lowilie
 from . import settings as cfg
 from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
-from .projection import look_at, oblique_near_many, rigid_inverse, view_matrix
+from .projection import (frustum_extents, look_at, oblique_near_many, rigid_inverse,
+                         view_matrix)
 from .scene import SceneState
-from .wall import Frame, Frusta
+from .wall import Frame, Frusta, matrix_quaternion
 
 #: Depth ranges are widened by this fraction of their far distance, so that rounding in the
 #: client's float32 matrices never clips a surface lying exactly on a fitted plane.
@@ -115,8 +117,8 @@ def tile_projections(wall, frame: Frame, near: np.ndarray, far: np.ndarray,
 def depth_ranges(state: SceneState, wall, frame: Frame, visibility: Visibility,
                  eye: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-tile ``(near, far)``: the eye-space depths the tile's listed bounds span (from the
-    frame's eye, or ``eye``), clamped to the wall's. A tile that shows nothing keeps the wall's
-    range."""
+    frame's eye, or ``eye``), rounded outward to float32 and clamped to the wall's. A tile that
+    shows nothing keeps the wall's range."""
     eye = frame.eye if eye is None else np.asarray(eye, np.float64)
     if wall.kind == "grid":
         forward = (-frame.rotation[:, 2])[None]  # the view direction in the world
@@ -131,10 +133,22 @@ def depth_ranges(state: SceneState, wall, frame: Frame, visibility: Visibility,
         lo, hi = lo[full], hi[full]
         margin = DEPTH_MARGIN * np.abs(hi) + np.finfo(float).eps * np.maximum(np.abs(lo),
                                                                               np.abs(hi))
-        near[full] = np.clip(lo - margin, wall.near, wall.far)
-        far[full] = np.clip(hi + margin, wall.near, wall.far)
-        far = np.maximum(far, near * (1 + 1e-9) + 1e-300)  # a flat range still has two planes
+        near[full] = np.clip(outward(lo - margin, -np.inf), wall.near, wall.far)
+        far[full] = np.clip(outward(hi + margin, np.inf), wall.near, wall.far)
+        flat = far <= near  # a flat range still has two planes
+        far[flat] = outward(near[flat] * (1 + 1e-9) + 1e-300, np.inf)
     return near, far
+
+
+def outward(values: np.ndarray, direction: float) -> np.ndarray:
+    """``values`` rounded to float32 toward ``direction`` (-inf: down, inf: up): a tight depth
+    range stays conservative, and a node message carries each bound exactly in 5 bytes (a
+    depth buffer resolves no finer)."""
+    with np.errstate(over="ignore"):  # beyond float32: infinite, still outward
+        f32 = np.asarray(values, np.float32).astype(np.float64)
+    off = f32 < values if direction > 0 else f32 > values
+    f32[off] = np.nextafter(f32[off].astype(np.float32), np.float32(direction))
+    return f32
 
 
 def _csr_rows(start: np.ndarray, items: np.ndarray, t: int) -> list[int]:
@@ -398,6 +412,7 @@ class Fits(Sequence):
     shadows: list[ShadowSet] = field(default_factory=list)
     mirrors: list[MirrorSet] = field(default_factory=list)
     eyes: list[EyeFits] = field(default_factory=list)  # left, right: a stereo frame
+    reversed_z: bool = False  # the projections map near to 1 and far to 0 (FitOptions)
 
     def __len__(self) -> int:
         return len(self.projection)
@@ -420,6 +435,59 @@ class Fits(Sequence):
     def view_rows(self) -> list:
         return self.view.tolist()
 
+    @cached_property
+    def compact(self) -> "Compact":
+        """The fits as a node message carries them (:mod:`wallcull.protocol`)."""
+        views = self.view.reshape(-1, 4, 4)
+        eyes = len(self.eyes)
+        e_views = np.array([e.view.reshape(-1, 4, 4) for e in self.eyes]).reshape(-1, 4, 4)
+        q, t = rigid_parts(views)
+        e_q, e_t = rigid_parts(e_views)
+        e_projection = np.array([e.projection for e in self.eyes]).reshape(eyes, len(self), 4, 4)
+        e_depth = np.array([np.stack([e.near, e.far], axis=1) for e in self.eyes])
+        return Compact(q, t, _tangents(self.projection), np.stack([self.near, self.far], axis=1),
+                       e_q.reshape(eyes, len(views), 4), e_t.reshape(eyes, len(views), 3),
+                       _tangents(e_projection), e_depth.reshape(eyes, len(self), 2))
+
+
+class Compact(NamedTuple):
+    """A frame's views as rotations (unit quaternions ``(w, x, y, z)``) and translations, one
+    shared (grid) or one per tile (screens), and each tile's frustum as its extent (tangents
+    ``l/n, r/n, b/n, t/n``) and depth range; the same per eye of a stereo frame (``e_*``, eye
+    first)."""
+
+    rotation: np.ndarray  # (V, 4)
+    translation: np.ndarray  # (V, 3)
+    tangents: np.ndarray  # (T, 4)
+    depth: np.ndarray  # (T, 2)
+    e_rotation: np.ndarray  # (E, V, 4)
+    e_translation: np.ndarray  # (E, V, 3)
+    e_tangents: np.ndarray  # (E, T, 4)
+    e_depth: np.ndarray  # (E, T, 2)
+
+    def changed(self, other: "Compact") -> np.ndarray:
+        """``(T, 2)``: the tiles whose extent (column 0) or depth range (column 1), or an
+        eye's, differs from ``other``'s."""
+        out = np.stack([(self.tangents != other.tangents).any(axis=1),
+                        (self.depth != other.depth).any(axis=1)], axis=1)
+        if self.e_tangents.shape != other.e_tangents.shape:
+            return np.ones_like(out)
+        out[:, 0] |= (self.e_tangents != other.e_tangents).any(axis=(0, 2))
+        out[:, 1] |= (self.e_depth != other.e_depth).any(axis=(0, 2))
+        return out
+
+
+def rigid_parts(views: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(V, 4)`` rotation quaternions ``(w, x, y, z)`` and ``(V, 3)`` translations of rigid
+    view matrices ``(V, 4, 4)``."""
+    return (np.array([matrix_quaternion(v[:3, :3]) for v in views]).reshape(-1, 4),
+            np.ascontiguousarray(views[:, :3, 3]))
+
+
+def _tangents(projection: np.ndarray) -> np.ndarray:
+    """``(..., 4)``: ``l/n, r/n, b/n, t/n`` of off-axis projections, whatever their depth."""
+    return frustum_extents(projection, 1.0, np.inf)[..., :4]
+
 
 def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
               state: SceneState | None = None, scene_settings: cfg.Settings | None = None,
@@ -437,7 +505,7 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
         return (tile_views(wall, frame, eye),
                 tile_projections(wall, frame, near, far, options.reversed_z, eye), near, far)
 
-    out = Fits(*for_eye(frame.eye))
+    out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
     if frame.stereo is not None:
         out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
     if scene_settings is None or scene_settings.empty or visibility is None:

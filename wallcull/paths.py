@@ -6,6 +6,11 @@
   shorter than that distance plus the sphere's radius cuts the far side off.)
 * ``fly``: the camera flies a closed loop through the scene at a third of its height, looking
   along the path: what a user walking through the model sees, with most of it culled.
+
+A wall of screens that no plane through the eye can hold on one side (a CAVE, a cylinder:
+the screens surround the viewer) has no outer edges to fit the scene into: its orbit runs
+inside the scene, the camera circling the centre at a quarter of the scene's extent, level,
+looking along the circle, the model all around.
 """
 
 from __future__ import annotations
@@ -52,7 +57,12 @@ def camera_path(kind: str, lo: np.ndarray, hi: np.ndarray, wall: Wall, frames: i
                 + np.sin(elevation)[:, None] * up)
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                             for z in (lo[2], hi[2])]) - center
-        sides = display_planes(wall, np.zeros(3))[wall.layout.primary_planes[:4], :3]
+        sides = _sides(wall)
+        if sides is None:  # screens all around: orbit inside
+            radius = 0.25 * np.linalg.norm((hi - lo) - ((hi - lo) @ up) * up)
+            around = np.cos(t)[:, None] * a + np.sin(t)[:, None] * b
+            along = -np.sin(t)[:, None] * a + np.cos(t)[:, None] * b
+            return [_frame(center + radius * p, f, up, wall) for p, f in zip(around, along)]
         frames_out = []
         for d in away:
             # Camera at center + L d: corner p is inside side plane n (through the eye) when
@@ -72,6 +82,16 @@ def camera_path(kind: str, lo: np.ndarray, hi: np.ndarray, wall: Wall, frames: i
         vel = span_a * np.cos(t)[:, None] * a + 2 * span_b * np.cos(2 * t)[:, None] * b
         return [_frame(p, v - 0.15 * np.linalg.norm(v) * up, up, wall) for p, v in zip(pos, vel)]
     raise InputError(f"unknown path {kind!r}; choose from {', '.join(PATHS)}")
+
+
+def _sides(wall) -> np.ndarray | None:
+    """Inward normals of the planes through the eye that bound every tile frustum (display
+    space, eye at the origin): a grid's outer edges, or the cone around a wall of screens;
+    None when the screens surround the eye."""
+    if wall.kind == "grid":
+        return display_planes(wall, np.zeros(3))[wall.layout.primary_planes[:4], :3]
+    planes = wall.primary_planes(np.zeros(3))[6:]  # past the box around the eye
+    return planes[:, :3] if len(planes) else None
 
 
 def scene_path(scene, wall: Wall, kind: str, frames: int) -> list[Frame]:

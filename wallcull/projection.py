@@ -14,6 +14,8 @@ The functions:
 * :func:`reversed_z`: reversed-Z with ``[0, 1]`` depth (near -> 1, far or infinity -> 0);
 * :func:`look_at`, :func:`rigid_inverse`, :func:`tile_view_projection`: view matrices;
 * :func:`frustum_planes`: the six planes of any projection-view matrix (Gribb-Hartmann);
+* :func:`frustum_extents`: ``l, r, b, t, n, f`` back from off-axis projections (the wire's
+  compact form);
 * :func:`oblique_near`: Lengyel's oblique near plane, eq. (5.68) / Listing 5.1, generalized.
 """
 
@@ -33,6 +35,7 @@ __all__ = [
     "rigid_inverse",
     "tile_view_projection",
     "frustum_planes",
+    "frustum_extents",
     "oblique_near",
     "oblique_near_many",
     "transform_points",
@@ -135,6 +138,23 @@ def reversed_z(l: float, r: float, b: float, t: float, n: float,
         # z_ndc = (A z + B) / -z with A = n / (f - n), B = n f / (f - n): 1 at -n, 0 at -f.
         m[2, 2], m[2, 3] = n / (f - n), n * f / (f - n)
     return m
+
+
+def frustum_extents(projections: np.ndarray, near: np.ndarray, far: np.ndarray) -> np.ndarray:
+    """``(..., 6)``: ``l, r, b, t, n, f`` of off-axis projections ``(..., 4, 4)`` (any of
+    :func:`frustum`, :func:`infinite_frustum`, :func:`reversed_z`) with near and far distances
+    ``near``, ``far``: the rectangle on the near plane that the x and y rows map to [-1, 1]
+    (``m00 = 2n / (r - l)``, ``m02 = (r + l) / (r - l)``, and the same for y)."""
+    m = np.asarray(projections, np.float64)
+    n = np.asarray(near, np.float64)
+    out = np.empty(m.shape[:-2] + (6,))
+    out[..., 0] = n * (m[..., 0, 2] - 1) / m[..., 0, 0]
+    out[..., 1] = n * (m[..., 0, 2] + 1) / m[..., 0, 0]
+    out[..., 2] = n * (m[..., 1, 2] - 1) / m[..., 1, 1]
+    out[..., 3] = n * (m[..., 1, 2] + 1) / m[..., 1, 1]
+    out[..., 4] = n
+    out[..., 5] = far
+    return out
 
 
 # --------------------------------------------------------------------------------- view matrices

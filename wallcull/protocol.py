@@ -20,6 +20,34 @@ full ones until an acknowledgement on the new stream lands; over HTTP, such a no
 world transforms of the leaves in the list that moved (dynamic scenes) and that the client may
 not have: every moved leaf in a full packet; in a delta, the added ones and those that moved
 since the base.
+
+A *node message* carries one frame to a render node that drives several tiles (one message
+and one acknowledgement per node per frame; a node of one tile is the special case). What the
+tiles share goes once; each tile's projection goes as its frustum's extent and depth range,
+which a node turns back into the exact matrix (:mod:`wallcull.clients.frusta`)::
+
+    {"frame": n, "time": t, "base": b,          # one base for every tile: the node's ack
+     "reversed_z": true,                        # only when the projections are reversed-Z
+     "view": {"rotation": [w, x, y, z], "translation": [x, y, z]},  # a grid's, shared
+     "left": {"view": ...}, "right": {...},     # a grid's eye views, stereo frames
+     "transforms": {"ids": [...], "matrices": [...]},   # moved leaves any tile may lack
+     "tiles": [{"tile": t,
+                "visible": [...],               # the list, or the delta's non-empty parts
+                "added": [...], "removed": [...],  # (when shorter than the list)
+                "count": c,
+                "view": {...},                  # screens: each tile's own eye space
+                "extent": [l/n, r/n, b/n, t/n], # the frustum's sides, as tangents
+                "depth": [n, f],                # its near and far distances
+                "shadows": [...], "mirrors": [...],          # as in a packet
+                "left": {"view"?, "extent"?, "depth", "mirrors"?}, "right": {...}}, ...]}
+
+A view is rigid: the rotation of the unit quaternion, then the translation. A tile's extent
+is the same from frame to frame while the tracked eye stays put, and its depth range while
+what it shows keeps its depth (a tile showing nothing keeps the wall's), so a delta carries
+each only when it changed since the base: a node keeps them by frame, like its lists. A
+tight depth range is rounded outward to float32 (:func:`wallcull.fit.depth_ranges`), which
+then carries it exactly in 5 bytes a number. So a delta of a tile whose list did not change
+costs 10 to 25 bytes, where a packet repeats 300 bytes of matrices.
 """
 
 from __future__ import annotations
@@ -196,14 +224,17 @@ def packet(history: History, number: int, tile: int, base: int | None) -> dict:
     return out
 
 
-def transforms(history: History, record: FrameRecord, tile: int, base: int | None,
+def transforms(history: History, record: FrameRecord, tiles, base: int | None,
                added: np.ndarray | None) -> dict | None:
-    """The world transforms a tile's packet carries (moved leaves the node may not have):
-    every moved leaf of a full list; in a delta against ``base``, the ``added`` leaves and
-    those that moved since the base. None when there are none."""
+    """The world transforms a packet or node message carries (moved leaves the node may not
+    have) for ``tiles`` (a tile or several): every moved leaf of their full lists; in a delta
+    against ``base``, the ``added`` leaves and those of the lists that moved since the base.
+    None when there are none."""
     if not len(record.posed):
         return None  # nothing ever moved
-    current = record.tile(tile)
+    tiles = np.atleast_1d(tiles)
+    current = record.tile(int(tiles[0])) if len(tiles) == 1 else \
+        np.unique(np.concatenate([record.tile(int(t)) for t in tiles]))
     if base is None:
         send = current
     else:
@@ -219,17 +250,96 @@ def transforms(history: History, record: FrameRecord, tile: int, base: int | Non
             "matrices": record.posed_world[hit].reshape(-1, 16).tolist()}
 
 
-def apply(held: np.ndarray | None, pkt: dict) -> np.ndarray:
-    """A client's list after a packet: the full list, or ``held`` (the base frame's list) plus
-    the delta. Raises :class:`InputError` when the result contradicts the packet's count."""
-    if pkt.get("base") is None:
+def node_head(number: int, time: float, fits, base: int | None) -> dict:
+    """What every node message of a frame shares (see the module docstring)."""
+    head: dict[str, Any] = {"frame": number, "time": float(time), "base": base}
+    if fits.reversed_z:
+        head["reversed_z"] = True
+    if fits.view.ndim == 2:  # a grid: one view for every tile
+        c = fits.compact
+        head["view"] = _rigid(c.rotation[0], c.translation[0])
+        for e, key in zip(range(len(fits.eyes)), ("left", "right")):
+            head[key] = {"view": _rigid(c.e_rotation[e, 0], c.e_translation[e, 0])}
+    return head
+
+
+def _frustum(sends, tangents: np.ndarray, depth: np.ndarray) -> dict:
+    """A tile's (or an eye's) extent and depth range, those that ``sends``."""
+    out = {}
+    if sends[0]:
+        out["extent"] = tangents.tolist()
+    if sends[1]:
+        out["depth"] = depth.tolist()
+    return out
+
+
+def _rigid(rotation: np.ndarray, translation: np.ndarray) -> dict:
+    return {"rotation": rotation.tolist(), "translation": translation.tolist()}
+
+
+def node_message(history: History, number: int, tiles, base: int | None) -> dict:
+    """The node message of frame ``number`` for ``tiles`` (see the module docstring): deltas
+    against frame ``base`` when it is given and still held, else full lists. The reference the
+    compiled encoder (:func:`wallcull.encode.node_message`) is held to, and the JSON form."""
+    record = history.frames[number]
+    tiles = [int(t) for t in tiles]
+    prior = history.get(base) if base is not None and base < number else None
+    base = None if prior is None else base
+    fits = record.fits
+    c = fits.compact
+    own_view = fits.view.ndim == 3
+    sends = np.ones((len(fits), 2), bool) if prior is None else c.changed(prior.fits.compact)
+    out = node_head(number, record.time, fits, base)
+    entries, added = [], []
+    for t in tiles:
+        pkt = packet(history, number, t, base)
+        entry: dict[str, Any] = {"tile": t}
+        if base is None or len(pkt["added"]) + len(pkt["removed"]) >= pkt["count"]:
+            entry["visible"] = record.tile(t).tolist()  # no longer than the delta
+        else:
+            entry.update({k: pkt[k] for k in ("added", "removed") if pkt[k]})
+        if base is not None:
+            added += pkt["added"]
+        entry["count"] = pkt["count"]
+        if own_view:
+            entry["view"] = _rigid(c.rotation[t], c.translation[t])
+        entry.update(_frustum(sends[t], c.tangents[t], c.depth[t]))
+        entry.update({k: pkt[k] for k in ("shadows", "mirrors") if k in pkt})
+        for e, key in zip(range(len(fits.eyes)), ("left", "right")):
+            part: dict[str, Any] = {}
+            if own_view:
+                part["view"] = _rigid(c.e_rotation[e, t], c.e_translation[e, t])
+            part.update(_frustum(sends[t], c.e_tangents[e, t], c.e_depth[e, t]))
+            if "mirrors" in pkt[key]:
+                part["mirrors"] = pkt[key]["mirrors"]
+            entry[key] = part
+        entries.append(entry)
+    moved = transforms(history, record, tiles, base,
+                       None if base is None else np.unique(np.array(added, np.int64)))
+    if moved is not None:
+        out["transforms"] = moved
+    out["tiles"] = entries
+    return out
+
+
+_OWN = object()  # apply(): the packet's own base
+
+
+def apply(held: np.ndarray | None, pkt: dict, base: Any = _OWN) -> np.ndarray:
+    """A client's list after a packet (or a node message's tile entry, with the message's
+    ``base``): the full list (``visible``), or ``held`` (the base frame's list) plus the
+    delta. Raises :class:`InputError` when the result contradicts the packet's count."""
+    base = pkt.get("base") if base is _OWN else base
+    if base is None or "visible" in pkt:
         out = np.asarray(pkt["visible"], dtype=np.int64)
     else:
         if held is None:
-            raise InputError(f"delta against frame {pkt['base']}, whose list is not held")
-        keep = np.setdiff1d(held, np.asarray(pkt["removed"], dtype=np.int64), assume_unique=True)
-        out = np.union1d(keep, np.asarray(pkt["added"], dtype=np.int64))
+            raise InputError(f"delta against frame {base}, whose list is not held")
+        keep = np.setdiff1d(held, np.asarray(pkt.get("removed", ()), dtype=np.int64),
+                            assume_unique=True)
+        out = np.union1d(keep, np.asarray(pkt.get("added", ()), dtype=np.int64))
     if len(out) != pkt["count"]:
-        raise InputError(f"packet of frame {pkt['frame']} does not add up: {len(out)} leaves, "
-                         f"count {pkt['count']}")
+        what = f"packet of frame {pkt['frame']}" if "frame" in pkt else \
+            f"tile {pkt.get('tile')}'s list"
+        raise InputError(f"{what} does not add up: {len(out)} leaves, count {pkt['count']}")
     return out

@@ -414,17 +414,17 @@ class WallSession:
         for event in (self._new_frame, self._new_ack, self.gone):
             event.set()
 
-    def _base(self, tile: int, number: int, full: bool, since: int) -> int | None:
-        """What tile ``tile``'s packet of frame ``number`` is a delta against: its acknowledged
-        frame if that is at least ``since``, else None (a full list)."""
-        self.check_tile(tile)
+    def _base(self, tiles, number: int, full: bool, since: int) -> int | None:
+        """What the packet (or node message) of ``tiles`` for frame ``number`` is a delta
+        against: the frame they have all acknowledged if that is at least ``since``, else None
+        (full lists)."""
         if number > self.latest or number < 0:
             raise NotFound(f"frame {number} does not exist yet (latest {self.latest})")
         if self.history.get(number) is None:
             if number > self.history.oldest:
                 raise NotFound(f"there is no frame {number}: frame numbers skipped it")
             raise Gone(f"frame {number} has left the history (oldest {self.history.oldest})")
-        ack = int(self.acks[tile])
+        ack = int(self.acks[tiles].min())
         base = None if full or ack < 0 or ack < since else ack
         held = base is not None and base < number and self.history.get(base) is not None
         return base if held else None
@@ -433,6 +433,7 @@ class WallSession:
         """Tile ``tile``'s packet of frame ``number``: a delta against the tile's acknowledged
         frame if that is at least ``since``, else a full list. A stream passes its first frame
         as ``since``: a node that reconnected holds nothing from before it."""
+        self.check_tile(tile)
         return protocol.packet(self.history, number, tile,
                                self._base(tile, number, full, since))
 
@@ -441,6 +442,7 @@ class WallSession:
         """:meth:`packet` as msgpack bytes, and whether it is a delta. The first tile to ask
         for a frame against a base encodes every tile's packet of that frame against it
         (:mod:`wallcull.encode`); the others take their slice."""
+        self.check_tile(tile)
         base = self._base(tile, number, full, since)
         record = self.history.get(number)
         cache = record.__dict__.setdefault("_encoded", {})
@@ -452,12 +454,33 @@ class WallSession:
                 cache.pop(next(iter(cache)))
         return encoded[tile], base is not None
 
-    def ack(self, tile: int, number: int) -> None:
-        self.check_tile(tile)
+    def node_message(self, tiles: np.ndarray, number: int, full: bool = False,
+                     since: int = -1, binary: bool = True) -> tuple[bytes, bool]:
+        """The node message of ``tiles`` (sorted, checked) for frame ``number``, msgpack or
+        JSON, and whether it is a delta: against the frame all of them acknowledged if that
+        is at least ``since`` (a stream's first frame), else full lists."""
+        base = self._base(tiles, number, full, since)
+        if binary:
+            return encode.node_message(self.history, number, tiles, base), base is not None
+        message = protocol.node_message(self.history, number, tiles, base)
+        return protocol.encode(message, False), message["base"] is not None
+
+    def check_tiles(self, tiles) -> np.ndarray:
+        """``tiles`` as a sorted array of this wall's tiles (or :class:`NotFound`)."""
+        tiles = np.unique(np.asarray(tiles, np.int64))
+        if not len(tiles) or tiles[0] < 0 or tiles[-1] >= self.wall.tiles:
+            raise NotFound(f"tiles {tiles.tolist()[:8]} are not tiles of wall {self.id} "
+                           f"({self.wall.tiles} tiles)")
+        return tiles
+
+    def ack(self, tiles, number: int) -> None:
+        """Tiles ``tiles`` (a tile or a sorted array of them) have drawn frame ``number``."""
+        if isinstance(tiles, (int, np.integer)):
+            self.check_tile(int(tiles))
         if number > self.latest:
             raise Conflict(f"cannot acknowledge frame {number}: latest is {self.latest}")
-        if number > self.acks[tile]:
-            self.acks[tile] = number
+        if (self.acks[tiles] < number).any():
+            self.acks[tiles] = np.maximum(self.acks[tiles], number)
             old, self._new_ack = self._new_ack, asyncio.Event()
             old.set()
 

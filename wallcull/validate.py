@@ -48,3 +48,27 @@ def as_count(value: Any, what: str) -> int:
     if value < 1:
         raise InputError(f"{what} must be at least 1, got {value}")
     return value
+
+
+def parse_tiles(spec: str, count: int | None = None) -> list[int]:
+    """``"0-63"``, ``"0,2,5-7"`` or ``"all"`` (needs ``count``) to sorted tile ids, each below
+    ``count`` (or ``MAX_TILES``)."""
+    spec = spec.strip()
+    limit = MAX_TILES if count is None else count
+    if spec == "all":
+        if count is None:
+            raise InputError("'all' tiles needs the wall's tile count")
+        return list(range(count))
+    out: set[int] = set()
+    for part in spec.split(","):
+        lo, dash, hi = part.strip().partition("-")
+        if not lo.isdigit() or (dash and not hi.isdigit()) or len(lo) > 6 or len(hi) > 6:
+            raise InputError(f"bad tile range {part!r}: use N, N-M, or a comma list of them")
+        first, last = int(lo), int(hi or lo)
+        if last >= limit or first > last:
+            raise InputError(f"tiles {part.strip()!r} are not tiles of this wall "
+                             f"(0-{limit - 1})")
+        out.update(range(first, last + 1))
+    if not out:
+        raise InputError("no tiles given")
+    return sorted(out)

@@ -63,6 +63,7 @@ import numpy as np
 
 from wallcull import protocol
 from wallcull.errors import InputError
+from wallcull.validate import parse_tiles
 
 from .rawhttp import MSGPACK, Connection, HTTPError, run
 from .retry import Backoff, ClientFailure, retrying
@@ -614,24 +615,6 @@ class TileClient:
 
 
 # --------------------------------------------------------------------------- a wall of them
-
-
-def parse_tiles(spec: str, count: int | None = None) -> list[int]:
-    """``"0-63"``, ``"0,2,5-7"`` or ``"all"`` (needs ``count``) to tile ids."""
-    spec = spec.strip()
-    if spec == "all":
-        if count is None:
-            raise ValueError("'all' tiles needs the wall's tile count")
-        return list(range(count))
-    out = []
-    for part in spec.split(","):
-        lo, dash, hi = part.strip().partition("-")
-        if not lo.isdigit() or (dash and not hi.isdigit()):
-            raise ValueError(f"bad tile range {part!r}: use N, N-M, or a comma list of them")
-        out.extend(range(int(lo), int(hi or lo) + 1))
-    if not out:
-        raise ValueError("no tiles given")
-    return out
 
 
 async def find_wall(server: str, wall: str, timeout: float = 60.0) -> dict:

@@ -5,8 +5,9 @@ body is read.
 * ``OPEN``: anyone (scenes, meshes, wall listings, the barrier, health, metrics);
 * ``OPERATOR``: the server's token (uploads, creating and deleting walls);
 * ``DRIVER``: the operator, or the wall's driver credential (posting frames);
-* ``NODE``: the operator, or a node credential of the wall that holds the tile in the path
-  (packets, which carry the tracked head's pose; acknowledgements; streams).
+* ``NODE``: the operator, or a node credential of the wall that holds the tile in the path,
+  or the tiles a node's stream asks for (packets, which carry the tracked head's pose;
+  acknowledgements; streams).
 
 A server without a token (``wallcull serve`` with no ``--token``) lets every request through:
 the choice of a lab that wants no access control, on a network it trusts.
@@ -17,6 +18,8 @@ from __future__ import annotations
 from typing import Callable, Mapping
 
 from ..credentials import DRIVER, NODE, OPERATOR
+from ..errors import InputError
+from ..validate import MAX_TILES, parse_tiles
 from .deps import ServerState
 from .http import Refused
 
@@ -91,7 +94,14 @@ def check(state: ServerState, role: str, token: str | None, params: Mapping[str,
     if role == NODE:
         if grant.role != NODE:
             raise Refused(403, "this needs a node credential of the wall")
-        tile = params.get("tile", "")
-        if not tile.isdigit() or int(tile) not in grant.tiles:
+        if "tile" in params:
+            tile = params["tile"]
+            wanted = [int(tile)] if tile.isdigit() else [-1]
+        else:  # a node's stream: the tiles it asks for, or by default all its credential holds
+            try:
+                wanted = parse_tiles(params["tiles"], MAX_TILES) if params.get("tiles") else []
+            except InputError as exc:
+                raise Refused(422, str(exc)) from None
+        if not grant.tiles.issuperset(wanted):
             raise Refused(403, f"this node credential holds tiles {sorted(grant.tiles)}, "
-                               f"not tile {tile}")
+                               f"not tiles {params.get('tile') or params.get('tiles')}")

@@ -72,6 +72,8 @@ class Gate:
                 raise Refused(403, f"origin {origin!r} is not allowed (--cors-origin)")
             query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
             token = query.get("token", [None])[0] or bearer(headers.get("authorization"))
+            if "tiles" in query:  # a node's stream: the tiles its credential must hold
+                params = {**params, "tiles": query["tiles"][0]}
         else:
             if scope["method"] == "OPTIONS":
                 if not methods:

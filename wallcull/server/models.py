@@ -11,7 +11,7 @@ light has a direction and a mirror a non-zero normal and an outline in its plane
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import (AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict,
                       StringConstraints, TypeAdapter, ValidationError)
@@ -79,13 +79,41 @@ class WallSpec(Body):
     resolution: tuple[Pixels, Pixels] = (1920, 1080)
 
 
+class ScreenSpec(Body):
+    """One screen of a wall given screen by screen (SPEC section 2b): three corners in display
+    space (the edges perpendicular, within 1e-6 relative), seen from the side its normal
+    ``(bottom_right - bottom_left) x (top_left - bottom_left)`` points to."""
+
+    bottom_left: tuple[Offset, Offset, Offset]
+    bottom_right: tuple[Offset, Offset, Offset]
+    top_left: tuple[Offset, Offset, Offset]
+    resolution: tuple[Pixels, Pixels] = (1920, 1080)
+
+
+class ScreensSpec(Body):
+    """A wall given screen by screen (SPEC section 2b): CAVEs, cylinders, angled walls. Tile
+    ids are indices in ``screens``."""
+
+    screens: list[ScreenSpec] = Field(min_length=1, max_length=MAX_TILES)
+    near: Annotated[Num, Field(gt=0, le=1e6)] = 0.1
+    far: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 1000.0
+
+
+class StereoSpec(Body):
+    """Two eyes ``ipd`` apart across the tracked head (SPEC section 3)."""
+
+    ipd: Annotated[Num, Field(gt=0, le=1.0)]
+    head: Quaternion = (1.0, 0.0, 0.0, 0.0)
+
+
 class FrameSpec(Body):
     """A frame (SPEC section 3). ``orientation`` must be a unit quaternion, and the eye in
-    front of the wall (``eye[2] > near - distance``)."""
+    front of the wall (``eye[2] > near - distance``; of every screen, every eye)."""
 
     position: Vec3
     orientation: Quaternion
     eye: tuple[Offset, Offset, Offset] = (0.0, 0.0, 0.0)
+    stereo: Optional[StereoSpec] = None
 
 
 class NodeUpdate(Body):
@@ -145,7 +173,7 @@ class SettingsSpec(Body):
 
 
 class WallCreate(Body):
-    wall: WallSpec
+    wall: Union[WallSpec, ScreensSpec]
     scene: SceneName
     method: Literal[METHODS] = "adaptive"  # type: ignore[valid-type]
     bounds: Literal[KINDS] = "obb"  # type: ignore[valid-type]

@@ -1,10 +1,12 @@
-"""The WebSocket stream of a tile: every new frame's packet pushed, acknowledgements back."""
+"""The WebSocket streams: a tile's (every new frame's packet pushed, acknowledgements back)
+and a render node's (one message per frame with all of its tiles, one acknowledgement)."""
 
 from __future__ import annotations
 
 import asyncio
 import json
 
+import numpy as np
 from fastapi import APIRouter, WebSocket
 from fastapi.responses import JSONResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -13,7 +15,8 @@ from .. import protocol
 from ..credentials import NODE
 from ..errors import InputError
 from ..service import Conflict, NotFound, WallSession
-from .access import needs
+from ..validate import parse_tiles
+from .access import bearer, needs
 from .deps import ServerState
 from .http import Refused
 
@@ -28,10 +31,10 @@ router = APIRouter(tags=["streams"])
 @router.websocket("/walls/{wid}/tiles/{tile}/stream")
 @needs(NODE)
 async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack"):
-    """Push every new frame's packet (conflated: a slow node gets the newest). The node
-    sends ``{"ack": n}`` after drawing frame n and ``{"full": true}`` to get a full list next.
-    The first packet is full, and deltas are only against frames acknowledged since: a node
-    that reconnects starts afresh.
+    """Push every new frame's packet of one tile (conflated: a slow node gets the newest). The
+    node sends ``{"ack": n}`` after drawing frame n and ``{"full": true}`` to get a full list
+    next. The first packet is full, and deltas are only against frames acknowledged since: a
+    node that reconnects starts afresh.
 
     With a server token, opening a stream needs the tile's node credential (``?token=`` or
     ``Authorization: Bearer``). A stream that has sent ``STREAM_WINDOW`` packets it has not
@@ -39,11 +42,47 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack"):
     closed (code 4408) after ``limits.stream_idle`` seconds of that: an idle socket costs no
     work per frame and frees its place. Streams are capped per tile, per wall and in all
     (HTTP 429 at the handshake). The stream closes with code 4404 when the wall is deleted."""
+    def tiles_of(session: WallSession) -> np.ndarray:
+        session.check_tile(tile)
+        return np.array([tile])
+
+    await _open(ws, wid, tiles_of, node=False, binary=format != "json")
+
+
+@router.websocket("/walls/{wid}/nodes/stream")
+@needs(NODE)
+async def node_stream(ws: WebSocket, wid: str, tiles: str | None = None,
+                      format: str = "msgpack"):
+    """Push every new frame to a render node as one message with all of its tiles (a node
+    message, see the AsyncAPI document), and take one ``{"ack": n}`` for all of them; as the
+    tile stream otherwise (``{"full": true}``, conflation, the window, the close codes).
+    ``tiles`` (``0-3`` or ``0,1,8,9``) defaults to the tiles of the node's credential."""
+    def tiles_of(session: WallSession) -> np.ndarray:
+        if tiles is not None:
+            try:
+                return session.check_tiles(parse_tiles(tiles, session.wall.tiles))
+            except InputError as exc:
+                raise Refused(422, str(exc)) from None
+        grant = ws.app.state.server.walls.grant(_token(ws))
+        if grant is None:
+            raise Refused(422, "say which tiles: ?tiles=0-3 (only a node's own credential "
+                               "implies them)")
+        return session.check_tiles(sorted(grant.tiles))
+
+    await _open(ws, wid, tiles_of, node=True, binary=format != "json")
+
+
+def _token(ws: WebSocket) -> str | None:
+    return ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
+
+
+async def _open(ws: WebSocket, wid: str, tiles_of, node: bool, binary: bool) -> None:
+    """Admit a stream (its wall, its tiles, room for it), run it, close it with its reason."""
     state: ServerState = ws.app.state.server
     try:
         session = state.walls.get(wid)
-        session.check_tile(tile)
-        _room(state, session, tile)
+        tiles = tiles_of(session)
+        _room(state, session, tiles)
     except (NotFound, Refused) as exc:
         status = exc.status if isinstance(exc, Refused) else 404
         state.metrics.errors.labels(str(status)).inc()
@@ -51,11 +90,11 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack"):
                                                    status))
         return
     await ws.accept()
-    _count(state, session, tile, +1)
+    _count(state, session, tiles, +1)
     try:
-        reason = await _serve(ws, state, session, tile, binary=format != "json")
+        reason = await _serve(ws, state, session, tiles, node, binary)
     finally:
-        _count(state, session, tile, -1)
+        _count(state, session, tiles, -1)
     code = GONE if session.closed else IDLE if reason == "idle" else None
     if code is not None and ws.application_state == WebSocketState.CONNECTED \
             and ws.client_state == WebSocketState.CONNECTED:
@@ -66,25 +105,30 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack"):
             pass  # the node left at the same moment
 
 
-def _room(state: ServerState, session: WallSession, tile: int) -> None:
+def _room(state: ServerState, session: WallSession, tiles: np.ndarray) -> None:
     limits = state.limits
+    busiest = max(session.streams[t] for t in tiles.tolist())
     for open_, cap, where in ((state.streams, limits.streams, "the server"),
                               (session.subscribers, limits.streams_per_wall, f"wall {session.id}"),
-                              (session.streams[tile], limits.streams_per_tile, f"tile {tile}")):
+                              (busiest, limits.streams_per_tile, "a tile")):
         if open_ >= cap:
             raise Refused(429, f"{where} already has {cap} streams open")
 
 
-def _count(state: ServerState, session: WallSession, tile: int, step: int) -> None:
+def _count(state: ServerState, session: WallSession, tiles: np.ndarray, step: int) -> None:
     state.streams += step
     session.subscribers += step
-    session.streams[tile] += step
+    for t in tiles.tolist():
+        session.streams[t] += step
     state.metrics.clients.inc(step)
 
 
-async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tile: int,
-                 binary: bool) -> str:
-    """Run the stream until the node leaves, the wall goes, or the stream idles; why."""
+async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles: np.ndarray,
+                 node: bool, binary: bool) -> str:
+    """Run the stream (a tile's packets, or a node's messages) until the node leaves, the wall
+    goes, or the stream idles; why. One write per frame."""
+    tile = int(tiles[0])
+    acks = tiles if node else tile
     metrics, idle = state.metrics, state.limits.stream_idle
     wants = {"full": True}
     acked = [-1]  # the newest frame acknowledged on this stream
@@ -116,13 +160,14 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tile: 
                     return "idle"
                 number = session.latest
             full = wants.pop("full", False)
-            if binary:  # encoded once per frame for every tile (wallcull.encode)
+            if node:  # its tiles' entries, encoded once per frame for every node
+                data, delta = session.node_message(tiles, number, full, since, binary)
+            elif binary:  # encoded once per frame for every tile (wallcull.encode)
                 data, delta = session.packet_bytes(tile, number, full, since)
-                await ws.send_bytes(data)
             else:
                 pkt = session.packet(tile, number, full, since)
                 data, delta = protocol.encode(pkt, False), pkt["base"] is not None
-                await ws.send_text(data.decode())
+            await (ws.send_bytes(data) if binary else ws.send_text(data.decode()))
             since = number if since < 0 else since
             metrics.packet(delta, len(data), "ws")
             last = number
@@ -143,7 +188,7 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tile: 
                 if "ack" in msg:
                     if not isinstance(msg["ack"], int) or isinstance(msg["ack"], bool):
                         raise InputError("ack must be a frame number")
-                    session.ack(tile, msg["ack"])
+                    session.ack(acks, msg["ack"])
                     if msg["ack"] > acked[0]:
                         acked[0] = msg["ack"]
                         ack_came.set()

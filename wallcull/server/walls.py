@@ -41,7 +41,7 @@ async def create_wall(request: Request, state: State,
     """A wall culling a scene. The answer carries the wall's credentials, shown this once:
     the driver's (posting frames) and one per node (its tiles' packets, streams and
     acknowledgements)."""
-    wall = Wall.from_dict(body.wall.model_dump())
+    wall = Wall.from_dict(body.wall.model_dump())  # a grid, or screens (SPEC 2b)
     settings = None if body.settings is None else body.settings.model_dump(exclude_unset=True, exclude_none=True)
     if settings is not None:
         cfg.parse(settings)  # refused here, with its reason, not at the first frame
@@ -88,8 +88,8 @@ async def post_frame(request: Request, state: State, wid: WallId,
         return {name: u.value() for name, u in body.updates.items()}
 
     updates = moves() if len(body.updates) <= INLINE_UPDATES else await asyncio.to_thread(moves)
-    number, timings = await session.post_frame_async(body.frame.model_dump(), updates,
-                                                     body.number, body.refit)
+    number, timings = await session.post_frame_async(body.frame.model_dump(exclude_none=True),
+                                                     updates, body.number, body.refit)
     metrics = state.metrics
     metrics.frames.inc()
     for stage in ("cull_ms", "fit_ms", "total_ms"):

@@ -1,0 +1,183 @@
+"""Render nodes that drive several tiles: the node stream (one message per frame with all of a
+node's tiles, one acknowledgement), in process (TestClient). Every list a node rebuilds is
+compared with ``Session(...).frame(...)`` computed here, and every matrix it rebuilds with the
+fits computed here."""
+
+from __future__ import annotations
+
+import json
+
+import msgpack
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketDenialResponse
+
+from wallcull.clients.node import NodeState
+from wallcull.fit import FitOptions
+from wallcull.paths import camera_path
+from wallcull.pipeline import Session
+from wallcull.scene import load
+from wallcull.server import create_app
+from wallcull.wall import Wall
+
+TOKEN = "s3cret-t0ken"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+WALL = {"cols": 3, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.012, 0.012], "distance": 2.0}
+NODES = [[0, 1, 2], [3, 5], [4]]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load("fatehpur")
+
+
+@pytest.fixture(scope="module")
+def client():
+    with TestClient(create_app(None, token=TOKEN, state=None)) as c:
+        yield c
+
+
+@pytest.fixture
+def wall(client):
+    r = client.post("/walls", json={"wall": WALL, "scene": "fatehpur", "nodes": NODES},
+                    headers=AUTH)
+    assert r.status_code == 201, r.text
+    body = r.json()
+    yield body
+    client.delete(f"/walls/{body['id']}", headers=AUTH)
+
+
+def frames(scene, count):
+    pts = scene.leaf_points[0]
+    return [f.to_dict() for f in camera_path("fly", pts.min(0), pts.max(0),
+                                             Wall.from_dict(WALL), count)]
+
+
+def receive(ws, binary):
+    raw = ws.receive_bytes() if binary else ws.receive_text().encode()
+    return (msgpack.unpackb(raw) if binary else json.loads(raw)), len(raw)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_node_of_several_tiles_draws_every_frame_right(client, wall, scene, binary):
+    wid, creds = wall["id"], wall["credentials"]
+    token = creds["nodes"][0]["token"]  # tiles 0, 1, 2: implied by the credential
+    reference = Session(scene, Wall.from_dict(WALL), fit=FitOptions())
+    fmt = "msgpack" if binary else "json"
+    node, sizes = NodeState(), {"full": [], "delta": []}
+    with client.websocket_connect(f"/walls/{wid}/nodes/stream?format={fmt}&token={token}") as ws:
+        for k, frame in enumerate(frames(scene, 48)[:12]):
+            r = client.post(f"/walls/{wid}/frames", json={"frame": frame},
+                            headers={"Authorization": f"Bearer {creds['driver']}"})
+            assert r.status_code == 200, r.text
+            message, size = receive(ws, binary)
+            assert message["frame"] == k and [e["tile"] for e in message["tiles"]] == [0, 1, 2]
+            if message["base"] is None:
+                sizes["full"].append(size)
+            else:  # against the same frame's full lists, made here
+                whole, _ = client.app.state.server.walls.get(wid).node_message(
+                    np.arange(3), k, full=True, binary=binary)
+                sizes["delta"].append(size / len(whole))
+            result = reference.frame(frame)
+            start, leaves = result.visibility.leaf_lists()
+            for tile in node.take(message):
+                t = tile.tile
+                assert tile.leaves.tolist() == leaves[start[t]:start[t + 1]].tolist(), (k, t)
+                want = result.fits[t]
+                for key in ("view", "projection"):
+                    np.testing.assert_allclose(tile.matrices[key], want[key], rtol=0,
+                                               atol=1e-9 * np.abs(want[key]).max())
+            ws.send_bytes(msgpack.packb({"ack": k})) if binary else \
+                ws.send_text(json.dumps({"ack": k}))
+            barrier = client.get(f"/walls/{wid}/barrier/{k}?timeout=0").json()
+            assert barrier["acked"] >= 3  # one acknowledgement took all three tiles
+    assert len(sizes["full"]) == 1 and len(sizes["delta"]) == 11
+    assert max(sizes["delta"]) <= 1, sizes["delta"]  # a delta never outgrows the lists
+
+
+def test_a_node_asks_for_its_tiles_or_its_credential_implies_them(client, wall):
+    wid, creds = wall["id"], wall["credentials"]
+    token = creds["nodes"][1]["token"]  # tiles 3 and 5
+    for query, status in ((f"tiles=3,4&token={token}", 403),  # 4 is another node's
+                          (f"tiles=3-5&token={token}", 403),
+                          (f"tiles=5&token={token}", None),
+                          (f"token={token}", None),
+                          (f"tiles=0-9&token={TOKEN}", 422),  # no tile 9 on a 3 x 2 wall
+                          (f"tiles=2-1&token={TOKEN}", 422),
+                          (f"token={TOKEN}", 422),  # the operator must say which
+                          (f"tiles=1,0&token={TOKEN}", None),
+                          ("tiles=0", 401)):
+        url = f"/walls/{wid}/nodes/stream?{query}"
+        if status is None:
+            with client.websocket_connect(url):
+                pass
+            continue
+        with pytest.raises(WebSocketDenialResponse) as exc:
+            with client.websocket_connect(url):
+                pass
+        assert exc.value.status_code == status, (query, exc.value.content)
+
+
+def test_full_lists_on_request_and_after_a_reconnection(client, wall, scene):
+    wid, creds = wall["id"], wall["credentials"]
+    driver = {"Authorization": f"Bearer {creds['driver']}"}
+    url = f"/walls/{wid}/nodes/stream?token={creds['nodes'][0]['token']}"
+    path = frames(scene, 6)
+    with client.websocket_connect(url) as ws:
+        for k in range(3):  # full, a delta, full again: asked for with the ack of frame 1
+            client.post(f"/walls/{wid}/frames", json={"frame": path[k]}, headers=driver)
+            message = msgpack.unpackb(ws.receive_bytes())
+            assert (message["base"] is None) == (k != 1), k
+            ws.send_bytes(msgpack.packb({"ack": k, **({"full": True} if k == 1 else {})}))
+    with client.websocket_connect(url) as ws:  # a new stream holds nothing: full lists again
+        message = msgpack.unpackb(ws.receive_bytes())  # the newest frame, at once
+        assert message["frame"] == 2 and message["base"] is None
+        assert all("visible" in e and "extent" in e and "depth" in e for e in message["tiles"])
+        ws.send_bytes(msgpack.packb({"ack": 2}))
+        client.post(f"/walls/{wid}/frames", json={"frame": path[3]}, headers=driver)
+        message = msgpack.unpackb(ws.receive_bytes())
+        assert message["frame"] == 3 and message["base"] == 2
+
+
+def test_a_cave_in_stereo_over_the_api(client, scene):
+    """A wall given screen by screen, stereo frames: the node rebuilds each screen's own view
+    and each eye's matrices, equal to the fits computed here; packets carry left and right."""
+    from pathlib import Path
+
+    cave = json.loads((Path(__file__).parent.parent / "examples" / "wall-cave.json").read_text())
+    r = client.post("/walls", json={"wall": cave, "scene": "fatehpur"}, headers=AUTH)
+    assert r.status_code == 201, r.text
+    wid = r.json()["id"]
+    assert r.json()["wall"]["screens"] and r.json()["tiles"] == len(cave["screens"])
+    try:
+        reference = Session(scene, Wall.from_dict(cave), fit=FitOptions())
+        pts = scene.leaf_points[0]
+        centre = (pts.min(0) + pts.max(0)) / 2
+        node = NodeState()
+        with client.websocket_connect(f"/walls/{wid}/nodes/stream?tiles=all&token={TOKEN}") \
+                as ws:
+            for k in range(3):
+                frame = {"position": (centre + [k * 2.0, 1.0, 0.0]).tolist(),
+                         "orientation": [1.0, 0.0, 0.0, 0.0],
+                         "stereo": {"ipd": 0.064, "head": [0.9950041652780258, 0.0,
+                                                           0.09983341664682815, 0.0]}}
+                r = client.post(f"/walls/{wid}/frames", json={"frame": frame}, headers=AUTH)
+                assert r.status_code == 200, r.text
+                result = reference.frame(frame)
+                start, leaves = result.visibility.leaf_lists()
+                message = msgpack.unpackb(ws.receive_bytes())
+                assert "view" not in message  # each screen has its own
+                for tile in node.take(message):
+                    t, want = tile.tile, result.fits[tile.tile]
+                    assert tile.leaves.tolist() == leaves[start[t]:start[t + 1]].tolist()
+                    for eye in ("left", "right"):
+                        for key in ("view", "projection"):
+                            np.testing.assert_allclose(
+                                tile.matrices[eye][key], want[eye][key], rtol=0,
+                                atol=1e-9 * np.abs(want[eye][key]).max())
+                ws.send_bytes(msgpack.packb({"ack": k}))
+        pkt = client.get(f"/walls/{wid}/tiles/0/packets/2", headers=AUTH).json()
+        assert {"left", "right"} <= set(pkt) and "row" not in pkt
+    finally:
+        client.delete(f"/walls/{wid}", headers=AUTH)
