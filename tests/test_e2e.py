@@ -1,8 +1,10 @@
-"""End to end on loopback: a real ``wallcull serve`` subprocess, the driver and 16 simulated
-render nodes (a 4 x 4 wall) over 500 frames of the power plant's orbit.
+"""End to end on loopback: a real ``wallcull serve`` subprocess, the driver and simulated
+render nodes of a 4 x 4 wall over the power plant's orbit (500 frames; 200 for nodes of four
+tiles).
 
-Checked exactly, for both transports (long-polling every frame number; WebSocket streams with a
-driver that waits on the swap barrier, so nothing is conflated):
+Checked exactly, for every transport (long-polling every frame number; WebSocket streams of one
+tile each; node streams of four tiles; node messages through a real NATS broker), with a
+driver that waits on the swap barrier, so nothing is conflated:
 
 * every tile receives every frame's packet, in order;
 * the list each node rebuilds from each packet (full, or a delta applied with
@@ -24,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from wallcull.clients import broker
 from wallcull.clients.driver import Driver
 from wallcull.clients.sim import run_wall
 from wallcull.clients.loadtest import running_server
@@ -45,6 +48,15 @@ def server():
 
 
 @pytest.fixture(scope="module")
+def nats_server():
+    """A real nats-server, and a wallcull server publishing there: ``(url, broker url)``."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    with broker.Broker() as nats, running_server(TOKEN, args=["--nats", nats.url]) as url:
+        yield url, nats.url
+
+
+@pytest.fixture(scope="module")
 def scene():
     return load(SCENE)
 
@@ -55,7 +67,8 @@ def expected_lists(scene, frames):
     return [session.frame(f).visibility.leaf_lists() for f in frames]
 
 
-async def walk(url: str, mode: str, scene, frames_count: int = FRAMES):
+async def walk(url: str, mode: str, scene, frames_count: int = FRAMES,
+               tiles_per_node: int = 1, nats: str | None = None):
     """Drive one wall through ``frames_count`` frames with the barrier; returns what the checks
     need."""
     events = []  # (kind, tile or None, frame) in the order the event loop saw them
@@ -71,7 +84,9 @@ async def walk(url: str, mode: str, scene, frames_count: int = FRAMES):
 
     barriers = []
     async with Driver(url, TOKEN) as driver:
-        info = await driver.create_wall(SCENE, WALL)
+        groups = [list(range(k, k + tiles_per_node)) for k in range(0, 16, tiles_per_node)]
+        info = await driver.create_wall(SCENE, WALL,
+                                        nodes=groups if tiles_per_node > 1 else None)
         wid, tiles = info["id"], info["tiles"]
         frames = await driver.frames(SCENE, info["wall"], "orbit", frames_count)
         expected = expected_lists(scene, frames)
@@ -86,10 +101,12 @@ async def walk(url: str, mode: str, scene, frames_count: int = FRAMES):
         ready = asyncio.Event()
         nodes = asyncio.create_task(run_wall(
             url, wid, "all", mode=mode, token=TOKEN, until=frames_count - 1, idle_timeout=30,
-            on_list=on_list, on_event=node_event, ready=lambda clients: ready.set()))
+            on_list=on_list, on_event=node_event, ready=lambda clients: ready.set(),
+            tiles_per_node=tiles_per_node, nats=nats))
         await asyncio.wait_for(ready.wait(), 60)
-        if mode == "ws":
-            assert await driver.wait_clients(wid, tiles, 30) == tiles
+        if mode == "ws" and nats is None:
+            assert await driver.wait_clients(wid, len(groups), 30) == len(groups)
+        await driver.stream_frames(wid)
         log = await driver.run(wid, frames, rate=0, barrier=True, barrier_timeout=10,
                                on_event=driver_event)
         clients = await asyncio.wait_for(nodes, 60)
@@ -111,13 +128,18 @@ def check(result, mode):
     assert result["final"]["latest"] == n - 1
 
     # every tile got every frame, in order, and rebuilt exactly the culler's list
-    for c in result["clients"]:
-        assert c.stats.errors == [], (c.tile, c.stats.errors[:3])
-        assert c.stats.frame == list(range(n)), f"tile {c.tile} missed or reordered frames"
-        assert result["received"][c.tile] == list(range(n))
+    stats = [s for c in result["clients"]
+             for s in getattr(c, "tile_stats", {c.tile: c.stats}).values()]
+    assert sorted(s.tile for s in stats) == list(range(tiles))
+    for s in stats:
+        assert s.errors == [], (s.tile, s.errors[:3])
+        assert s.frame == list(range(n)), f"tile {s.tile} missed or reordered frames"
+        assert result["received"][s.tile] == list(range(n))
     assert result["mismatches"] == [], result["mismatches"][:5]
-    deltas = sum(len(c.stats.full) - sum(c.stats.full) for c in result["clients"])
-    assert deltas > 0.9 * tiles * n, "the packets were deltas, and the deltas were checked"
+    deltas = sum(len(s.full) - sum(s.full) for s in stats)
+    # (a node's tile whose delta would be no shorter than its list gets the list)
+    assert deltas > (0.9 if mode == "pull" or len(stats) == len(result["clients"]) else 0.5) \
+        * tiles * n, "the packets were deltas, and the deltas were checked"
     if mode == "pull":
         assert all(c.stats.base_misses == 0 for c in result["clients"])
 
@@ -152,6 +174,20 @@ def test_wall_end_to_end(server, scene, mode):
     check(result, mode)
 
 
+def test_nodes_of_four_tiles_end_to_end(server, scene):
+    result = asyncio.run(walk(server, "ws", scene, 200, tiles_per_node=4))
+    assert len(result["clients"]) == 4
+    check(result, "ws")
+
+
+def test_nodes_over_nats_end_to_end(nats_server, scene):
+    """The same checks with the node messages and acknowledgements through a NATS broker."""
+    url, nats = nats_server
+    result = asyncio.run(walk(url, "ws", scene, 200, tiles_per_node=4, nats=nats))
+    assert len(result["clients"]) == 4
+    check(result, "ws")
+
+
 def test_ordering_check_catches_a_tile_running_ahead():
     """The barrier check is real: a tile acknowledging k + 1 before the barrier of k answered,
     or a frame posted before the previous barrier, are reported."""
@@ -161,3 +197,59 @@ def test_ordering_check_catches_a_tile_running_ahead():
     early_ack = [("post", None, 0), ("ack", 0, 0), ("post", None, 1), ("ack", 0, 1),
                  ("ack", 1, 0), ("barrier", None, 0), ("ack", 1, 1), ("barrier", None, 1)]
     assert ordering_violations(early_ack, 2, 2) == [("post", 1), ("ack", 0, 1)]
+
+
+def test_a_node_that_joins_late_over_nats_asks_for_full_lists(nats_server, scene):
+    """Raw NATS, as a lab's own client would speak it: subscribe, request full lists, draw,
+    acknowledge; the next message is a delta against that frame; a node that stops
+    acknowledging is published nothing more after the window."""
+    import jsonschema
+    import msgpack
+    import nats as nats_py
+
+    from wallcull.server.asyncapi import schema
+    from wallcull.server.nats import WINDOW
+
+    url, broker_url = nats_server
+
+    async def scenario():
+        async with Driver(url, TOKEN) as driver:
+            info = await driver.create_wall(SCENE, WALL, nodes=[[0, 1, 2, 3]])
+            wid = info["id"]
+            assert info["nodes"][0] == [0, 1, 2, 3]
+            frames = await driver.frames(SCENE, info["wall"], "orbit", 30)
+            await driver.stream_frames(wid)
+            for frame in frames[:5]:
+                await driver.post(wid, frame)
+            nc = await nats_py.connect(broker_url)
+            sub = await nc.subscribe(f"wallcull.{wid}.node.0")
+            full = msgpack.unpackb((await nc.request(f"wallcull.{wid}.full.0", b"",
+                                                     timeout=5)).data)
+            assert full["frame"] == 4 and full["base"] is None
+            jsonschema.validate(full, schema("NodeMessage"))  # the AsyncAPI document's
+            assert [e["tile"] for e in full["tiles"]] == [0, 1, 2, 3]
+            session = Session(scene, Wall.from_dict(WALL))
+            start, leaves = session.frame(frames[4]).visibility.leaf_lists()
+            assert full["tiles"][2]["visible"] == leaves[start[2]:start[3]].tolist()
+            await nc.publish(f"wallcull.{wid}.ack.0", msgpack.packb({"ack": 4}))
+            await nc.flush()
+            await asyncio.sleep(0.2)
+            assert (await driver.barrier(wid, 4, 1))["acked"] == 4  # the node's four tiles
+            await driver.post(wid, frames[5])
+            delta = msgpack.unpackb((await sub.next_msg(timeout=5)).data)
+            assert delta["frame"] == 5 and delta["base"] == 4
+            jsonschema.validate(delta, schema("NodeMessage"))
+            for frame in frames[6:6 + 2 * WINDOW]:  # no more acknowledgements
+                await driver.post(wid, frame)
+            await asyncio.sleep(0.5)
+            got = []
+            while True:
+                try:
+                    got.append(msgpack.unpackb((await sub.next_msg(timeout=0.2)).data)["frame"])
+                except nats_py.errors.TimeoutError:
+                    break
+            assert got == list(range(6, 5 + WINDOW))  # then silence: it stopped acknowledging
+            await nc.drain()
+            await driver.call("DELETE", f"/walls/{wid}", auth=True)
+
+    asyncio.run(scenario())

@@ -196,3 +196,27 @@ def test_a_node_rebuilds_the_servers_matrices_from_the_extents(wall_file, stereo
                 assert (g["near"], g["far"]) == (w["near"], w["far"])
                 checked += 1
     assert checked >= 3 * wall.tiles and left_out, (checked, left_out)
+
+
+def test_a_node_tells_what_its_deltas_would_have_cost_as_full_lists():
+    """clients.node.full_size: exactly the bytes of the server's full message of the frame."""
+    from wallcull.clients.node import NodeState, full_size
+    from wallcull.fit import FitOptions
+    from wallcull.paths import scene_path
+
+    scene = load("powerplant")
+    for wall_file, stereo in (("wall-8x8.json", False), ("wall-cave.json", True)):
+        wall = Wall.from_dict(json.loads((ROOT / "examples" / wall_file).read_text()))
+        session = Walls().create(scene, wall, "adaptive", "obb", False, 4, FitOptions())
+        tiles = list(range(min(wall.tiles, 6)))
+        node, deltas = NodeState(), 0
+        for k, frame in enumerate(scene_path(scene, wall, "orbit", 40)[:6]):
+            spec = frame.to_dict() | ({"stereo": {"ipd": 0.06}} if stereo else {})
+            number, _ = session.post_frame(spec)
+            raw = encode.node_message(session.history, number, tiles, number - 1 if k else None)
+            message = msgpack.unpackb(raw)
+            frames = node.take(message)
+            whole = encode.node_message(session.history, number, tiles, None)
+            assert full_size(message, len(raw), frames, node.frusta.held[number]) == len(whole)
+            deltas += message["base"] is not None
+        assert deltas == 5

@@ -181,3 +181,50 @@ def test_a_cave_in_stereo_over_the_api(client, scene):
         assert {"left", "right"} <= set(pkt) and "row" not in pkt
     finally:
         client.delete(f"/walls/{wid}", headers=AUTH)
+
+
+# --------------------------------------------------------------------------- the frame stream
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_frames_over_one_connection(client, wall, scene, binary):
+    """A tracker posts frame after frame on the frame stream: each answered in order with its
+    number; a refused frame gets its reason and the stream goes on; nodes see every frame."""
+    wid, creds = wall["id"], wall["credentials"]
+    fmt = "msgpack" if binary else "json"
+    pack, unpack = (msgpack.packb, msgpack.unpackb) if binary else \
+        (lambda o: json.dumps(o), json.loads)
+    path = frames(scene, 4)
+    node_url = f"/walls/{wid}/nodes/stream?token={creds['nodes'][0]['token']}"
+    with client.websocket_connect(f"/walls/{wid}/frames/stream?format={fmt}"
+                                  f"&token={creds['driver']}") as driver, \
+            client.websocket_connect(node_url) as node:
+        send = driver.send_bytes if binary else driver.send_text
+        receive = driver.receive_bytes if binary else driver.receive_text
+        answers = []
+        for k, frame in enumerate(path):
+            send(pack({"frame": frame}))
+            answers.append(unpack(receive()))
+            if k == 1:  # not a unit quaternion: refused, with its reason
+                send(pack({"frame": {**frame, "orientation": [1, 1, 0, 0]}}))
+                refused = unpack(receive())
+                assert refused["status"] == 422 and "unit quaternion" in refused["error"]
+                send(pack({"frame": frame, "bogus": 1}))
+                refused = unpack(receive())
+                assert refused["status"] == 422 and "bogus" in refused["error"]
+        assert [a["frame"] for a in answers] == [0, 1, 2, 3]
+        assert all(a["timings"]["total_ms"] > 0 for a in answers)
+        seen = [msgpack.unpackb(node.receive_bytes())["frame"]]
+        while seen[-1] < 3:
+            seen.append(msgpack.unpackb(node.receive_bytes())["frame"])
+    assert seen == sorted(seen) and seen[-1] == 3
+
+
+def test_the_frame_stream_needs_the_drivers_credential(client, wall):
+    wid, creds = wall["id"], wall["credentials"]
+    for token, status in ((creds["nodes"][0]["token"], 403), ("nope", 401), (None, 401)):
+        query = f"?token={token}" if token else ""
+        with pytest.raises(WebSocketDenialResponse) as exc:
+            with client.websocket_connect(f"/walls/{wid}/frames/stream{query}"):
+                pass
+        assert exc.value.status_code == status

@@ -4,7 +4,7 @@
     wallcull bench SCENE --wall WALL.json [--frames N] [--methods a,b] [--json]
     wallcull walk SCENE [--wall WALL.json]      # the README's main job: a walkthrough, per tile
     wallcull serve [--host 127.0.0.1] [--port 8000] [--scenes DIR] [--token T] [--state DIR]
-                   [--cors-origin ORIGIN ...] [--limit NAME=VALUE ...]
+                   [--cors-origin ORIGIN ...] [--limit NAME=VALUE ...] [--nats URL]
     wallcull scenes
 """
 
@@ -224,6 +224,10 @@ def cmd_serve(args) -> int:
         settings["state"] = None if args.state.lower() == "none" else args.state
     if args.cors_origin:
         settings["origins"] = tuple(args.cors_origin)
+    if args.nats:
+        settings["nats"] = args.nats
+    if args.nats_prefix:
+        settings["nats_prefix"] = args.nats_prefix
     for text in args.limit:
         settings["limits"] = settings["limits"].with_text(text)
     serve(args.host, args.port, args.log_level, **settings)
@@ -327,6 +331,12 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
                    help="change a limit, e.g. upload=16M or streams_per_tile=2 (repeatable; "
                         "see README; default: $WALLCULL_LIMITS)")
+    q.add_argument("--nats", metavar="URL",
+                   help="also publish node messages on this NATS broker, e.g. "
+                        "nats://127.0.0.1:4222, and take acknowledgements from it (default: "
+                        "$WALLCULL_NATS)")
+    q.add_argument("--nats-prefix", metavar="PREFIX",
+                   help="first token of the NATS subjects (default: wallcull)")
     q.add_argument("--log-level", default="info")
     q.set_defaults(func=cmd_serve)
 

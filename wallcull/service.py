@@ -282,6 +282,7 @@ class WallSession:
     on_number: Callable[[int], None] | None = None
     streams: Counter = field(default_factory=Counter)  # open streams per tile
     digests: set = field(default_factory=set)  # of its credentials
+    nodes: list = field(default_factory=list)  # the tiles of each node credential
     credentials: dict | None = None  # as issued, to be shown once (never kept on disk)
     gone: asyncio.Event = field(default_factory=asyncio.Event)  # set when it is deleted
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
@@ -317,7 +318,8 @@ class WallSession:
                 "tiles": self.wall.tiles, "method": s.method, "bounds": s.state.kind,
                 "pseudo_groups": s.culler.pseudo_groups, "shadow_fit": s.fit_options.shadow_fit,
                 "settings": s.raw_settings, "latest": self.newest,
-                "history": self.history.size, "subscribers": self.subscribers}
+                "history": self.history.size, "subscribers": self.subscribers,
+                "nodes": self.nodes}
 
     def check_tile(self, tile: int) -> None:
         if not 0 <= tile < self.wall.tiles:
@@ -551,6 +553,8 @@ class Walls:
             state, wid = self.state, session.id
             session.on_number = lambda number: state.set_last_frame(wid, number)
         session.digests = set(grants)
+        session.nodes = sorted(sorted(g.tiles) for g in grants.values()
+                               if g.role == credentials.NODE)
         self.grants.update(grants)
         self.sessions[session.id] = session
 

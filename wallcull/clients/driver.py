@@ -1,7 +1,8 @@
 """The load driver: moves the camera along a scene's walkthrough and posts frames at a rate.
 
-Every frame it posts ``{"frame": ...}`` (msgpack) to ``POST /walls/{wid}/frames``, recording the
-time it sent the request and the time the answer came back. With ``barrier`` it then waits on the
+Every frame it posts ``{"frame": ...}`` (msgpack) over the wall's frame stream (one WebSocket,
+``--post stream``, the default) or to ``POST /walls/{wid}/frames`` (``--post http``), recording
+the time it sent the frame and the time the answer came back. With ``barrier`` it then waits on the
 swap barrier, ``GET /walls/{wid}/barrier/{n}``, until every tile has acknowledged frame ``n``
 (or ``barrier_timeout`` seconds), and records when it completed: frame ``n + 1`` is never posted
 before the barrier of ``n`` has answered. Frames are paced from a fixed schedule (frame ``k`` no
@@ -32,7 +33,10 @@ from dataclasses import dataclass, field
 from typing import Callable
 from urllib.parse import quote
 
+import msgpack
 import numpy as np
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed
 
 from wallcull.errors import InputError
 from wallcull.paths import PATHS, camera_path
@@ -79,7 +83,9 @@ class Driver:
     def __init__(self, server: str, token: str | None = None, timeout: float = 30.0,
                  retry_for: float = 60.0):
         self.server = server.rstrip("/")
+        self.token = token
         self.conn = Connection(server, token, timeout)
+        self._frames = None  # the frame stream, once opened
         self.log = FrameLog()
         self.backoff = Backoff(retry_for)
 
@@ -94,6 +100,7 @@ class Driver:
                               self.backoff, f"{method} {target}")
 
     async def close(self) -> None:
+        await self._close_frames()
         await self.conn.close()
 
     async def __aenter__(self):
@@ -104,14 +111,17 @@ class Driver:
 
     async def create_wall(self, scene: str, wall: dict, method: str = "adaptive",
                           bounds: str = "obb", history: int = 64, settings: dict | None = None,
-                          shadow_fit: str = "refined") -> dict:
+                          shadow_fit: str = "refined", nodes: list | None = None) -> dict:
         """``POST /walls``; returns the wall's info (``id``, ``tiles``, ...) and its
         ``credentials`` (the driver's and one per node, shown this once). ``settings``: lights
-        and mirrors for this wall instead of the scene's own."""
+        and mirrors for this wall instead of the scene's own; ``nodes``: the tiles of each node
+        credential (default: one per tile)."""
         body = {"wall": wall, "scene": scene, "method": method, "bounds": bounds,
                 "history": history, "shadow_fit": shadow_fit}
         if settings is not None:
             body["settings"] = settings
+        if nodes is not None:
+            body["nodes"] = nodes
         return await self.call("POST", "/walls", body, auth=True)
 
     async def wall_info(self, wid: str) -> dict:
@@ -134,8 +144,33 @@ class Driver:
             await asyncio.sleep(0.1)
 
     async def post(self, wid: str, frame: dict) -> dict:
+        """Post one frame: over the frame stream when :meth:`stream_frames` opened it (and
+        over HTTP again while the server is away: a restart), else ``POST .../frames``."""
+        if self._frames is not None:
+            try:
+                await self._frames.send(msgpack.packb({"frame": frame}))
+                answer = msgpack.unpackb(await self._frames.recv())
+            except (OSError, ConnectionClosed):
+                await self._close_frames()
+            else:
+                if "error" in answer:
+                    raise HTTPError(answer["status"], answer["error"], "POST", "frame stream")
+                return answer
         return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame}, auth=True,
                                body_format="msgpack")
+
+    async def stream_frames(self, wid: str) -> None:
+        """Post this wall's frames over one WebSocket (``/walls/{wid}/frames/stream``) from now
+        on: a few tens of microseconds of server time a frame, where a request takes a
+        millisecond."""
+        query = f"?token={quote(self.token, safe='')}" if self.token else ""
+        self._frames = await connect(f"ws{self.server[len('http'):]}/walls/{wid}/frames/stream"
+                                     f"{query}", max_size=None, compression=None)
+
+    async def _close_frames(self) -> None:
+        frames, self._frames = self._frames, None
+        if frames is not None:
+            await frames.close()
 
     async def barrier(self, wid: str, number: int, timeout: float) -> dict:
         return await self.call("GET", f"/walls/{wid}/barrier/{number}?timeout={timeout:g}")
@@ -231,6 +266,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--path", choices=PATHS, default="orbit")
     p.add_argument("--path-frames", type=int, default=PATH_FRAMES,
                    help="frames per loop of the path")
+    p.add_argument("--post", choices=("stream", "http"), default="stream",
+                   help="post frames over one WebSocket (the frame stream) or one request each")
     p.add_argument("--barrier", action="store_true", help="wait on the swap barrier every frame")
     p.add_argument("--barrier-timeout", type=float, default=1.0)
     p.add_argument("--wait-clients", type=_count_or_all, default=0, metavar="N|all",
@@ -287,6 +324,8 @@ async def _main(args) -> int:
             want = info["tiles"] if args.wait_clients == "all" else args.wait_clients
             n = await driver.wait_clients(wid, want, args.wait_timeout)
             print(json.dumps({"subscribers": n}), flush=True)
+        if args.post == "stream":
+            await driver.stream_frames(wid)
         log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
                                stop=stop)
         result = {"wall": wid, "summary": {**summary(log), "retries": driver.retries}}

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import bisect
 import json
 import os
 import signal
@@ -65,6 +64,7 @@ from wallcull import protocol
 from wallcull.errors import InputError
 from wallcull.validate import parse_tiles
 
+from .node import NodeState, full_size, sorted_ints_len
 from .rawhttp import MSGPACK, Connection, HTTPError, run
 from .retry import Backoff, ClientFailure, retrying
 
@@ -251,21 +251,6 @@ def _packed_len(obj, binary: bool) -> int:
 _ADDED, _REMOVED, _VISIBLE = (msgpack.packb(k) for k in ("added", "removed", "visible"))
 
 
-_THRESHOLDS = (128, 256, 1 << 16, 1 << 32)
-
-
-def sorted_ints_len(values) -> int:
-    """:func:`msgpack_ints_len` of a sorted list or array of ints >= 0, by bisection: the
-    packets' lists are sorted, and this costs a few microseconds instead of tens."""
-    n = len(values)
-    head = 1 if n < 16 else 3 if n < 1 << 16 else 5
-    if isinstance(values, np.ndarray):
-        below = np.searchsorted(values, _THRESHOLDS).tolist()
-    else:
-        below = [bisect.bisect_left(values, t) for t in _THRESHOLDS]
-    return head + n + (n - below[0]) + (n - below[1]) + 2 * (n - below[2]) + 4 * (n - below[3])
-
-
 def msgpack_ints_len(values) -> int:
     """Bytes of a list of ints >= 0 as msgpack encodes it, without encoding it: the header
     (fixarray / array16 / array32) plus 1, 2, 3, 5 or 9 bytes per value."""
@@ -298,8 +283,8 @@ class TileClient:
             raise ValueError(f"mode must be ws or pull, got {mode!r}")
         self.server, self.wall_id, self.tile, self.scene = server.rstrip("/"), wall_id, tile, scene
         self.mode, self.token, self.binary = mode, token, binary
-        self.renderer = renderer
-        self.cache = MeshCache(cache_bytes, on_evict=renderer.evict if renderer else None)
+        self.renderers = {} if renderer is None else {tile: renderer}
+        self.cache = MeshCache(cache_bytes, on_evict=self._evict)
         self.host: dict[str, Mesh] = {}  # host copies of every mesh fetched (see module doc)
         self.triangles_of = np.zeros(len(scene.keys), dtype=np.int64)
         self.keep = keep
@@ -312,12 +297,20 @@ class TileClient:
         self.stats = TileStats(tile)
         self.http = Connection(server, token)
         self.last_frame = -1
-        self.image = None  # the last frame drawn, with a renderer (clients.render.Image)
+        self.images = {}  # the last frame drawn per tile, with a renderer
         self.connected = asyncio.Event()
         self._ws = None
         self._accept = MSGPACK if binary else "application/json"
         self._base = f"/walls/{wall_id}/tiles/{tile}"
         self.backoff = Backoff(reconnect_for)  # how long a lost server is waited for
+
+    def _evict(self, key: str) -> None:
+        for renderer in self.renderers.values():
+            renderer.evict(key)
+
+    def records(self) -> list[dict]:
+        """What the node recorded, one dict per tile (``--out``)."""
+        return [{**self.stats.to_dict(), "cache": self.cache.stats(), "mode": self.mode}]
 
     # ------------------------------------------------------------------ packets
 
@@ -425,27 +418,46 @@ class TileClient:
 
     async def draw(self, leaves: np.ndarray, pkt: dict) -> int:
         """Make sure every mesh is cached, then count (or render) the triangles."""
-        if "transforms" in pkt:
-            if self.world is self.scene.world:
-                self.world = self.scene.world.copy()
-            t = pkt["transforms"]
-            self.world[np.asarray(t["ids"], dtype=np.int64)] = np.asarray(
-                t["matrices"], dtype=np.float64).reshape(-1, 4, 4)
+        self.move(pkt.get("transforms"))
+        triangles = await self.draw_tile(self.tile, self.stats, leaves, pkt["view"],
+                                         pkt["projection"])
+        if self.draw_time:  # a GPU busy for this long: the node's own time, not the process's
+            await asyncio.sleep(self.draw_time)
+        return triangles
+
+    def move(self, transforms: dict | None) -> None:
+        """Take the world transforms of moved leaves (a packet's or a message's)."""
+        if not transforms:
+            return
+        if self.world is self.scene.world:
+            self.world = self.scene.world.copy()
+        self.world[np.asarray(transforms["ids"], dtype=np.int64)] = np.asarray(
+            transforms["matrices"], dtype=np.float64).reshape(-1, 4, 4)
+
+    async def draw_tile(self, tile: int, stats: TileStats, leaves: np.ndarray, view,
+                        projection) -> int:
+        """One tile's list: its meshes cached (fetched once per node), its triangles counted,
+        and drawn when the tile has a renderer."""
         meshes = self.scene.mesh_of[leaves]
         uses = np.bincount(meshes, minlength=len(self.scene.keys))
         for m in np.flatnonzero(uses).tolist():
             if self.cache.get(self.scene.keys[m]) is None:
                 await self.fetch_mesh(m)
         triangles = int(uses @ self.triangles_of)
-        self.stats.triangles.append(triangles)
-        if self.draw_time:  # a GPU busy for this long: the node's own time, not the process's
-            await asyncio.sleep(self.draw_time)
-        if self.renderer is not None:
+        stats.triangles.append(triangles)
+        renderer = self.renderers.get(tile)
+        if renderer is not None:
             keys = self.scene.keys
-            self.image = self.renderer.render([(keys[m], self.world[leaf], leaf + 1)
-                                  for leaf, m in zip(leaves.tolist(), meshes.tolist())],
-                                 np.asarray(pkt["view"]), np.asarray(pkt["projection"]))
+            self.images[tile] = renderer.render(
+                [(keys[m], self.world[leaf], leaf + 1)
+                 for leaf, m in zip(leaves.tolist(), meshes.tolist())],
+                np.asarray(view), np.asarray(projection))
         return triangles
+
+    @property
+    def image(self):
+        """The last frame drawn of this client's tile, with a renderer (clients.render.Image)."""
+        return self.images.get(self.tile)
 
     async def fetch_mesh(self, number: int) -> Mesh:
         key = self.scene.keys[number]
@@ -466,8 +478,8 @@ class TileClient:
             raise HTTPError(r.status, r.detail(), "GET", f"mesh {key}")
         self.cache.put(mesh)
         self.triangles_of[number] = mesh.triangles
-        if self.renderer is not None:
-            self.renderer.upload(key, mesh.vertices, mesh.faces)
+        for renderer in self.renderers.values():
+            renderer.upload(key, mesh.vertices, mesh.faces)
         return mesh
 
     # ------------------------------------------------------------------ acknowledging
@@ -538,17 +550,19 @@ class TileClient:
                 reason = repr(exc)
             await self.backoff.wait(f"tile {self.tile}: {reason}")
 
+    def stream_url(self, path: str | None = None, query: str = "") -> str:
+        query += f"{'&' if query else ''}format={'msgpack' if self.binary else 'json'}"
+        if self.token:
+            query += f"&token={quote(self.token, safe='')}"
+        return f"ws{self.server[len('http'):]}{path or self._base + '/stream'}?{query}"
+
     async def _stream(self, until, idle_timeout) -> bool:
         """One stream, until frame ``until`` or ``idle_timeout`` (True: done)."""
         from websockets.asyncio.client import connect
         from websockets.exceptions import ConnectionClosed
 
-        scheme_url = "ws" + self.server[len("http"):]
-        query = f"format={'msgpack' if self.binary else 'json'}"
-        if self.token:
-            query += f"&token={quote(self.token, safe='')}"
-        async with connect(f"{scheme_url}{self._base}/stream?{query}", max_size=None,
-                           compression=None, open_timeout=10) as ws:
+        async with connect(self.stream_url(), max_size=None, compression=None,
+                           open_timeout=10) as ws:
             self._ws = ws
             self.stats.connects += 1
             self.backoff.reset()
@@ -614,6 +628,175 @@ class TileClient:
                 await asyncio.sleep(0.05)
 
 
+# --------------------------------------------------------------------------- a node of tiles
+
+
+class NodeClient(TileClient):
+    """A render node driving several tiles over one connection: the node stream (one message
+    per frame with all of its tiles, one acknowledgement: :mod:`wallcull.protocol`). Its tiles
+    share one mesh cache (one GPU); each may have its own renderer (one output each). A
+    message with a delta against a frame it no longer holds makes it ask for full lists
+    (``{"full": true}``) and wait for them. Stats are kept per tile, as the tile clients keep
+    them; each tile's ``bytes`` is its share of the message."""
+
+    def __init__(self, server: str, wall_id: str, tiles: list[int], scene: SceneInfo, *,
+                 renderers: dict | None = None, nats: str | None = None,
+                 nats_prefix: str = "wallcull", **kwargs):
+        super().__init__(server, wall_id, min(tiles), scene, **kwargs)
+        self.tiles = sorted(tiles)
+        self.tile_stats = {t: TileStats(t) for t in self.tiles}
+        self.stats = self.tile_stats[self.tiles[0]]
+        self.renderers = dict(renderers or {})
+        self.node = NodeState(self.keep)
+        self.nats, self.nats_prefix = nats, nats_prefix
+        self._nc = None  # the NATS connection, with nats
+        self._wants_full = False
+
+    def records(self) -> list[dict]:
+        cache = self.cache.stats()
+        return [{**self.tile_stats[t].to_dict(), "cache": cache if t == self.tile else {},
+                 "mode": "node"} for t in self.tiles]
+
+    def stream_url(self, path: str | None = None, query: str = "") -> str:
+        return super().stream_url(f"/walls/{self.wall_id}/nodes/stream",
+                                  "tiles=" + ",".join(map(str, self.tiles)))
+
+    async def receive(self, message: dict, size: int, recv: float) -> bool:
+        """Take one node message: rebuild, record, draw every tile, acknowledge once."""
+        if "error" in message:
+            self.stats.errors.append(str(message["error"]))
+            return False
+        number = message["frame"]
+        if number <= self.node.frame:
+            return False  # published before the full lists it asked for: stale
+        if not self.node.holds(message.get("base")):
+            self.stats.base_misses += 1  # its base went (a reconnection): start over
+            self.node.reset()
+            await self._ask_full()
+            return False
+        try:
+            frames = self.node.take(message)
+        except InputError as exc:
+            self.stats.errors.append(f"frame {number}: {exc}")
+            self.node.reset()
+            await self._ask_full()
+            return False
+        self.move(message.get("transforms"))
+        whole = full_size(message, size, frames, self.node.frusta.held[number]) \
+            if self.measure_full and self.binary else None
+        for frame in frames:
+            stats = self.tile_stats[frame.tile]
+            self._record_tile(stats, message, frame, size, whole, recv)
+            if self.on_list is not None:
+                self.on_list(frame.tile, number, frame.leaves)
+            await self.draw_tile(frame.tile, stats, frame.leaves, frame.matrices["view"],
+                                 frame.matrices["projection"])
+        if self.draw_time:
+            await asyncio.sleep(self.draw_time)
+        await self.acknowledge(number)
+        self.last_frame = number
+        return True
+
+    def _record_tile(self, s: TileStats, message: dict, frame, size: int, whole: int | None,
+                     recv: float) -> None:
+        share = len(self.tiles)
+        entry = frame.entry
+        s.frame.append(message["frame"])
+        s.recv.append(recv)
+        s.posted.append(message["time"])
+        s.full.append("visible" in entry)
+        s.bytes.append(size / share)
+        s.leaves.append(len(frame.leaves))
+        if whole is None:
+            return
+        listed = sorted_ints_len(frame.leaves)
+        s.full_bytes.append(whole / share)
+        s.full_list_bytes.append(listed)
+        s.list_bytes.append(listed if "visible" in entry else
+                            sum(sorted_ints_len(entry[k]) for k in ("added", "removed")
+                                if k in entry))
+        s.fit_bytes.append(sum(_packed_len(entry[k], True) for k in ("view", "extent", "depth")
+                               if k in entry))
+
+    async def acknowledge(self, number: int) -> None:
+        if self.on_event is not None:
+            for tile in self.tiles:
+                self.on_event("ack", tile, number)
+        if self._nc is not None:
+            await self._nc.publish(self.subject("ack"), msgpack.packb({"ack": number}))
+        else:
+            await self._ws.send(protocol.encode({"ack": number}, self.binary)
+                                if self.binary else json.dumps({"ack": number}))
+        self.stats.acks += 1
+
+    async def _ask_full(self) -> None:
+        if self.nats:
+            self._wants_full = True  # asked by the loop (request and reply)
+        else:
+            await super()._ask_full()
+
+    # ------------------------------------------------------------------ over NATS
+
+    def subject(self, kind: str) -> str:
+        """This node's NATS subject of ``kind`` (node, ack, full: wallcull.server.nats)."""
+        return f"{self.nats_prefix}.{self.wall_id}.{kind}.{self.tiles[0]}"
+
+    async def run(self, until: int | None = None, idle_timeout: float | None = None,
+                  start: int | str = 0) -> TileStats:
+        if not self.nats:
+            return await super().run(until, idle_timeout, start)
+        try:
+            await self._run_nats(until, idle_timeout)
+        finally:
+            await self.http.close()
+        return self.stats
+
+    async def _run_nats(self, until, idle_timeout) -> None:
+        """Subscribe to the node's subject, ask for full lists, then take every message; the
+        broker reconnects by itself (nats-py), and a node that loses its base asks again."""
+        import nats
+        from nats.errors import TimeoutError as NatsTimeout
+
+        self._nc = await nats.connect(self.nats, name=f"wallcull-node-{self.wall_id}-"
+                                      f"{self.tiles[0]}", max_reconnect_attempts=-1,
+                                      reconnect_time_wait=0.5)
+        try:
+            sub = await self._nc.subscribe(self.subject("node"))
+            self.stats.connects += 1
+            self.connected.set()
+            self._wants_full = True
+            while not self._done(until):
+                if self._wants_full:
+                    self._wants_full = False
+                    try:
+                        reply = await self._nc.request(self.subject("full"), b"", timeout=5)
+                    except NatsTimeout:
+                        self._wants_full = True  # no server yet: ask again
+                        continue
+                    await self._take(reply.data)
+                    continue
+                try:
+                    msg = await sub.next_msg(timeout=idle_timeout if idle_timeout and
+                                             self.last_frame >= 0 else 3600)
+                except NatsTimeout:
+                    if idle_timeout and self.last_frame >= 0:
+                        return
+                    continue
+                await self._take(msg.data)
+        finally:
+            nc, self._nc = self._nc, None
+            await nc.drain()
+
+    async def _take(self, data: bytes) -> None:
+        recv = time.time()
+        message = msgpack.unpackb(data)
+        if "error" in message:  # a full request before any frame: ask again shortly
+            await asyncio.sleep(0.1)
+            self._wants_full = True
+            return
+        await self.receive(message, len(data), recv)
+
+
 # --------------------------------------------------------------------------- a wall of them
 
 
@@ -664,10 +847,15 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
                    on_event=None,
                    ready: Callable[[list[TileClient]], None] | None = None,
                    stop: asyncio.Event | None = None,
-                   reconnect_for: float = 60.0) -> list[TileClient]:
+                   reconnect_for: float = 60.0, tiles_per_node: int = 1,
+                   nats: str | None = None) -> list[TileClient]:
     """Run the nodes of ``tiles`` on wall ``wall`` (an id, or ``"auto"``) until they stop
     (see :meth:`TileClient.run`) or ``stop`` is set; returns the clients with their stats.
-    Each node sends ``tokens[tile]`` (its node credential) when given, else ``token``."""
+    With ``tiles_per_node`` above 1, each node drives that many consecutive tiles over the
+    node stream (:class:`NodeClient`); with ``nats`` (a broker's URL), the nodes are the
+    wall's own (its ``nodes``) among ``tiles`` and take their messages from the broker. Each
+    node sends ``tokens[tile]`` (its node credential, of its first tile) when given, else
+    ``token``."""
     info = await find_wall(server, wall)
     ids = parse_tiles(tiles, info["tiles"]) if isinstance(tiles, str) else list(tiles)
     bad = [t for t in ids if not 0 <= t < info["tiles"]]
@@ -675,12 +863,22 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
         raise ValueError(f"wall {info['id']} has {info['tiles']} tiles; no tile {bad[0]}")
     scene = await shared_scene(server, info["scene"])
     renderers = make_renderers(ids, info["wall"], render_size) if render else {}
-    clients = [TileClient(server, info["id"], t, scene, mode=mode,
-                          token=(tokens or {}).get(t, token), binary=binary,
-                          cache_bytes=cache_bytes, renderer=renderers.get(t),
-                          measure_full=measure_full, draw_time=draw_time, on_list=on_list,
-                          on_event=on_event, reconnect_for=reconnect_for)
-               for t in ids]
+    common = dict(mode=mode, binary=binary, cache_bytes=cache_bytes, measure_full=measure_full,
+                  draw_time=draw_time, on_list=on_list, on_event=on_event,
+                  reconnect_for=reconnect_for)
+    if tiles_per_node > 1 or nats:
+        if mode != "ws":
+            raise ValueError("nodes of several tiles take the node stream: mode ws")
+        groups = [ids[k:k + tiles_per_node] for k in range(0, len(ids), tiles_per_node)]
+        if nats:  # the broker's subjects are the wall's nodes
+            groups = [g for g in info["nodes"] if set(g) <= set(ids)]
+            common["nats"] = nats
+        clients = [NodeClient(server, info["id"], g, scene, token=(tokens or {}).get(g[0], token),
+                              renderers={t: renderers[t] for t in g if t in renderers}, **common)
+                   for g in groups]
+    else:
+        clients = [TileClient(server, info["id"], t, scene, token=(tokens or {}).get(t, token),
+                              renderer=renderers.get(t), **common) for t in ids]
     tasks = [asyncio.create_task(c.run(until, idle_timeout, start)) for c in clients]
     waits = [asyncio.ensure_future(c.connected.wait()) for c in clients]
     done, _ = await asyncio.wait([asyncio.gather(*waits), *tasks],
@@ -710,22 +908,21 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
 
 def wall_report(clients: list[TileClient]) -> dict:
     """Everything the nodes recorded, JSON-ready (what ``--out`` writes)."""
-    return {"tiles": [{**c.stats.to_dict(), "cache": c.cache.stats(), "mode": c.mode}
-                      for c in clients],
+    return {"tiles": [record for c in clients for record in c.records()],
             "cpu_seconds": time.process_time()}  # this process's, since it started
 
 
 def summary_rows(clients: list[TileClient]) -> list[dict]:
     rows = []
     for c in clients:
-        s = c.stats
-        lat = (np.asarray(s.recv) - np.asarray(s.posted)) * 1e3
-        rows.append({"tile": c.tile, "packets": len(s.frame), "full": int(sum(s.full)),
-                     "bytes": int(sum(s.bytes)),
-                     "p50_ms": float(np.median(lat)) if len(lat) else float("nan"),
-                     "p99_ms": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
-                     "misses": c.cache.misses, "evictions": c.cache.evictions,
-                     "base_misses": s.base_misses, "errors": len(s.errors)})
+        for s in getattr(c, "tile_stats", {c.tile: c.stats}).values():
+            lat = (np.asarray(s.recv) - np.asarray(s.posted)) * 1e3
+            rows.append({"tile": s.tile, "packets": len(s.frame), "full": int(sum(s.full)),
+                         "bytes": int(sum(s.bytes)),
+                         "p50_ms": float(np.median(lat)) if len(lat) else float("nan"),
+                         "p99_ms": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
+                         "misses": c.cache.misses, "evictions": c.cache.evictions,
+                         "base_misses": s.base_misses, "errors": len(s.errors)})
     return rows
 
 
@@ -762,6 +959,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=("ws", "pull"), default="ws",
                    help="ws: subscribe to the stream; pull: long-poll every frame number")
     p.add_argument("--format", choices=("msgpack", "json"), default="msgpack")
+    p.add_argument("--tiles-per-node", type=int, default=1, metavar="K",
+                   help="each node drives K consecutive tiles over one node stream (ws)")
+    p.add_argument("--nats", metavar="URL",
+                   help="take node messages from this NATS broker (the wall's own nodes; "
+                        "the server runs with --nats)")
     p.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
                    help="the server's (operator's) token, for tiles --credentials does not "
                         "cover (default: $WALLCULL_TOKEN)")
@@ -799,7 +1001,9 @@ async def _main(args) -> int:
         loop.call_later(args.duration, stop.set)
 
     def ready(clients):
-        print(json.dumps({"ready": True, "tiles": [c.tile for c in clients]}), flush=True)
+        print(json.dumps({"ready": True, "tiles": [t for c in clients
+                                                  for t in getattr(c, "tiles", [c.tile])]}),
+              flush=True)
 
     start = args.start if args.start == "latest" else int(args.start)
     tokens = node_tokens(args.credentials) if args.credentials else None
@@ -809,7 +1013,8 @@ async def _main(args) -> int:
                              render_size=args.render_size, until=args.until_frame,
                              idle_timeout=args.idle_timeout, start=start,
                              measure_full=not args.no_full_size, draw_time=args.draw_time,
-                             ready=ready, stop=stop, reconnect_for=args.reconnect_for)
+                             ready=ready, stop=stop, reconnect_for=args.reconnect_for,
+                             tiles_per_node=args.tiles_per_node, nats=args.nats)
     if args.out:
         tmp = f"{args.out}.tmp"
         with open(tmp, "w") as f:

@@ -3,7 +3,9 @@ is in :mod:`wallcull.service`.
 
 * :mod:`.scenes`: list, upload and describe scenes, and serve their meshes;
 * :mod:`.walls`: create walls, post frames, read packets, acknowledge, the swap barrier;
-* :mod:`.streams`: a tile's WebSocket stream;
+* :mod:`.streams`: the WebSocket streams: a tile's, a render node's, a driver's frames;
+* :mod:`.nats`: the same node messages published on a NATS broker, acks taken back;
+* :mod:`.asyncapi`: the streams' messages, as an AsyncAPI document (``/asyncapi.json``);
 * :mod:`.gate`: what every request passes first: ``OPTIONS``, origins, tokens, body limits;
 * :mod:`.access`, :mod:`.http`, :mod:`.deps`, :mod:`.models`, :mod:`.openapi`,
   :mod:`.metrics`: what the routes share.
@@ -32,11 +34,12 @@ from ..errors import InputError
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from ..service import Conflict, Gone, NotFound, SceneStore, Walls, settled
-from . import openapi, scenes, streams, walls
+from . import asyncapi, openapi, scenes, streams, walls
 from .deps import ServerState
 from .gate import Gate
-from .http import Refused, status_handler
+from .http import Refused, refusal_detail, status_handler
 from .metrics import Metrics
+from .nats import NatsBridge
 
 #: Bytes a request body may have (frames, walls, updates); uploads have their own limit.
 MAX_BODY = Limits.body
@@ -46,11 +49,13 @@ log = logging.getLogger("wallcull")
 
 def create_app(scene_folder=None, token: str | None = None, max_body: int | None = None,
                max_upload: int | None = None, max_walls: int | None = None, *,
-               limits: Limits | None = None, state=None, origins=()) -> FastAPI:
+               limits: Limits | None = None, state=None, origins=(), nats: str | None = None,
+               nats_prefix: str = "wallcull") -> FastAPI:
     """The app. ``state``: a folder where walls persist (None: they live in memory only), and
     where uploads go when there is no ``scene_folder``. ``origins``: browser origins allowed
-    to call the API and open streams (``"*"``: any). ``max_body``, ``max_upload`` and
-    ``max_walls`` override ``limits``."""
+    to call the API and open streams (``"*"``: any). ``nats``: a NATS broker's URL, to publish
+    node messages there too (:mod:`.nats`). ``max_body``, ``max_upload`` and ``max_walls``
+    override ``limits``."""
     limits = limits or Limits()
     overrides = {"body": max_body, "upload": max_upload, "walls": max_walls}
     limits = replace(limits, **{k: v for k, v in overrides.items() if v is not None})
@@ -61,6 +66,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     store = SceneStore(scene_folder, limits, in_use=walls_.scene_names)
     server = ServerState(store, walls_, Metrics(), token, limits, tuple(origins))
     metrics = server.metrics
+    if nats:
+        server.bridge = NatsBridge(nats, walls_, metrics, nats_prefix)
 
     @asynccontextmanager
     async def lifespan(app):
@@ -70,7 +77,11 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
         if restored:
             log.info("restored %d wall(s): %s", len(restored), ", ".join(restored))
         await asyncio.to_thread(settled)
+        if server.bridge is not None:
+            await server.bridge.start()
         yield
+        if server.bridge is not None:
+            await server.bridge.close()
         if folder is not None:
             folder.close()
 
@@ -96,13 +107,17 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     @app.exception_handler(RequestValidationError)
     async def invalid(request, exc: RequestValidationError):
         metrics.errors.labels("422").inc()
-        detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        return JSONResponse({"detail": detail[:2000]}, 422)
+        return JSONResponse({"detail": refusal_detail(exc)}, 422)
 
     @app.get("/health", tags=["service"], operation_id="health")
     async def health():
         return {"status": "ok", "walls": len(server.walls.sessions),
                 "scenes_loaded": sorted(server.store.cache)}
+
+    @app.get("/asyncapi.json", tags=["service"], operation_id="asyncapi")
+    async def streams_document():
+        """The AsyncAPI document of the streams: WebSocket and NATS messages."""
+        return asyncapi.document(app.version)
 
     @app.get("/metrics", tags=["service"], response_class=Response, operation_id="metrics",
              responses={200: {"description": "Prometheus text format",
@@ -145,15 +160,18 @@ def _warm_up() -> None:
 def settings_from_env(environ=os.environ) -> dict:
     """``create_app`` keywords from the environment: ``WALLCULL_SCENES``, ``WALLCULL_TOKEN``,
     ``WALLCULL_STATE`` (a folder; ``none`` keeps walls in memory only; default
-    :func:`wallcull.persist.default_folder`), ``WALLCULL_LIMITS`` (``NAME=VALUE,...``) and
-    ``WALLCULL_CORS_ORIGINS`` (comma-separated)."""
+    :func:`wallcull.persist.default_folder`), ``WALLCULL_LIMITS`` (``NAME=VALUE,...``),
+    ``WALLCULL_CORS_ORIGINS`` (comma-separated), ``WALLCULL_NATS`` and
+    ``WALLCULL_NATS_PREFIX``."""
     state = environ.get("WALLCULL_STATE") or str(default_folder())
     return {"scene_folder": environ.get("WALLCULL_SCENES") or None,
             "token": environ.get("WALLCULL_TOKEN") or None,
             "state": None if state.lower() == "none" else state,
             "limits": Limits().with_text(environ.get("WALLCULL_LIMITS", "")),
             "origins": tuple(o.strip() for o in environ.get("WALLCULL_CORS_ORIGINS", "").split(",")
-                             if o.strip())}
+                             if o.strip()),
+            "nats": environ.get("WALLCULL_NATS") or None,
+            "nats_prefix": environ.get("WALLCULL_NATS_PREFIX") or "wallcull"}
 
 
 def make_app_from_env() -> FastAPI:

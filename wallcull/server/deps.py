@@ -4,7 +4,7 @@ metrics, the limits and who may do what."""
 from __future__ import annotations
 
 from dataclasses import InitVar, dataclass, field
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 
@@ -23,6 +23,7 @@ class ServerState:
     limits: Limits = field(default_factory=Limits)
     #: browser origins allowed (CORS and WebSocket ``Origin``); "*" allows any
     origins: tuple[str, ...] = ()
+    bridge: Any = None  # the NATS bridge (wallcull.server.nats), when there is a broker
     streams: int = 0  # WebSocket streams open, on every wall
     uploads: int = 0  # uploads being received or parsed
     operator: str | None = field(init=False, default=None)

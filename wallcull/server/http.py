@@ -173,6 +173,12 @@ class Refused(Exception):
         self.status, self.detail, self.headers = status, detail, headers
 
 
+def refusal_detail(exc: RequestValidationError) -> str:
+    """A validation error's one-line detail: where, and what."""
+    detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+    return detail[:2000]
+
+
 def status_handler(status: int, metrics: Metrics):
     """An exception handler answering ``status`` with the exception's message as ``detail``."""
     async def handle(request, exc):

@@ -251,9 +251,14 @@ class WallInfo(BaseModel):
     method: str
     bounds: str
     pseudo_groups: bool
+    shadow_fit: str
+    settings: Optional[dict] = None
     latest: int
     history: int
     subscribers: int
+    #: the tiles of each node credential (a render node's tiles; its NATS subjects are named
+    #: after the first)
+    nodes: list[list[int]]
 
 
 class WallCreated(WallInfo):

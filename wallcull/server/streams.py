@@ -8,17 +8,20 @@ import json
 
 import numpy as np
 from fastapi import APIRouter, WebSocket
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from .. import protocol
-from ..credentials import NODE
+from ..credentials import DRIVER, NODE
 from ..errors import InputError
 from ..service import Conflict, NotFound, WallSession
 from ..validate import parse_tiles
 from .access import bearer, needs
 from .deps import ServerState
-from .http import Refused
+from .http import Refused, decode_body, refusal_detail
+from .models import FramePost
+from .walls import take_frame
 
 #: Packets a stream may have sent and not yet seen acknowledged on it.
 STREAM_WINDOW = 8
@@ -70,6 +73,50 @@ async def node_stream(ws: WebSocket, wid: str, tiles: str | None = None,
         return session.check_tiles(sorted(grant.tiles))
 
     await _open(ws, wid, tiles_of, node=True, binary=format != "json")
+
+
+@router.websocket("/walls/{wid}/frames/stream")
+@needs(DRIVER)
+async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
+    """Post frames over one connection, as a tracker does 60 to 120 times a second: each
+    message is a ``POST /walls/{wid}/frames`` body, each answer that request's (``{"frame",
+    "timings"}``), in order; a refused frame is answered ``{"error": detail, "status": code}``
+    and the stream goes on. Needs the wall's driver credential (or the operator's token)."""
+    state: ServerState = ws.app.state.server
+    try:
+        session = state.walls.get(wid)
+    except NotFound as exc:
+        state.metrics.errors.labels("404").inc()
+        await ws.send_denial_response(JSONResponse({"detail": str(exc)}, 404))
+        return
+    binary = format != "json"
+    await ws.accept()
+    try:
+        while not session.closed:
+            message = await ws.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            raw = message.get("bytes")
+            try:
+                body = decode_body(FramePost, raw, protocol.MSGPACK) if raw is not None else \
+                    decode_body(FramePost, message.get("text", "").encode(), protocol.JSON)
+                answer = await take_frame(state, session, body)
+            except RequestValidationError as exc:
+                answer = {"error": refusal_detail(exc), "status": 422}
+            except Refused as exc:
+                answer = {"error": exc.detail, "status": exc.status}
+            except (InputError, Conflict, NotFound) as exc:
+                status = 422 if isinstance(exc, InputError) else \
+                    409 if isinstance(exc, Conflict) else 404
+                answer = {"error": str(exc), "status": status}
+            if "error" in answer:
+                state.metrics.errors.labels(str(answer["status"])).inc()
+            data = protocol.encode(answer, binary)
+            await (ws.send_bytes(data) if binary else ws.send_text(data.decode()))
+    except WebSocketDisconnect:
+        return
+    if ws.application_state == WebSocketState.CONNECTED:
+        await ws.close(code=GONE, reason="the wall was deleted")
 
 
 def _token(ws: WebSocket) -> str | None:

@@ -50,6 +50,8 @@ async def create_wall(request: Request, state: State,
                                  body.history,
                                  FitOptions(body.depth, body.reversed_z, body.shadow_fit),
                                  body.nodes, settings)
+    if state.bridge is not None:
+        state.bridge.watch(session)
     credentials, session.credentials = session.credentials, None  # shown once
     return reply(request, {**session.info(), "credentials": credentials}, 201)
 
@@ -81,9 +83,14 @@ async def delete_wall(state: State, wid: WallId):
 @needs(DRIVER)
 async def post_frame(request: Request, state: State, wid: WallId,
                      body: Annotated[FramePost, body_of(FramePost)]):
-    """Cull (and fit) a frame; answer its number and, with ``packets``, every tile's packet."""
-    session = state.walls.get(wid)
+    """Cull (and fit) a frame; answer its number and, with ``packets``, every tile's packet.
+    (A tracker posting frame after frame keeps one connection instead: the frame stream.)"""
+    return reply(request, await take_frame(state, state.walls.get(wid), body))
 
+
+async def take_frame(state, session, body: FramePost) -> dict[str, Any]:
+    """A posted frame, culled, fitted and published: its answer (the HTTP route's and the
+    frame stream's)."""
     def moves():
         return {name: u.value() for name, u in body.updates.items()}
 
@@ -97,7 +104,7 @@ async def post_frame(request: Request, state: State, wid: WallId,
     out: dict[str, Any] = {"frame": number, "timings": timings}
     if body.packets:
         out["packets"] = [session.packet(t, number, body.full) for t in range(session.wall.tiles)]
-    return reply(request, out)
+    return out
 
 
 @router.get("/walls/{wid}/tiles/{tile}/packets/{frame}", operation_id="getPacket",
