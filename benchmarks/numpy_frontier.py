@@ -72,8 +72,7 @@ def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100
     wall = Wall.from_dict(json.load(open(wall_path)))
     state = SceneState(scene, "obb")
     culler = Culler(state, wall, "adaptive")
-    pts = scene.leaf_points[0]
-    path = camera_path("orbit", pts.min(0), pts.max(0), wall, frames)
+    path = camera_path("orbit", scene.box[0], scene.box[1], wall, frames)
     shared = wall.gap == (0.0, 0.0)
     b = state.bounds
     geo = (b.center, b.axes, b.half, b.radius)

@@ -96,15 +96,18 @@ class SceneStore:
             return self.cache[name]
         if name in self.uploaded:
             return self.uploaded[name]
-        if name not in bundled.BUNDLED:
+        builtin = bundled.is_bundled(name)  # powerplant*K too
+        if not builtin:
             path = self.path(name)
             if not path.is_file() or path.suffix.lower() not in SCENE_SUFFIXES:
                 raise NotFound(f"no scene {name!r}")
         lock = self._locks.setdefault(name, asyncio.Lock())
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
-                spec = name if name in bundled.BUNDLED else str(self.path(name))
-                self.cache[name] = await asyncio.to_thread(lambda: usable(load(spec)))
+                spec = name if builtin else str(self.path(name))
+                # mapped from its prepared file, which the first load writes
+                self.cache[name] = await asyncio.to_thread(
+                    lambda: usable(load(spec, cache="write")))
                 self.cache[name].name = name
         return self.cache[name]
 
@@ -163,7 +166,7 @@ def usable(scene: Scene) -> Scene:
     no drawable node, NaN vertices or transforms that overflow."""
     if not len(scene.leaves):
         raise InputError(f"scene {scene.name!r} has no node that carries geometry")
-    if not np.isfinite(scene.leaf_points[0]).all():
+    if not np.isfinite(scene.box).all():
         raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
     try:
         b = scene.bounds("obb")
@@ -176,9 +179,8 @@ def usable(scene: Scene) -> Scene:
 
 def describe(scene: Scene, nodes: bool = True) -> dict:
     """A scene's shape: stats, bounds, settings and (optionally) every node."""
-    pts = scene.leaf_points[0]
     out = {"name": scene.name, "stats": scene.stats, "settings": scene.settings,
-           "bounds": {"min": pts.min(0).tolist(), "max": pts.max(0).tolist()}}
+           "bounds": {"min": scene.box[0].tolist(), "max": scene.box[1].tolist()}}
     if nodes:
         out["nodes"] = {
             "name": list(scene.names), "parent": scene.parent.tolist(),
@@ -197,20 +199,38 @@ class MeshBlob:
     etag: str
 
 
+#: Bytes of encoded meshes a scene keeps for the mesh routes; beyond them the least recently
+#: served are dropped and read again (from the prepared file) when asked for.
+MESH_CACHE_BYTES = 64 << 20
+
+
 def mesh_blob(scene: Scene, key: str) -> MeshBlob:
-    cache = scene.__dict__.setdefault("_mesh_blobs", {})
-    if key not in cache:
-        if key not in scene.meshes:
-            raise NotFound(f"no mesh {key!r} in scene {scene.name!r}")
-        v, f = scene.meshes[key]
-        vb = np.ascontiguousarray(v, dtype="<f4").tobytes()
-        fb = np.ascontiguousarray(f, dtype="<u4").tobytes()
-        etag = '"' + hashlib.sha256(vb + b"|" + fb).hexdigest()[:32] + '"'
-        cache[key] = MeshBlob({"mesh": key,
-                               "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
-                               "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}},
-                              etag)
-    return cache[key]
+    """Mesh ``key`` of a scene as typed arrays (little-endian float32 vertices, uint32 faces),
+    its ETag the hash of those bytes. Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
+    per scene, least recently served dropped first: a scene of many distinct meshes is never
+    held in memory whole."""
+    from collections import OrderedDict
+
+    cache = scene.__dict__.setdefault("_mesh_blobs", OrderedDict())
+    if key in cache:
+        cache.move_to_end(key)
+        return cache[key]
+    if key not in scene.meshes:
+        raise NotFound(f"no mesh {key!r} in scene {scene.name!r}")
+    v, f = scene.meshes[key]
+    vb = np.ascontiguousarray(v, dtype="<f4").tobytes()
+    fb = np.ascontiguousarray(f, dtype="<u4").tobytes()
+    etag = '"' + hashlib.sha256(vb + b"|" + fb).hexdigest()[:32] + '"'
+    blob = cache[key] = MeshBlob({"mesh": key,
+                                  "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
+                                  "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}},
+                                 etag)
+    held = sum(len(b.body["vertices"]["data"]) + len(b.body["faces"]["data"])
+               for b in cache.values())
+    while held > MESH_CACHE_BYTES and len(cache) > 1:
+        _, old = cache.popitem(last=False)
+        held -= len(old.body["vertices"]["data"]) + len(old.body["faces"]["data"])
+    return blob
 
 
 # --------------------------------------------------------------------------- walls
