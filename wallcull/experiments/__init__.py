@@ -40,6 +40,7 @@ REGISTRY: dict[str, Experiment] = {
     "bounds": _module("bounds"),
     "real": _module("real"),
     "frusta": _module("frusta"),
+    "scale": _module("scale"),
 }
 
 DEFAULT_OUT = "docs/experiments"
