@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wallcull import bounds as bnd
-from wallcull.hierarchy import spatial_groups
+from wallcull.hierarchy import read_trimesh, spatial_groups
 
 _RANDOM_SUFFIX = re.compile(r"^(?P<node>.*)_[0-9a-f]{6}$")
 
@@ -50,12 +50,7 @@ class _FileTree:
         graph = scene.graph
         forest = graph.transforms
         root = graph.base_frame
-        meshes = {}
-        for key, geom in scene.geometry.items():
-            vertices = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
-            faces = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64)
-            if len(vertices) and np.isfinite(vertices).all():
-                meshes[key] = (vertices.reshape(-1, 3), faces.reshape(-1, 3))
+        meshes = dict(read_trimesh(scene)[1].items())  # the usable meshes, as before
         tree = cls([], [], [], [], [], [], meshes)
         stack = [(root, -1)]
         while stack:

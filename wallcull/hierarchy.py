@@ -203,9 +203,9 @@ def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branchin
         local, mesh, rank = local[keep], mesh[keep], rank[keep]
         by_level = levels(depths(parent))
     synthetic = np.zeros(len(names), dtype=bool)
+    world = world_transforms(parent, local, by_level)
     # 3. spatial groups under wide parents
     if hierarchy == "auto":
-        world = world_transforms(parent, local, by_level)
         grouped = _group_wide_parents(names, parent, rank, mesh, world, meshes, by_level,
                                       branching, 4 * branching)
         if grouped is not None:
@@ -213,6 +213,12 @@ def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branchin
             local = np.concatenate([local, np.broadcast_to(np.eye(4), (new, 4, 4))])
             mesh = np.concatenate([mesh, np.full(new, -1)])
             synthetic = np.concatenate([synthetic, np.ones(new, dtype=bool)])
+            # A group's frame is the identity relative to its parent: it and everything under
+            # it keep their world transforms; a group's is that of the file node above it.
+            above = parent[-new:]
+            while synthetic[above].any():
+                above = np.where(synthetic[above], parent[above], above)
+            world = np.concatenate([world, world[above]])
     # 4. depth-first preorder
     order = preorder(parent, rank)
     new_id = np.empty(len(order), dtype=np.int64)
@@ -223,7 +229,7 @@ def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branchin
     child_start = np.zeros(len(order), dtype=np.int64)
     np.cumsum(child_count[:-1], out=child_start[1:])
     children = np.argsort(parent[1:], kind="stable").astype(np.int64) + 1  # preorder within
-    world = world_transforms(parent, local, levels(depths(parent)))
+    world = world[order]
     used, mesh_of = np.unique(mesh, return_inverse=True)
     mesh_of = mesh_of.reshape(-1) - (used[0] < 0)  # -1 stays -1 when some node has no mesh
     return dict(names=[names[i] for i in order], parent=parent, child_start=child_start,

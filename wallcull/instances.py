@@ -128,6 +128,30 @@ def instance_points(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray,
     no particular order: the instances of a template placed :data:`BATCH` times or more come
     together, transformed by one matrix product a chunk; the others are gathered point by point.
     """
+    for rows, p in _batched(meshes, mesh_of, world, budget):
+        v = p.shape[2]
+        yield rows, p.transpose(0, 2, 1).reshape(-1, 3), np.arange(len(rows) + 1) * v
+    yield from _gathered(meshes, mesh_of, world, budget)
+
+
+def instance_extremes(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo (k, 3), hi (k, 3))``: each instance's axis-aligned box of its world-space vertices,
+    exactly (unpadded)."""
+    lo = np.empty((len(mesh_of), 3))
+    hi = np.empty((len(mesh_of), 3))
+    for rows, p in _batched(meshes, mesh_of, world, CHUNK_POINTS):
+        lo[rows], hi[rows] = p.min(axis=2), p.max(axis=2)
+    for rows, points, starts in _gathered(meshes, mesh_of, world, CHUNK_POINTS):
+        lo[rows] = np.minimum.reduceat(points, starts[:-1], axis=0)
+        hi[rows] = np.maximum.reduceat(points, starts[:-1], axis=0)
+    return lo, hi
+
+
+def _batched(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray, budget: int
+             ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``(rows, points (r, 3, v))`` for the instances of templates placed :data:`BATCH` times
+    or more, a chunk of one template's instances at a time."""
     mesh_of = np.asarray(mesh_of, dtype=np.int64)
     uses = np.bincount(mesh_of, minlength=len(meshes))
     order = np.argsort(mesh_of, kind="stable")
@@ -138,10 +162,17 @@ def instance_points(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray,
         step = max(1, budget // v.shape[1])
         for a in range(first[m], first[m + 1], step):
             rows = order[a:min(a + step, first[m + 1])]
-            p = world[rows, :3, :3] @ v  # (r, 3, v)
+            p = world[rows, :3, :3] @ v
             p += world[rows, :3, 3, None]
-            yield rows, p.transpose(0, 2, 1).reshape(-1, 3), np.arange(len(rows) + 1) * v.shape[1]
-    rare = np.flatnonzero(uses[mesh_of] < BATCH)
+            yield rows, p
+
+
+def _gathered(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray, budget: int
+              ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`instance_points` for the instances of templates placed fewer than
+    :data:`BATCH` times, in consecutive runs, each point gathered and transformed alone."""
+    mesh_of = np.asarray(mesh_of, dtype=np.int64)
+    rare = np.flatnonzero(np.bincount(mesh_of, minlength=len(meshes))[mesh_of] < BATCH)
     counts = meshes.vertex_count[mesh_of[rare]]
     ends = np.cumsum(counts)
     i = 0
@@ -161,18 +192,6 @@ def instance_points(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray,
                             + m[:, r, 3][seg])
         yield rows, points, starts
         i = j
-
-
-def instance_extremes(meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """``(lo (k, 3), hi (k, 3))``: each instance's axis-aligned box of its world-space vertices,
-    exactly (unpadded)."""
-    lo = np.empty((len(mesh_of), 3))
-    hi = np.empty((len(mesh_of), 3))
-    for rows, points, starts in instance_points(meshes, mesh_of, world):
-        lo[rows] = np.minimum.reduceat(points, starts[:-1], axis=0)
-        hi[rows] = np.maximum.reduceat(points, starts[:-1], axis=0)
-    return lo, hi
 
 
 def fit_points(kind: str, meshes: MeshTable, mesh_of: np.ndarray, world: np.ndarray) -> bnd.Bounds:

@@ -95,8 +95,8 @@ def copies(base: str, count: int) -> tuple[np.ndarray, list[str]]:
 
 def build(name: str, seed: int = 0) -> trimesh.Scene:
     """The bundled scene ``name`` generated with ``seed``; ``KeyError`` for an unknown name.
-    ``NAME*K`` builds every copy's nodes in the scene graph (slow for large K: the culling
-    server tiles the arrays instead, and gets the same scene)."""
+    ``NAME*K`` builds every copy's nodes in the scene graph (slow for large K:
+    :func:`wallcull.scene.load` tiles one copy's arrays instead, and gets the same scene)."""
     base, count = parse(name)
     tree = _GENERATORS[base](int(seed))
     if count is None:
