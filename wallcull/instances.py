@@ -71,6 +71,8 @@ class MeshTable(Mapping):
 
     def subset(self, used: np.ndarray) -> "MeshTable":
         """The templates ``used`` (indices, in that order) alone."""
+        if np.array_equal(used, np.arange(len(self))):
+            return self
         return MeshTable.from_meshes({self.keys_[i]: self.mesh(i) for i in used})
 
     @property

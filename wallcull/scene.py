@@ -20,6 +20,7 @@ The arrays are built by :mod:`wallcull.hierarchy`; leaves are instances of mesh 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import os
@@ -34,6 +35,7 @@ import numpy as np
 from . import bounds as bnd
 from . import hierarchy as tree
 from . import prepared
+from . import scenes as bundled
 from .errors import InputError
 from .hierarchy import spatial_groups  # noqa: F401 - part of this module's interface
 from .instances import MeshTable, instance_extremes, instance_points, leaf_bounds
@@ -472,14 +474,13 @@ class Source:
     @classmethod
     def of(cls, spec: str) -> "Source":
         """The source ``spec`` names (:func:`load`); :class:`InputError` if there is none."""
-        from wallcull import scenes as bundled
-
-        if bundled.is_bundled(spec):
-            try:
-                bundled.parse(spec)
-            except ValueError as exc:
-                raise InputError(str(exc)) from None
+        try:
+            bundled.parse(spec)
             return cls(spec, None)
+        except KeyError:
+            pass  # not a bundled scene: a file
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
         path = Path(spec)
         if not path.exists() and os.sep not in spec and "." not in spec:
             raise InputError(f"unknown scene {spec!r}: not a file, and the bundled scenes are "
@@ -494,8 +495,6 @@ class Source:
 
     def settings(self) -> dict:
         """The scene's own settings: the bundled scene's, or the file's sidecar."""
-        from wallcull import scenes as bundled
-
         from . import settings as cfg
 
         return bundled.settings(self.spec) if self.path is None else cfg.sidecar(self.spec)
@@ -509,8 +508,6 @@ class Source:
         """What a prepared file must have been built from to be current: the source's content
         (a file's SHA-256, or a generator's name, copies, seed and version), the options, and
         the code that builds it."""
-        from wallcull import scenes as bundled
-
         if self.path is None:
             base, count = bundled.parse(self.spec)
             source = {"generator": base, "copies": count, "seed": 0,
@@ -522,8 +519,6 @@ class Source:
 
     def build(self, hierarchy: str, branching: int) -> Scene:
         """The scene built from its source (``NAME*K``: one copy read, then tiled as arrays)."""
-        from wallcull import scenes as bundled
-
         if self.path is None:
             base, count = bundled.parse(self.spec)
             nodes, meshes = tree.read_trimesh(bundled.build(base))
@@ -597,16 +592,16 @@ PREPARED_FORMAT = 1
 _BUILDERS = ("bounds.py", "hierarchy.py", "instances.py", "prepared.py", "scene.py", "scenes")
 
 
+@functools.lru_cache(maxsize=None)
 def _code_version() -> str:
-    cached = globals().get("_CODE_VERSION")
-    if cached is None:
-        h = hashlib.sha256()
-        here = Path(__file__).parent
-        for name in _BUILDERS:
-            for f in sorted((here / name).rglob("*.py")) if (here / name).is_dir() else [here / name]:
-                h.update(f.relative_to(here).as_posix().encode() + b"\0" + f.read_bytes())
-        cached = globals()["_CODE_VERSION"] = h.hexdigest()[:32]
-    return cached
+    """A hash of the code in :data:`_BUILDERS` (the files there are missing count as none)."""
+    h = hashlib.sha256()
+    here = Path(__file__).parent
+    for name in _BUILDERS:
+        path = here / name
+        for f in sorted(path.rglob("*.py")) if path.is_dir() else [path] * path.is_file():
+            h.update(f.relative_to(here).as_posix().encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:32]
 
 
 def _file_hash(path: Path) -> str:

@@ -14,6 +14,7 @@ import os
 import re
 import secrets
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -209,8 +210,6 @@ def mesh_blob(scene: Scene, key: str) -> MeshBlob:
     its ETag the hash of those bytes. Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
     per scene, least recently served dropped first: a scene of many distinct meshes is never
     held in memory whole."""
-    from collections import OrderedDict
-
     cache = scene.__dict__.setdefault("_mesh_blobs", OrderedDict())
     if key in cache:
         cache.move_to_end(key)
