@@ -5,9 +5,11 @@ import os
 import shutil
 import tempfile
 
-_CACHE = tempfile.mkdtemp(prefix="wallcull-test-cache-")
-os.environ["WALLCULL_CACHE"] = _CACHE
+
+def pytest_configure(config):
+    config.wallcull_cache = tempfile.mkdtemp(prefix="wallcull-test-cache-")
+    os.environ["WALLCULL_CACHE"] = config.wallcull_cache
 
 
 def pytest_unconfigure(config):
-    shutil.rmtree(_CACHE, ignore_errors=True)
+    shutil.rmtree(getattr(config, "wallcull_cache", ""), ignore_errors=True)
