@@ -76,8 +76,7 @@ def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100
     state = SceneState(scene, "obb")
     culler = Culler(state, wall, "adaptive")
     reference = Culler(state, wall, "fh")
-    pts = scene.leaf_points[0]
-    path = camera_path("orbit", pts.min(0), pts.max(0), wall, frames)
+    path = camera_path("orbit", scene.box[0], scene.box[1], wall, frames)
     shared = wall.gap == (0.0, 0.0)
     b = state.bounds
     box, n = packed(state), len(scene)

@@ -244,3 +244,18 @@ def test_all_assembles_the_report(tmp_path, monkeypatch):
 def test_unknown_experiment_is_bad_input(capsys):
     assert main(["experiment", "fig7", "--quick"]) == 2
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_scale(out):
+    """Each step in its own process: a first prepare, then a prepared load and its culling."""
+    res = check_output(out, "scale", E.run("scale", out, quick=True, progress=False))
+    rows = res["scenes"]
+    assert [r["scene"] for r in rows] == ["powerplant", "powerplant*2"]
+    assert rows[1]["nodes"] == 2 * rows[0]["nodes"]
+    assert rows[1]["triangles"] == 2 * rows[0]["triangles"]
+    for r in rows:
+        assert r["prepare_s"] > 0 and r["load_s"] > 0 and r["file_mb"] > 0
+        assert 0 < r["load_rss_mb"] <= r["load_peak_mb"] and r["prepare_peak_mb"] > 0
+        assert set(r["cull"]) == {"wall-8x8.json", "wall-64x64.json"}
+        for c in r["cull"].values():
+            assert 0 < c["median_ms"] <= c["p99_ms"] and c["tests_per_frame"] > 0

@@ -375,7 +375,7 @@ def test_fits_of_boxes_are_the_fits_of_their_corners(boxes, effort):
     boxes' sphere (a cone sample, whose axis it takes from the boxes' centres), a fit with the
     same guarantees."""
     from wallcull.bounds import Bounds
-    from wallcull.lowilie import OK, fit_boxes
+    from wallcull.lowilie import OK, SURROUNDS, fit_boxes
 
     center, axes, half, radius, light = boxes
     bounds = Bounds("obb", center, axes, half, radius)
@@ -392,6 +392,13 @@ def test_fits_of_boxes_are_the_fits_of_their_corners(boxes, effort):
             ref = fit_frustum(light, corners, 1920, 1080, effort=effort)
         except FitError:
             assert out["status"][q] != OK
+            continue
+        if out["status"][q] == SURROUNDS:
+            # inside the boxes' sphere each fit samples a cone around its own axis (the
+            # corners' fit from its points, fit_boxes from the boxes' centres, rounded boxes
+            # grown by their radius): where one finds it within MAX_HALF_ANGLE and the other
+            # not, that light gets a cube map instead, as conservative
+            assert ref.sample == "cone", ref.sample
             continue
         assert out["status"][q] == OK
         view, projection = out["view"][q], out["projection"][q]

@@ -271,3 +271,27 @@ def test_updates_out_of_range_are_refused():
                 {"position": [1e16, 0, 0], "orientation": [1, 0, 0, 0]}):
         with pytest.raises(InputError, match="out of range"):
             state.move({"leaf0": bad})
+
+
+def test_a_state_shares_its_scenes_arrays_until_something_moves():
+    """Walls that never move a node cost no copy of the scene (half a gigabyte at a million
+    nodes); the first move copies, and the scene itself never changes."""
+    scene = Scene.from_trimesh(random_scene(4, leaves=20))
+    rest = {k: getattr(scene, k).copy() for k in ("local", "world")}
+    rest_bounds = scene.bounds("obb").copy()
+    states = [SceneState(scene, "obb") for _ in range(2)]
+    for state in states:
+        assert state.world is scene.world and state.local is scene.local
+        assert state.bounds is scene.bounds("obb") and state.exact is state.bounds
+    m = scene.local[scene.index["leaf3"]].copy()
+    m[:3, 3] += 1.0
+    states[0].move({"leaf3": m}, "aabb")
+    assert not np.shares_memory(states[0].world, scene.world)
+    assert not np.shares_memory(states[0].bounds.center, scene.bounds("obb").center)
+    assert not np.shares_memory(states[0].exact.center, states[0].bounds.center)
+    assert states[1].world is scene.world  # the other wall still shares
+    for k, a in rest.items():
+        np.testing.assert_array_equal(getattr(scene, k), a)
+    np.testing.assert_array_equal(scene.bounds("obb").center, rest_bounds.center)
+    np.testing.assert_array_equal(scene.bounds("obb").half, rest_bounds.half)
+    assert not np.array_equal(states[0].world, scene.world)

@@ -62,7 +62,7 @@ class Motion:
         self.base = scene.local[self.nodes]
         axis = rng.normal(size=(count, 3))
         self.axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
-        self.shift = rng.normal(size=(count, 3)) * 0.02 * float(np.ptp(scene.leaf_points[0], axis=0).max())
+        self.shift = rng.normal(size=(count, 3)) * 0.02 * float(np.ptp(scene.box, axis=0).max())
         self.phase = rng.uniform(0, 2 * np.pi, count)
 
     def at(self, k: int) -> np.ndarray:
@@ -177,7 +177,7 @@ def accuracy(scene: Scene, wall: Wall, frames, methods, bounds_kinds, progress=N
         for method in methods:
             session = Session(scene, wall, method, kind)
             false = total = 0
-            extent = float(np.ptp(scene.leaf_points[0], axis=0).max())
+            extent = float(np.ptp(scene.box, axis=0).max())
             for k, frame in enumerate(frames):
                 if motion is not None and len(motion.nodes):
                     session.state.move_nodes(motion.nodes, motion.at(k), refit)
@@ -235,7 +235,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
                                "fit_p99_ms": timed["fit_p99_ms"],
                                "coverage_mean": timed.get("shadow_coverage_mean")}
     result = {
-        "scene": {"name": scene.name, **scene.stats, "load_s": t1 - t0,
+        "scene": {"name": scene.name, **scene.stats, "prepared": scene.prepared is not None,
+                  "load_s": t1 - t0,
                   "preprocess_s": t2 - t1, "peak_rss_mb_after_load": rss},
         "wall": wall.to_dict(), "frames": frames, "path": path, "bounds": bounds[0],
         "pseudo_groups": pseudo_groups, "methods": by_bounds[bounds[0]],

@@ -132,12 +132,10 @@ def pca_boxes(points: np.ndarray, starts: np.ndarray,
     seg = segment_ids(starts, len(points))
     mean = _reduce(np.add, points, starts) / counts[:, None]
     centered = points - mean[seg]
-    i, j = np.triu_indices(3)
-    products = centered[:, i] * centered[:, j]  # (N, 6), the distinct covariance entries
-    sums = _reduce(np.add, products, starts) / counts[:, None]
     cov = np.empty((len(counts), 3, 3))
-    cov[:, i, j] = sums
-    cov[:, j, i] = sums
+    for i, j in zip(*np.triu_indices(3)):  # one entry at a time: (N,) temporaries
+        cov[:, i, j] = cov[:, j, i] = _reduce(np.add, centered[:, i] * centered[:, j],
+                                              starts) / counts
     values, vectors = np.linalg.eigh(cov)
     axes = np.ascontiguousarray(np.swapaxes(vectors, 1, 2))  # rows are axes
     flip = np.linalg.det(axes) < 0
@@ -151,9 +149,12 @@ def pca_boxes(points: np.ndarray, starts: np.ndarray,
 
 def _fit_axes(points, centered, starts, seg, mean, axes, kind) -> Bounds:
     """The box with given ``axes`` per segment that encloses the segment's points."""
-    local = np.einsum("nj,nkj->nk", centered, axes[seg])
-    lo = _reduce(np.minimum, local, starts)
-    hi = _reduce(np.maximum, local, starts)
+    lo = np.empty((len(starts) - 1, 3))
+    hi = np.empty((len(starts) - 1, 3))
+    for k in range(3):  # one axis at a time: (N, 3) temporaries, not (N, 3, 3)
+        local = (centered * axes[seg, k]).sum(axis=1)
+        lo[:, k] = _reduce(np.minimum, local, starts)
+        hi[:, k] = _reduce(np.maximum, local, starts)
     center = mean + np.einsum("nk,nkj->nj", (lo + hi) / 2, axes)
     scale = _reduce(np.maximum, np.abs(points), starts).max(axis=1)
     half = _pad((hi - lo) / 2, scale)

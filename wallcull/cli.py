@@ -3,6 +3,7 @@
     wallcull cull SCENE --wall WALL.json --frame FRAME.json [--method M] [--bounds B] [--leaves] [--json]
     wallcull bench SCENE --wall WALL.json [--frames N] [--methods a,b] [--json]
     wallcull walk SCENE [--wall WALL.json]      # the README's main job: a walkthrough, per tile
+    wallcull prepare SCENE [--force]            # a prepared file: the scene loads in seconds
     wallcull serve [--host 127.0.0.1] [--port 8000] [--scenes DIR] [--token T] [--state DIR]
                    [--cors-origin ORIGIN ...] [--limit NAME=VALUE ...] [--nats URL]
     wallcull scenes
@@ -116,7 +117,8 @@ def _print_bench(result: dict) -> None:
     console = Console()
     console.print(f"[bold]{s['name']}[/]: {s['nodes']} nodes ({s['internal']} internal, "
                   f"{s['leaves']} leaves, branching {s['branching']:.2f}, depth {s['depth']}), "
-                  f"{s['triangles']:,} triangles; loaded in {s['load_s']:.2f} s + preprocessed "
+                  f"{s['triangles']:,} triangles; loaded in {s['load_s']:.2f} s"
+                  f"{' (prepared)' if s.get('prepared') else ''} + preprocessed "
                   f"in {s['preprocess_s']:.2f} s, peak {s['peak_rss_mb_after_load']:.0f} MB")
     moving = (f"; {result['moving']:.0%} of the leaves moving, refit "
               f"{result['refit'] or result['bounds']}" if result["moving"] else "")
@@ -234,10 +236,28 @@ def cmd_serve(args) -> int:
     return 0
 
 
+def cmd_prepare(args) -> int:
+    import time
+
+    from .scene import prepare
+
+    t0 = time.perf_counter()
+    path, scene = prepare(args.scene, hierarchy=args.hierarchy, branching=args.branching,
+                          force=args.force)
+    if scene is None:
+        print(f"{args.scene}: {path} is current (--force writes it again)")
+        return 0
+    s = scene.stats
+    print(f"{args.scene}: {s['nodes']:,} nodes, {s['leaves']:,} leaves, {len(scene.meshes):,} "
+          f"meshes, prepared in {time.perf_counter() - t0:.1f} s: {path} "
+          f"({path.stat().st_size / 1e6:,.0f} MB)")
+    return 0
+
+
 def cmd_scenes(args) -> int:
     from wallcull import scenes
 
-    for name, text in scenes.BUNDLED.items():
+    for name, text in [*scenes.BUNDLED.items(), *scenes.TILED.items()]:
         print(f"{name}\t{text}")
     return 0
 
@@ -311,6 +331,16 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--method", choices=METHODS, default="adaptive")
     q.add_argument("--bounds", choices=KINDS, default="obb")
     q.set_defaults(func=cmd_walk)
+
+    q = sub.add_parser("prepare", help="write a scene's prepared file, so that it loads in "
+                                       "seconds (in $WALLCULL_CACHE, else ~/.cache/wallcull)")
+    q.add_argument("scene", help="scene file, or a bundled scene name (wallcull scenes)")
+    q.add_argument("--hierarchy", choices=("auto", "file"), default="auto",
+                   help="auto: spatial groups under parents with very many children")
+    q.add_argument("--branching", type=int, default=BRANCHING,
+                   help="branching factor of the automatic hierarchy")
+    q.add_argument("--force", action="store_true", help="write it even if a current one exists")
+    q.set_defaults(func=cmd_prepare)
 
     q = sub.add_parser("serve", help="run the culling server (HTTP + WebSocket)")
     q.add_argument("--host", default="127.0.0.1")

@@ -158,7 +158,7 @@ def tiles_of(wall: dict) -> int:
 def leaf_triangles_display(scene, frame: dict, leaf: int, world=None) -> np.ndarray:
     """A leaf's triangles in display space (point-only geometry as degenerate triangles);
     ``world`` overrides the scene's rest transforms (a moved scene)."""
-    v, f = scene.meshes[scene.geometry[leaf]]
+    v, f = scene.leaf_mesh(leaf)
     m = (scene.world if world is None else world)[leaf]
     pts = to_display(frame, v @ m[:3, :3].T + m[:3, 3])
     return pts[f] if len(f) else np.repeat(pts[:, None], 3, axis=1)

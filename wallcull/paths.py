@@ -97,6 +97,5 @@ def _sides(wall) -> np.ndarray | None:
 def scene_path(scene, wall: Wall, kind: str, frames: int) -> list[Frame]:
     """``frames`` frames of path ``kind`` around a scene at rest: the box of its leaves' points,
     turned about the scene's up axis (its settings' ``up``, +y by default)."""
-    points = scene.leaf_points[0]
-    return camera_path(kind, points.min(axis=0), points.max(axis=0), wall, frames,
+    return camera_path(kind, scene.box[0], scene.box[1], wall, frames,
                        up=scene.settings.get("up", (0, 1, 0)))

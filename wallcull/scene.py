@@ -12,12 +12,19 @@ frame. Three kinds of node exist besides the file's own:
   hierarchy of *synthetic* group nodes, ``branching`` children each (see :func:`spatial_groups`);
   synthetic nodes never appear in a list of names;
 * nodes that carry no geometry anywhere below them are dropped: they can never be visible.
+
+The arrays are built by :mod:`wallcull.hierarchy`; leaves are instances of mesh templates
+(:mod:`wallcull.instances`). :func:`load` maps a *prepared* scene (:func:`prepare`, stored by
+:mod:`wallcull.prepared`) instead of building it when the source has one that is current.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import logging
 import os
-import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -26,7 +33,14 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import bounds as bnd
+from . import hierarchy as tree
+from . import prepared
+from . import scenes as bundled
 from .errors import InputError
+from .hierarchy import spatial_groups  # noqa: F401 - part of this module's interface
+from .instances import MeshTable, instance_extremes, instance_points, leaf_bounds
+
+log = logging.getLogger("wallcull")
 
 #: Default branching factor of the automatic spatial hierarchy.
 BRANCHING = 8
@@ -34,10 +48,16 @@ BRANCHING = 8
 
 @dataclass
 class Scene:
-    """A scene's object hierarchy and geometry. Immutable once built; see :class:`SceneState`."""
+    """A scene's object hierarchy and geometry. Immutable once built; see :class:`SceneState`.
+
+    Leaves are instances of mesh templates: ``mesh_of[i]`` names leaf ``i``'s template in
+    ``meshes`` (:mod:`wallcull.instances`), placed by ``world[i]``. A scene mapped from a prepared
+    file (:func:`load`) holds its arrays memory-mapped and its names as a
+    :class:`~wallcull.prepared.StringTable`; it reads a mesh's triangles only when asked for them.
+    """
 
     name: str
-    names: list[str]
+    names: Sequence[str]  # (n,) a list, or a StringTable when mapped from a prepared file
     parent: np.ndarray  # (n,) int64, -1 at the root
     child_start: np.ndarray  # (n,) int64
     child_count: np.ndarray  # (n,) int64
@@ -46,30 +66,29 @@ class Scene:
     synthetic: np.ndarray  # (n,) bool: a spatial group, not a node of the file
     local: np.ndarray  # (n, 4, 4) transform relative to the parent
     world: np.ndarray  # (n, 4, 4) rest transform to world
-    geometry: list[str | None]  # per node: mesh key of a leaf, else None
-    meshes: dict[str, tuple[np.ndarray, np.ndarray]]  # key -> (vertices (v, 3), faces (f, 3))
+    mesh_of: np.ndarray  # (n,) int64: a leaf's template in ``meshes``, -1 elsewhere
+    meshes: MeshTable  # the templates: key -> (vertices (v, 3), faces (f, 3)), local coordinates
     settings: dict = field(default_factory=dict)
     hierarchy: str = "file"  # "file" or "auto:<branching>"
+    prepared: Path | None = None  # the prepared file the arrays are mapped from, if any
 
     # ------------------------------------------------------------------ structure
 
     def __len__(self) -> int:
         return len(self.names)
 
+    def __repr__(self) -> str:
+        return (f"Scene({self.name!r}, {len(self)} nodes, {len(self.meshes)} meshes, "
+                f"hierarchy {self.hierarchy!r})")
+
     @cached_property
     def depth(self) -> np.ndarray:
-        depth = np.zeros(len(self), dtype=np.int64)
-        for i in range(1, len(self)):  # preorder: parents come first
-            depth[i] = depth[self.parent[i]] + 1
-        return depth
+        return tree.depths(self.parent)
 
     @cached_property
     def size(self) -> np.ndarray:
         """Subtree sizes: node ``i``'s subtree is ``[i, i + size[i])``."""
-        size = np.ones(len(self), dtype=np.int64)
-        for i in range(len(self) - 1, 0, -1):
-            size[self.parent[i]] += size[i]
-        return size
+        return tree.subtree_sizes(self.parent, self.levels)
 
     @cached_property
     def leaves(self) -> np.ndarray:
@@ -86,28 +105,27 @@ class Scene:
     @cached_property
     def levels(self) -> list[np.ndarray]:
         """Node ids at each depth."""
-        return [np.flatnonzero(self.depth == d) for d in range(int(self.depth.max()) + 1)]
+        return tree.levels(self.depth)
 
     @cached_property
     def index(self) -> dict[str, int]:
         """Name -> node id. A node that is also its own geometry leaf maps to the internal node."""
         out: dict[str, int] = {}
-        for i, name in enumerate(self.names):
-            if not self.synthetic[i]:
+        for i, (name, synthetic) in enumerate(zip(self.names, self.synthetic.tolist())):
+            if not synthetic:
                 out.setdefault(name, i)
         return out
 
     @cached_property
-    def real_cover(self) -> list[np.ndarray]:
+    def real_cover(self) -> Sequence[np.ndarray]:
         """For each node, the nearest non-synthetic nodes covering its subtree (itself if real)."""
-        cover: list[np.ndarray] = [None] * len(self)  # type: ignore[list-item]
-        for i in range(len(self) - 1, -1, -1):
-            if not self.synthetic[i]:
-                cover[i] = np.array([i])
-            else:
-                kids = self.children[self.child_start[i]:self.child_start[i] + self.child_count[i]]
-                cover[i] = np.concatenate([cover[k] for k in kids])
-        return cover
+        return _Cover(self)
+
+    @cached_property
+    def geometry(self) -> list[str | None]:
+        """Per node: the mesh key of a leaf, else None."""
+        keys = list(self.meshes)
+        return [keys[m] if m >= 0 else None for m in self.mesh_of.tolist()]
 
     def subtree_leaves(self, nodes: np.ndarray) -> np.ndarray:
         """Leaf ids under each of ``nodes``, concatenated in order."""
@@ -121,7 +139,7 @@ class Scene:
         internal = ~self.is_leaf
         internal[0] = False  # the base frame is not a node of the model
         kids = self.child_count[internal]
-        tris = sum(len(self.meshes[self.geometry[i]][1]) for i in self.leaves)
+        tris = self.meshes.face_count[self.mesh_of[self.leaves]].sum()
         return {
             "nodes": len(self) - 1, "internal": int(internal.sum()), "leaves": len(self.leaves),
             "synthetic": int(self.synthetic.sum()), "depth": int(self.depth.max()),
@@ -132,21 +150,39 @@ class Scene:
     # ------------------------------------------------------------------ geometry
 
     @cached_property
+    def box(self) -> np.ndarray:
+        """``(2, 3)``: the lowest and highest world coordinates of the leaves' points at rest."""
+        lo, hi = instance_extremes(self.meshes, self.mesh_of[self.leaves],
+                                   self.world[self.leaves])
+        return np.stack([lo.min(axis=0), hi.max(axis=0)])
+
+    @cached_property
     def leaf_points(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(points (N, 3), starts (L + 1,))``: each leaf's vertices in world space, at rest."""
-        chunks = [self.leaf_vertices(i) for i in self.leaves]
-        starts = np.zeros(len(chunks) + 1, dtype=np.int64)
-        np.cumsum([len(c) for c in chunks], out=starts[1:])
-        return np.concatenate(chunks), starts
+        """``(points (N, 3), starts (L + 1,))``: each leaf's vertices in world space, at rest.
+        Every instance's vertices at once: for small scenes and tests (a million-node scene's
+        would take gigabytes; see :func:`wallcull.instances.instance_points`)."""
+        counts = self.meshes.vertex_count[self.mesh_of[self.leaves]]
+        starts = np.zeros(len(counts) + 1, dtype=np.int64)
+        np.cumsum(counts, out=starts[1:])
+        points = np.empty((starts[-1], 3))
+        for rows, p, at in instance_points(self.meshes, self.mesh_of[self.leaves],
+                                           self.world[self.leaves]):
+            points[np.repeat(starts[rows] - at[:-1], np.diff(at)) + np.arange(at[-1])] = p
+        return points, starts
+
+    def leaf_mesh(self, leaf: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(vertices (v, 3) float64, faces (f, 3) int64)`` of a leaf in its own frame, read on
+        demand (from the prepared file, for a mapped scene): what renderers and the oracle draw."""
+        return self.meshes.mesh(int(self.mesh_of[leaf]))
 
     def leaf_vertices(self, leaf: int, world: np.ndarray | None = None) -> np.ndarray:
         """``(v, 3)`` vertices of one leaf in world space (at rest unless ``world`` is given)."""
         m = self.world[leaf] if world is None else world
-        return self.meshes[self.geometry[leaf]][0] @ m[:3, :3].T + m[:3, 3]
+        return self.leaf_mesh(leaf)[0] @ m[:3, :3].T + m[:3, 3]
 
     def leaf_triangles(self, leaf: int, world: np.ndarray | None = None) -> np.ndarray:
         """``(f, 3, 3)`` triangles of one leaf in world space."""
-        return self.leaf_vertices(leaf, world)[self.meshes[self.geometry[leaf]][1]]
+        return self.leaf_vertices(leaf, world)[self.leaf_mesh(leaf)[1]]
 
     def bounds(self, kind: str = "obb") -> bnd.Bounds:
         """Bounds of every node at rest (paper Alg. 1), computed once per kind."""
@@ -165,25 +201,57 @@ class Scene:
         ``hierarchy="auto"`` adds a spatial hierarchy under any parent with more than
         ``4 * branching`` children; ``"file"`` keeps the file's tree as it is.
         """
-        if hierarchy not in ("auto", "file"):
-            raise InputError(f"hierarchy must be 'auto' or 'file', got {hierarchy!r}")
-        if branching < 2:
-            raise InputError(f"branching must be at least 2, got {branching}")
-        tree = _FileTree.read(scene)
-        if hierarchy == "auto":
-            tree.group_wide_parents(branching, 4 * branching)
-        flat = tree.flatten()
+        _check_hierarchy(hierarchy, branching)
+        return cls.from_nodes(*tree.read_trimesh(scene), name, hierarchy, branching, settings)
+
+    @classmethod
+    def from_nodes(cls, nodes: tree.NodeTable, meshes: MeshTable, name: str = "scene",
+                   hierarchy: str = "auto", branching: int = BRANCHING,
+                   settings: Mapping | None = None) -> "Scene":
+        """Build from a file's node tree as arrays (:mod:`wallcull.hierarchy`)."""
+        _check_hierarchy(hierarchy, branching)
         label = "file" if hierarchy == "file" else f"auto:{branching}"
-        return cls(name=name, settings=dict(settings or {}), hierarchy=label, **flat)
+        return cls(name=name, settings=dict(settings or {}), hierarchy=label,
+                   **tree.build(nodes, meshes, hierarchy, branching))
+
+
+def _check_hierarchy(hierarchy: str, branching: int) -> None:
+    if hierarchy not in ("auto", "file"):
+        raise InputError(f"hierarchy must be 'auto' or 'file', got {hierarchy!r}")
+    if branching < 2:
+        raise InputError(f"branching must be at least 2, got {branching}")
+
+
+class _Cover(Sequence):
+    """:attr:`Scene.real_cover`, computed per synthetic node when asked (they are few)."""
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self.memo: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.scene)
+
+    def __getitem__(self, i) -> np.ndarray:
+        s = self.scene
+        i = int(i)
+        if not s.synthetic[i]:
+            return np.array([i])
+        if i not in self.memo:
+            kids = s.children[s.child_start[i]:s.child_start[i] + s.child_count[i]]
+            self.memo[i] = np.concatenate([self[k] for k in kids])
+        return self.memo[i]
 
 
 def compute_bounds(scene: Scene, kind: str) -> bnd.Bounds:
-    """Preprocess bottom-up (paper Alg. 1): leaves from their points, parents from children."""
+    """Preprocess bottom-up (paper Alg. 1): leaves from their templates (OBBs: each template
+    fitted once, moved by its instances' transforms; :mod:`wallcull.instances`), parents from
+    their children."""
     if kind not in bnd.LEAF_FITTERS:
         raise InputError(f"unknown bound type {kind!r}; choose from {', '.join(bnd.KINDS)}")
-    points, starts = scene.leaf_points
+    leaves = scene.leaves
     out = bnd.Bounds.empty(kind, len(scene))
-    out.put(scene.leaves, bnd.LEAF_FITTERS[kind](points, starts))
+    out.put(leaves, leaf_bounds(kind, scene.meshes, scene.mesh_of[leaves], scene.world[leaves]))
     refit(scene, out, np.flatnonzero(~scene.is_leaf), bnd.enclosing_mode(kind))
     return out
 
@@ -213,18 +281,29 @@ class SceneState:
     rigidly (exact for OBBs), and only the moved nodes' ancestors are refit.
     ``refit="aabb"`` bounds the moved nodes and their ancestors by axis-aligned boxes instead,
     the cheaper refit the paper suggests for dynamic parts, at a cost in false positives.
+
+    Until something moves, a state shares its scene's arrays (bounds, local and world
+    transforms: half a gigabyte at a million nodes); the first move copies them.
     """
 
     def __init__(self, scene: Scene, kind: str = "obb"):
         self.scene = scene
         self.kind = kind
-        self.bounds = scene.bounds(kind).copy()
+        self.bounds = scene.bounds(kind)
         # The leaves' bounds moved rigidly and never re-boxed: what an axis-aligned refit boxes
         # each frame, so that boxes of boxes of boxes do not grow frame after frame.
-        self.exact = self.bounds.copy()
-        self.local = scene.local.copy()
-        self.world = scene.world.copy()
+        self.exact = self.bounds
+        self.local = scene.local
+        self.world = scene.world
+        self._shared = True
         self.version = 0  # counts moves: what caches of the bounds key on
+
+    def _own(self) -> None:
+        """Copy the scene's arrays before the first change (copy-on-write)."""
+        if self._shared:
+            self.bounds, self.exact = self.bounds.copy(), self.exact.copy()
+            self.local, self.world = self.local.copy(), self.world.copy()
+            self._shared = False
 
     def move(self, updates: Mapping[str, Any], refit_mode: str | None = None) -> np.ndarray:
         """Set the local transforms of named nodes; returns the ids of the refit ancestors.
@@ -241,6 +320,7 @@ class SceneState:
             local.append(node_matrix(value, name))
         if not ids:
             return np.zeros(0, dtype=np.int64)
+        self._own()
         # All or nothing: composed down a chain of nodes, updates that are fine alone can still
         # collapse or overflow a world transform; then the scene stays as it was.
         saved = [a.copy() for a in (self.local, self.world)], self.bounds.copy(), self.exact.copy()
@@ -265,12 +345,13 @@ class SceneState:
 
         Where the resulting world motion of a subtree is rigid, its bounds move with it exactly;
         where it is not (a scale changed, or a turn under a non-uniformly scaled parent), its
-        leaves are fit again from their points.
+        leaves are fit again in their new pose, from their templates (:func:`leaf_bounds`).
         """
         scene = self.scene
         mode = refit_mode or bnd.enclosing_mode(self.kind)
         if mode not in ("obb", "aabb", "sphere"):
             raise InputError(f"refit must be 'obb' or 'aabb', got {mode!r}")
+        self._own()
         self.local[nodes] = local
         levels, parent = scene.levels, scene.parent
         # Every node in a moved subtree gets a new world transform, top down.
@@ -294,8 +375,8 @@ class SceneState:
                                                      rot[rigid][leaves], delta[rigid, :3, 3][leaves]))
         if not rigid.all():
             # Under a scaled parent the motion of a subtree is not rigid in world space:
-            # fit its leaves again from their points and refit the subtree above them.
-            self._refit_from_points(sub[~rigid])
+            # fit its leaves again and refit the subtree above them.
+            self._refit_leaves(sub[~rigid])
         # Only the strict ancestors of moved nodes are refit, bottom up; that includes moved
         # nodes above other moved nodes, whose rigid motion alone no longer fits their subtree.
         above = np.zeros(len(scene), dtype=bool)
@@ -313,13 +394,10 @@ class SceneState:
         self.version += 1
         return up
 
-    def _refit_from_points(self, nodes: np.ndarray) -> None:
+    def _refit_leaves(self, nodes: np.ndarray) -> None:
         scene = self.scene
         leaves = nodes[scene.is_leaf[nodes]]
-        chunks = [scene.leaf_vertices(i, self.world[i]) for i in leaves]
-        starts = np.zeros(len(chunks) + 1, dtype=np.int64)
-        np.cumsum([len(c) for c in chunks], out=starts[1:])
-        fitted = bnd.LEAF_FITTERS[self.kind](np.concatenate(chunks), starts)
+        fitted = leaf_bounds(self.kind, scene.meshes, scene.mesh_of[leaves], self.world[leaves])
         self.bounds.put(leaves, fitted)
         self.exact.put(leaves, fitted)
         refit(scene, self.bounds, nodes[~scene.is_leaf[nodes]], bnd.enclosing_mode(self.kind))
@@ -367,199 +445,6 @@ def node_matrix(value: Any, name: str = "node") -> np.ndarray:
     return m
 
 
-# --------------------------------------------------------------------------- the file's tree
-
-# trimesh names the extra primitives of a multi-primitive glTF mesh "<node>_<6 random hex>";
-# the names change on every load, so they are replaced with "<node>:<geometry name>".
-_RANDOM_SUFFIX = re.compile(r"^(?P<node>.*)_[0-9a-f]{6}$")
-
-
-@dataclass
-class _FileTree:
-    """The file's node tree as Python lists; mutable while loading, then flattened."""
-
-    names: list[str]
-    parent: list[int]
-    kids: list[list[int]]
-    local: list[np.ndarray]
-    geometry: list[str | None]
-    synthetic: list[bool]
-    meshes: dict[str, tuple[np.ndarray, np.ndarray]]
-
-    @classmethod
-    def read(cls, scene) -> "_FileTree":
-        graph = scene.graph
-        forest = graph.transforms
-        root = graph.base_frame
-        meshes = {}
-        for key, geom in scene.geometry.items():
-            vertices = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
-            faces = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64)
-            if len(vertices) and np.isfinite(vertices).all():
-                meshes[key] = (vertices.reshape(-1, 3), faces.reshape(-1, 3))
-        tree = cls([], [], [], [], [], [], meshes)
-        stack = [(root, -1)]
-        while stack:
-            node, parent = stack.pop()
-            data = forest.edge_data.get((forest.parents.get(node), node), {}) if parent >= 0 else {}
-            matrix = np.asarray(data.get("matrix", np.eye(4)), dtype=np.float64)
-            geom = data.get("geometry", forest.node_data.get(node, {}).get("geometry"))
-            name = str(node)
-            match = _RANDOM_SUFFIX.match(name)
-            if (parent >= 0 and geom is not None and match
-                    and match["node"] == tree.names[parent] and np.allclose(matrix, np.eye(4))):
-                name = f"{match['node']}:{geom}"
-            index = tree.add(name, parent, matrix, geom if geom in meshes else None)
-            for child in reversed(forest.children.get(node, [])):
-                stack.append((child, index))
-        tree.split_self_geometry()
-        tree.prune()
-        return tree
-
-    def add(self, name, parent, local, geometry, synthetic=False) -> int:
-        self.names.append(name)
-        self.parent.append(parent)
-        self.kids.append([])
-        self.local.append(local)
-        self.geometry.append(geometry)
-        self.synthetic.append(synthetic)
-        index = len(self.names) - 1
-        if parent >= 0:
-            self.kids[parent].append(index)
-        return index
-
-    def split_self_geometry(self) -> None:
-        """A node with geometry and children: move its geometry to a leaf child of its name."""
-        for i in range(len(self.names)):
-            if self.geometry[i] is not None and self.kids[i]:
-                leaf = self.add(self.names[i], i, np.eye(4), self.geometry[i])
-                self.kids[i].insert(0, self.kids[i].pop())  # own geometry first
-                self.geometry[i] = None
-                assert self.kids[i][0] == leaf
-
-    def prune(self) -> None:
-        """Drop subtrees without geometry: they can never be visible."""
-        keep = [g is not None for g in self.geometry]
-        keep[0] = True
-        for i in range(len(self.names) - 1, 0, -1):  # children are numbered after parents
-            if keep[i]:
-                keep[self.parent[i]] = True
-        for i in range(len(self.names)):
-            self.kids[i] = [k for k in self.kids[i] if keep[k]]
-
-    def world(self) -> list[np.ndarray]:
-        out: list[np.ndarray] = [None] * len(self.names)  # type: ignore[list-item]
-        order = [0]
-        out[0] = self.local[0]
-        for i in order:
-            for k in self.kids[i]:
-                out[k] = out[i] @ self.local[k]
-                order.append(k)
-        return out
-
-    def group_wide_parents(self, branching: int, threshold: int) -> None:
-        """Give every parent with more than ``threshold`` children a spatial hierarchy."""
-        world = self.world()
-        centers = self._subtree_centers(world)
-        for parent in range(len(self.names)):
-            kids = self.kids[parent]
-            if len(kids) > threshold:
-                self.kids[parent] = []
-                groups = spatial_groups(np.array([centers[k] for k in kids]), branching)
-                self._attach(parent, np.array(kids), groups, world)
-
-    def _attach(self, parent: int, kids: np.ndarray, groups, world) -> None:
-        for group in groups:
-            if isinstance(group, np.ndarray) and len(group) == 1:
-                index = int(kids[group[0]])
-                self.kids[parent].append(index)
-                self.parent[index] = parent
-                continue
-            name = f"{self.names[parent]}#g{len(self.kids[parent])}"
-            node = self.add(name, parent, np.eye(4), None, synthetic=True)
-            if isinstance(group, np.ndarray):
-                for j in group:
-                    self.kids[node].append(int(kids[j]))
-                    self.parent[int(kids[j])] = node
-            else:
-                self._attach(node, kids, group, world)
-            # Children keep their world pose: a synthetic group has the identity local frame
-            # relative to its parent, so re-parenting under it changes nothing.
-
-    def _subtree_centers(self, world) -> list[np.ndarray]:
-        lo = [np.full(3, np.inf) for _ in self.names]
-        hi = [np.full(3, -np.inf) for _ in self.names]
-        for i in range(len(self.names) - 1, -1, -1):
-            g = self.geometry[i]
-            if g is not None:
-                v = self.meshes[g][0] @ world[i][:3, :3].T + world[i][:3, 3]
-                lo[i] = np.minimum(lo[i], v.min(axis=0))
-                hi[i] = np.maximum(hi[i], v.max(axis=0))
-            p = self.parent[i]
-            if p >= 0:
-                lo[p] = np.minimum(lo[p], lo[i])
-                hi[p] = np.maximum(hi[p], hi[i])
-        # nodes without geometry below them (pruned later) have no box; centre them anywhere
-        return [(a + b) / 2 if np.isfinite(a).all() else np.zeros(3) for a, b in zip(lo, hi)]
-
-    def flatten(self) -> dict:
-        """Depth-first preorder arrays."""
-        order, stack = [], [0]
-        while stack:
-            i = stack.pop()
-            order.append(i)
-            stack.extend(reversed(self.kids[i]))
-        new = {old: k for k, old in enumerate(order)}
-        n = len(order)
-        parent = np.array([new[self.parent[i]] if self.parent[i] >= 0 else -1 for i in order])
-        child_count = np.array([len(self.kids[i]) for i in order], dtype=np.int64)
-        child_start = np.zeros(n, dtype=np.int64)
-        np.cumsum(child_count[:-1], out=child_start[1:])
-        children = np.array([new[k] for i in order for k in self.kids[i]], dtype=np.int64)
-        local = np.array([self.local[i] for i in order])
-        world_list = self.world()
-        world = np.array([world_list[i] for i in order])
-        geometry = [self.geometry[i] for i in order]
-        is_leaf = np.array([g is not None for g in geometry])
-        used = {g for g in geometry if g is not None}
-        return dict(
-            names=[self.names[i] for i in order], parent=parent.astype(np.int64),
-            child_start=child_start, child_count=child_count, children=children,
-            is_leaf=is_leaf, synthetic=np.array([self.synthetic[i] for i in order]),
-            local=local, world=world, geometry=geometry,
-            meshes={k: v for k, v in self.meshes.items() if k in used},
-        )
-
-
-def spatial_groups(centers: np.ndarray, branching: int):
-    """Split points into at most ``branching`` spatially compact groups, recursively.
-
-    Returns a list of groups; a group is an index array (at most ``branching`` items) or, when
-    larger, a nested list of groups. Each split cuts the set at a median of the axis of largest
-    spread, in proportion to the number of groups each side receives, so groups are balanced and
-    compact (a k-d tree whose nodes have ``branching`` children).
-    """
-    index = np.arange(len(centers))
-
-    def split(idx: np.ndarray, parts: int) -> list[np.ndarray]:
-        if parts == 1 or len(idx) <= 1:
-            return [idx]
-        spread = np.ptp(centers[idx], axis=0)
-        axis = int(np.argmax(spread))
-        order = idx[np.argsort(centers[idx, axis], kind="stable")]
-        first = parts // 2
-        cut = int(round(len(order) * first / parts))
-        return split(order[:cut], first) + split(order[cut:], parts - first)
-
-    def build(idx: np.ndarray):
-        if len(idx) <= branching:
-            return idx
-        return [build(part) for part in split(idx, branching) if len(part)]
-
-    top = build(index)
-    return top if isinstance(top, list) else [top]
-
-
 # --------------------------------------------------------------------------- loading
 
 
@@ -582,25 +467,257 @@ def load_trimesh(path: str | os.PathLike):
     return loaded
 
 
-def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
-         settings: Mapping[str, Any] | None = None) -> Scene:
-    """A bundled scene by name (``wallcull scenes``) or a scene file by path. Its settings
-    (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled scene's or the
-    file's sidecar ``<file>.wallcull.json``."""
-    from wallcull import scenes as bundled
+@dataclass(frozen=True)
+class Source:
+    """Where a scene comes from: a bundled generator (``path`` None) or a scene file."""
 
+    spec: str
+    path: Path | None
+
+    @classmethod
+    def of(cls, spec: str) -> "Source":
+        """The source ``spec`` names (:func:`load`); :class:`InputError` if there is none."""
+        try:
+            bundled.parse(spec)
+            return cls(spec, None)
+        except KeyError:
+            pass  # not a bundled scene: a file
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        path = Path(spec)
+        if not path.exists() and os.sep not in spec and "." not in spec:
+            raise InputError(f"unknown scene {spec!r}: not a file, and the bundled scenes are "
+                             f"{', '.join([*sorted(bundled.BUNDLED), *bundled.TILED])}")
+        if not path.is_file():
+            raise InputError(f"scene file not found: {path}")
+        return cls(spec, path)
+
+    @property
+    def name(self) -> str:
+        return self.spec if self.path is None else self.path.stem
+
+    def settings(self) -> dict:
+        """The scene's own settings: the bundled scene's, or the file's sidecar."""
+        from . import settings as cfg
+
+        return bundled.settings(self.spec) if self.path is None else cfg.sidecar(self.spec)
+
+    def identity(self, hierarchy: str, branching: int) -> str:
+        """The source and build options, not the content: names its prepared file."""
+        where = f"bundled:{self.spec}" if self.path is None else f"file:{self.path.resolve()}"
+        return f"{where}|{hierarchy}|{branching}"
+
+    def key(self, hierarchy: str, branching: int) -> dict:
+        """What a prepared file must have been built from to be current: the source's content
+        (a file's SHA-256, or a generator's name, copies, seed and version), the options, and
+        the code that builds it."""
+        if self.path is None:
+            base, count = bundled.parse(self.spec)
+            source = {"generator": base, "copies": count, "seed": 0,
+                      "version": bundled.GENERATOR_VERSION}
+        else:
+            source = {"sha256": _file_hash(self.path)}
+        return {"source": source, "hierarchy": hierarchy, "branching": branching,
+                "format": PREPARED_FORMAT, "code": _code_version()}
+
+    def build(self, hierarchy: str, branching: int) -> Scene:
+        """The scene built from its source (``NAME*K``: one copy read, then tiled as arrays)."""
+        if self.path is None:
+            base, count = bundled.parse(self.spec)
+            nodes, meshes = tree.read_trimesh(bundled.build(base))
+            if count is not None:
+                nodes = tree.replicate(nodes, *bundled.copies(base, count))
+        else:
+            nodes, meshes = tree.read_trimesh(load_trimesh(self.path))
+        return Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching)
+
+    def prepared_path(self, hierarchy: str, branching: int) -> Path:
+        return prepared.cache_path(self.name, self.identity(hierarchy, branching))
+
+
+#: How :func:`load` uses prepared files: ``read`` a current one, also ``write`` one when there
+#: is none, or leave them ``off``.
+CACHE_MODES = ("read", "write", "off")
+
+
+def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
+         settings: Mapping[str, Any] | None = None, cache: str = "read") -> Scene:
+    """A bundled scene by name (``wallcull scenes``; ``powerplant*K`` too) or a scene file by
+    path. Its settings (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled
+    scene's or the file's sidecar ``<file>.wallcull.json``.
+
+    With ``cache="read"`` a current prepared file of the source (:func:`prepare`) is mapped
+    instead of building the scene; ``"write"`` also writes one when there is none (the server
+    does); ``"off"`` ignores them. A stale or corrupt prepared file is never used: it is
+    rebuilt, with a one-line warning on the ``wallcull`` logger."""
     from . import settings as cfg
 
-    if spec in bundled.BUNDLED:
-        raw = bundled.settings(spec) if settings is None else settings
-        scene = Scene.from_trimesh(bundled.build(spec), name=spec, hierarchy=hierarchy,
-                                   branching=branching, settings=raw)
-    elif not Path(spec).exists() and os.sep not in spec and "." not in spec:
-        raise InputError(f"unknown scene {spec!r}: not a file, and the bundled scenes are "
-                         f"{', '.join(sorted(bundled.BUNDLED))}")
+    if cache not in CACHE_MODES:
+        raise ValueError(f"cache must be one of {CACHE_MODES}, got {cache!r}")
+    _check_hierarchy(hierarchy, branching)
+    source = Source.of(spec)
+    raw = source.settings() if settings is None else settings
+    if cache == "off":
+        scene = source.build(hierarchy, branching)
     else:
-        raw = cfg.sidecar(spec) if settings is None else settings
-        scene = Scene.from_trimesh(load_trimesh(spec), name=Path(spec).stem, hierarchy=hierarchy,
-                                   branching=branching, settings=raw)
+        path, key = source.prepared_path(hierarchy, branching), source.key(hierarchy, branching)
+        scene, problem = _map_current(path, key, source.name)
+        if scene is None:
+            scene = source.build(hierarchy, branching)
+            if problem or cache == "write":
+                _write_prepared(scene, path, key)
+    scene.settings = dict(raw or {})
     cfg.parse(scene.settings)  # refuse bad settings when the scene loads, not mid-frame
+    return scene
+
+
+def prepare(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
+            force: bool = False) -> tuple[Path, Scene | None]:
+    """Write the prepared file of a scene: its hierarchy, names, OBBs, box and meshes, in
+    :func:`wallcull.prepared.cache_dir`. Returns its path and the scene built, or None where a
+    current file was already there (and ``force`` is not set)."""
+    _check_hierarchy(hierarchy, branching)
+    source = Source.of(spec)
+    path, key = source.prepared_path(hierarchy, branching), source.key(hierarchy, branching)
+    if not force and _map_current(path, key, source.name)[0] is not None:
+        return path, None
+    scene = source.build(hierarchy, branching)
+    _write_prepared(scene, path, key, quiet=False)
+    return path, scene
+
+
+# --------------------------------------------------------------------------- prepared scenes
+
+#: Version of what a prepared scene holds: part of its key.
+PREPARED_FORMAT = 1
+
+#: Code whose changes make prepared scenes stale: it decides what they hold.
+_BUILDERS = ("bounds.py", "hierarchy.py", "instances.py", "prepared.py", "scene.py", "scenes")
+
+
+@functools.lru_cache(maxsize=None)
+def _code_version() -> str:
+    """A hash of the code in :data:`_BUILDERS` (the files there are missing count as none)."""
+    h = hashlib.sha256()
+    here = Path(__file__).parent
+    for name in _BUILDERS:
+        path = here / name
+        for f in sorted(path.rglob("*.py")) if path.is_dir() else [path] * path.is_file():
+            h.update(f.relative_to(here).as_posix().encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:32]
+
+
+def _file_hash(path: Path) -> str:
+    """SHA-256 of a scene file, and of the buffers a ``.gltf`` names beside it."""
+    h = hashlib.sha256()
+    files = [path]
+    if path.suffix.lower() == ".gltf":
+        import json
+
+        try:
+            doc = json.loads(path.read_text())
+            files += [path.parent / b["uri"] for b in doc.get("buffers", [])
+                      if not str(b.get("uri", "data:")).startswith("data:")]
+        except (ValueError, TypeError, AttributeError, KeyError, OSError):
+            pass  # trimesh will say what is wrong with it
+    for f in files:
+        try:
+            with open(f, "rb") as stream:
+                while chunk := stream.read(16 << 20):
+                    h.update(chunk)
+        except OSError:
+            h.update(b"missing:" + str(f).encode())
+    return h.hexdigest()
+
+
+def _map_current(path: Path, key: dict, name: str) -> tuple[Scene | None, str | None]:
+    """``(scene, None)`` mapped from ``path`` if it holds the scene of ``key``; else
+    ``(None, problem)``, ``problem`` None where there is no file, and the file is reported."""
+    if not path.exists():
+        return None, None
+    try:
+        if prepared.read_meta(path).get("key") != key:
+            problem = "stale (its source or wallcull changed)"
+        else:
+            return _scene_from_arrays(*prepared.read(path), name, path), None
+    except prepared.Corrupt as exc:
+        problem = f"corrupt ({exc})"
+    except OSError as exc:
+        problem = f"unreadable ({exc.strerror or exc})"
+    log.warning("wallcull: prepared scene %s is %s: rebuilding it", path, problem)
+    return None, problem
+
+
+def _write_prepared(scene: Scene, path: Path, key: dict, quiet: bool = True) -> None:
+    b = scene.bounds("obb")
+    names, name_offsets = prepared.encode_strings(scene.names)
+    keys, key_offsets = prepared.encode_strings(list(scene.meshes))
+    m = scene.meshes
+    vertices = np.asarray(m.vertices, dtype=np.float64)
+    narrow = vertices.astype(np.float32)
+    faces = np.asarray(m.faces)
+    arrays = {
+        "name_bytes": names, "name_offsets": name_offsets, "parent": scene.parent,
+        "child_start": scene.child_start, "child_count": scene.child_count,
+        "children": scene.children, "is_leaf": scene.is_leaf, "synthetic": scene.synthetic,
+        "local": scene.local, "world": scene.world, "mesh_of": scene.mesh_of,
+        "mesh_key_bytes": keys, "mesh_key_offsets": key_offsets,
+        "vertex_start": m.vertex_start, "face_start": m.face_start,
+        # the narrowest types that hold the meshes exactly
+        "vertices": narrow if np.array_equal(narrow, vertices) else vertices,
+        "faces": faces.astype(np.int32) if not faces.size or (
+            faces.min() >= -2**31 and faces.max() < 2**31) else faces,
+        "obb_center": b.center, "obb_axes": b.axes, "obb_half": b.half, "obb_radius": b.radius,
+        "box": scene.box,
+    }
+    meta = {"key": key, "hierarchy": scene.hierarchy, "nodes": len(scene)}
+    try:
+        prepared.write(path, arrays, meta)
+    except OSError as exc:
+        if not quiet:
+            raise InputError(f"cannot write {path}: {exc.strerror or exc}") from None
+        log.warning("wallcull: cannot write prepared scene %s: %s", path, exc.strerror or exc)
+
+
+#: What a prepared scene holds: array -> (dtype kinds, shape), ``n`` nodes, ``m`` meshes,
+#: ``None`` any length.
+_LAYOUT = {
+    "name_bytes": ("u", (None,)), "name_offsets": ("i", ("n+1",)), "parent": ("i", ("n",)),
+    "child_start": ("i", ("n",)), "child_count": ("i", ("n",)), "children": ("i", ("n-1",)),
+    "is_leaf": ("b", ("n",)), "synthetic": ("b", ("n",)), "local": ("f", ("n", 4, 4)),
+    "world": ("f", ("n", 4, 4)), "mesh_of": ("i", ("n",)), "mesh_key_bytes": ("u", (None,)),
+    "mesh_key_offsets": ("i", ("m+1",)), "vertex_start": ("i", ("m+1",)),
+    "face_start": ("i", ("m+1",)), "vertices": ("f", (None, 3)), "faces": ("i", (None, 3)),
+    "obb_center": ("f", ("n", 3)), "obb_axes": ("f", ("n", 3, 3)), "obb_half": ("f", ("n", 3)),
+    "obb_radius": ("f", ("n",)), "box": ("f", (2, 3)),
+}
+
+
+def _scene_from_arrays(arrays: dict, meta: dict, name: str, path: Path) -> Scene:
+    """A scene over a prepared file's arrays (nothing copied), once their layout is checked."""
+    try:
+        sizes = {"n": len(arrays["parent"]), "m": len(arrays["vertex_start"]) - 1}
+        sizes.update({"n+1": sizes["n"] + 1, "n-1": sizes["n"] - 1, "m+1": sizes["m"] + 1})
+        for key, (kind, shape) in _LAYOUT.items():
+            a = arrays[key]
+            want = tuple(a.shape[k] if d is None else sizes.get(d, d) for k, d in enumerate(shape))
+            if a.dtype.kind != kind or a.shape != want:
+                raise prepared.Corrupt(f"array {key} is {a.dtype}{list(a.shape)}")
+        if set(arrays) != set(_LAYOUT):
+            raise prepared.Corrupt("unexpected arrays")
+        names = prepared.StringTable(arrays["name_bytes"], arrays["name_offsets"])
+        keys = list(prepared.StringTable(arrays["mesh_key_bytes"], arrays["mesh_key_offsets"]))
+        meshes = MeshTable(keys, arrays["vertex_start"], arrays["vertices"], arrays["face_start"],
+                           arrays["faces"])
+        scene = Scene(name=name, names=names, parent=arrays["parent"],
+                      child_start=arrays["child_start"], child_count=arrays["child_count"],
+                      children=arrays["children"], is_leaf=arrays["is_leaf"],
+                      synthetic=arrays["synthetic"], local=arrays["local"], world=arrays["world"],
+                      mesh_of=arrays["mesh_of"], meshes=meshes, hierarchy=str(meta["hierarchy"]),
+                      prepared=path)
+    except (KeyError, TypeError, IndexError) as exc:
+        raise prepared.Corrupt(f"unexpected layout ({type(exc).__name__}: {exc})") from None
+    scene.__dict__["_bounds"] = {"obb": bnd.Bounds("obb", arrays["obb_center"], arrays["obb_axes"],
+                                                   arrays["obb_half"], arrays["obb_radius"])}
+    scene.__dict__["box"] = arrays["box"]
     return scene

@@ -111,15 +111,18 @@ class SceneStore:
             return self.cache[name]
         if name in self.uploaded:
             return self.uploaded[name]
-        if name not in bundled.BUNDLED:
+        builtin = bundled.is_bundled(name)  # powerplant*K too
+        if not builtin:
             path = self.path(name)
             if not path.is_file() or path.suffix.lower() not in SCENE_SUFFIXES:
                 raise NotFound(f"no scene {name!r}")
         lock = self._locks.setdefault(name, asyncio.Lock())
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
-                spec = name if name in bundled.BUNDLED else str(self.path(name))
-                scene = await asyncio.to_thread(lambda: settled(usable(load(spec))))
+                spec = name if builtin else str(self.path(name))
+                # mapped from its prepared file, which the first load writes
+                scene = await asyncio.to_thread(
+                    lambda: settled(usable(load(spec, cache="write"))))
                 scene.name = name
                 self.remember(name, scene)
                 return scene
@@ -226,13 +229,12 @@ def describe(scene: Scene, nodes: bool = True, arrays: bool = False) -> dict:
     """A scene's shape: stats, bounds, settings and (optionally) every node. ``arrays``: the
     per-node columns stay numpy arrays (for an encoder that turns them into lists a piece at
     a time: a 100,000-node scene is 2.3 million numbers)."""
-    pts = scene.leaf_points[0]
     out = {"name": scene.name, "stats": scene.stats, "settings": scene.settings,
-           "bounds": {"min": pts.min(0).tolist(), "max": pts.max(0).tolist()}}
+           "bounds": {"min": scene.box[0].tolist(), "max": scene.box[1].tolist()}}
     if nodes:
         columns = {"parent": scene.parent, "leaf": scene.is_leaf, "synthetic": scene.synthetic,
                    "world": scene.world.reshape(len(scene), 16)}
-        out["nodes"] = {"name": scene.names, "mesh": scene.geometry, **{
+        out["nodes"] = {"name": list(scene.names), "mesh": list(scene.geometry), **{
             k: v if arrays else v.tolist() for k, v in columns.items()}}
     return out
 
@@ -245,20 +247,36 @@ class MeshBlob:
     etag: str
 
 
+#: Bytes of encoded meshes a scene keeps for the mesh routes; beyond them the least recently
+#: served are dropped and read again (from the prepared file) when asked for.
+MESH_CACHE_BYTES = 64 << 20
+
+
 def mesh_blob(scene: Scene, key: str) -> MeshBlob:
-    cache = scene.__dict__.setdefault("_mesh_blobs", {})
-    if key not in cache:
-        if key not in scene.meshes:
-            raise NotFound(f"no mesh {key!r} in scene {scene.name!r}")
-        v, f = scene.meshes[key]
-        vb = np.ascontiguousarray(v, dtype="<f4").tobytes()
-        fb = np.ascontiguousarray(f, dtype="<u4").tobytes()
-        etag = '"' + hashlib.sha256(vb + b"|" + fb).hexdigest()[:32] + '"'
-        cache[key] = MeshBlob({"mesh": key,
-                               "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
-                               "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}},
-                              etag)
-    return cache[key]
+    """Mesh ``key`` of a scene as typed arrays (little-endian float32 vertices, uint32 faces),
+    its ETag the hash of those bytes. Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
+    per scene, least recently served dropped first: a scene of many distinct meshes is never
+    held in memory whole."""
+    cache = scene.__dict__.setdefault("_mesh_blobs", OrderedDict())
+    if key in cache:
+        cache.move_to_end(key)
+        return cache[key]
+    if key not in scene.meshes:
+        raise NotFound(f"no mesh {key!r} in scene {scene.name!r}")
+    v, f = scene.meshes[key]
+    vb = np.ascontiguousarray(v, dtype="<f4").tobytes()
+    fb = np.ascontiguousarray(f, dtype="<u4").tobytes()
+    etag = '"' + hashlib.sha256(vb + b"|" + fb).hexdigest()[:32] + '"'
+    blob = cache[key] = MeshBlob({"mesh": key,
+                                  "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
+                                  "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}},
+                                 etag)
+    held = sum(len(b.body["vertices"]["data"]) + len(b.body["faces"]["data"])
+               for b in cache.values())
+    while held > MESH_CACHE_BYTES and len(cache) > 1:
+        _, old = cache.popitem(last=False)
+        held -= len(old.body["vertices"]["data"]) + len(old.body["faces"]["data"])
+    return blob
 
 
 # --------------------------------------------------------------------------- walls

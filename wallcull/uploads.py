@@ -249,7 +249,7 @@ def usable(scene):
 
     if not len(scene.leaves):
         raise InputError(f"scene {scene.name!r} has no node that carries geometry")
-    if not np.isfinite(scene.leaf_points[0]).all():
+    if not np.isfinite(scene.box).all():
         raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
     try:
         b = scene.bounds("obb")

@@ -39,7 +39,7 @@ def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str =
         for leaf in result.visibility.tile_leaves(t):
             key = scene.geometry[leaf]
             if key not in uploaded:
-                renderer.upload(key, *scene.meshes[key])
+                renderer.upload(key, *scene.leaf_mesh(leaf))
                 uploaded.add(key)
             draws.append((key, scene.world[leaf], int(leaf) + 1))
         fit = result.fits[t]

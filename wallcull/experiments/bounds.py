@@ -139,10 +139,10 @@ def scene_tables(name: str, entry: dict) -> list[str]:
     md.append(C.table(["bounds", "preprocess s", *(f"{x} ms" for x in next(
         iter(entry["kinds"].values()))["methods"]), "false pos. naive/oh",
         "false pos. fh/adaptive", "packet bytes/frame", "geometry bytes/frame"], rows) + "\n")
-    pts = next(iter(entry["kinds"].values()))["preprocess"]["points_s"]
     md.append(f"Preprocess: fitting the bounds of every node on a freshly loaded scene "
-              f"(`scene.bounds(kind)`), after gathering the leaves' points ({pts:.2f} s, shared "
-              f"by all bound types). Bytes are those of the false positives alone (fh/adaptive's), "
+              f"(`scene.bounds(kind)`): eigenvector OBBs from each mesh template's box, moved by "
+              f"its instances' transforms; the other types from the leaves' points, a chunk at a "
+              f"time. Bytes are those of the false positives alone (fh/adaptive's), "
               f"per frame: {C.ID_BYTES} bytes per leaf id in a tile's packet, and the leaves' "
               f"geometry (float32 vertices, uint32 triangle indices) that a render node with no "
               f"cache would be sent.\n")

@@ -10,15 +10,18 @@ node names, tree, transforms and vertices, bit for bit, because all randomness c
 from __future__ import annotations
 
 import copy
-
 import hashlib
-from typing import Callable
+import math
+import re
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-import trimesh
 
 from . import fatehpur, powerplant
-from .tree import Tree
+from .tree import Z_UP_TO_Y_UP, Tree, trs
+
+if TYPE_CHECKING:  # imported where used: names and layouts load without trimesh
+    import trimesh
 
 #: name -> one-line description of each bundled scene.
 BUNDLED: dict[str, str] = {
@@ -34,11 +37,72 @@ _GENERATORS: dict[str, Callable[[int], Tree]] = {
 }
 
 
+#: Bumped whenever a generator's output changes: part of the key of a generated scene's
+#: prepared file (see ``wallcull prepare``).
+GENERATOR_VERSION = 1
+
+#: ``NAME*K``: K copies of a bundled scene side by side on a square grid, one name each.
+TILED: dict[str, str] = {
+    "powerplant*K": "K power plants side by side on a grid 100 m apart (K = 10, 40, 200: "
+                    "about 50k, 200k and 1M nodes)",
+    "fatehpur*K": "K Fatehpur Sikri look-alikes side by side on a grid 360 m apart",
+}
+#: The most copies a ``NAME*K`` may ask for (256 power plants are about 1.3 M nodes).
+MAX_COPIES = 256
+_PITCH = {"fatehpur": 360.0, "powerplant": 100.0}  # metres between the copies' centres
+_TILED_NAME = re.compile(r"^(?P<base>[a-z]+)\*(?P<count>[0-9]{1,6})$")
+
+
+def parse(name: str) -> tuple[str, int | None]:
+    """``(base, copies)`` of a bundled scene's name: ``("powerplant", None)`` for
+    ``powerplant``, ``("powerplant", 40)`` for ``powerplant*40``. ``KeyError`` for any other
+    name, ``ValueError`` for a count out of range."""
+    match = _TILED_NAME.match(name)
+    base, count = (match["base"], int(match["count"])) if match else (name, None)
+    if base not in _GENERATORS:
+        raise KeyError(f"unknown bundled scene {name!r}; known: "
+                       f"{', '.join([*BUNDLED, *TILED])}")
+    if count is not None and not 1 <= count <= MAX_COPIES:
+        raise ValueError(f"{name}: the number of copies must be 1 to {MAX_COPIES}")
+    return base, count
+
+
+def is_bundled(name: str) -> bool:
+    """Whether ``name`` names a bundled scene (a tiled one included, whatever its count)."""
+    try:
+        parse(name)
+    except KeyError:
+        return False
+    except ValueError:
+        return True
+    return True
+
+
+def copies(base: str, count: int) -> tuple[np.ndarray, list[str]]:
+    """``(matrices (K, 4, 4), roots)``: the root transform and root name of each copy of
+    ``base`` in ``base*K``, row by row on a grid of ``ceil(sqrt(K))`` columns centred on the
+    origin in the ground plane (x, z of the y-up world)."""
+    cols = math.ceil(math.sqrt(count))
+    rows = math.ceil(count / cols)
+    r, c = np.divmod(np.arange(count), cols)
+    pitch = _PITCH[base]
+    offsets = np.stack([(c - (cols - 1) / 2) * pitch, np.zeros(count),
+                        (r - (rows - 1) / 2) * pitch], axis=1)
+    width = len(str(count - 1))
+    return (np.array([trs(o) @ Z_UP_TO_Y_UP for o in offsets]),
+            [f"{base}{k:0{width}d}" for k in range(count)])
+
+
 def build(name: str, seed: int = 0) -> trimesh.Scene:
-    """The bundled scene ``name`` generated with ``seed``; ``KeyError`` for an unknown name."""
-    if name not in _GENERATORS:
-        raise KeyError(f"unknown bundled scene {name!r}; known: {', '.join(BUNDLED)}")
-    return _GENERATORS[name](int(seed)).scene()
+    """The bundled scene ``name`` generated with ``seed``; ``KeyError`` for an unknown name.
+    ``NAME*K`` builds every copy's nodes in the scene graph (slow for large K:
+    :func:`wallcull.scene.load` tiles one copy's arrays instead, and gets the same scene)."""
+    base, count = parse(name)
+    tree = _GENERATORS[base](int(seed))
+    if count is None:
+        return tree.scene()
+    matrices, roots = copies(base, count)
+    return tree.scene(list(zip(roots, matrices)))
 
 
 #: Scene settings (wallcull.settings format) of the bundled scenes. The Fatehpur look-alike
@@ -60,10 +124,9 @@ _SETTINGS = {
 
 def settings(name: str) -> dict:
     """Scene settings (lights, mirrors; see ``wallcull.settings``) of the bundled scene
-    ``name``. ``KeyError`` for an unknown name."""
-    if name not in _GENERATORS:
-        raise KeyError(f"unknown bundled scene {name!r}; known: {', '.join(BUNDLED)}")
-    return copy.deepcopy(_SETTINGS[name])
+    ``name``; a tiled scene declares none. ``KeyError`` for an unknown name."""
+    base, count = parse(name)
+    return copy.deepcopy(_SETTINGS[base]) if count is None else {}
 
 
 def tree_stats(scene: trimesh.Scene) -> dict:

@@ -23,10 +23,12 @@ Z is up in this module (the architect's convention); the scene root turns it int
 from __future__ import annotations
 
 import functools
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:  # imported where used: names and layouts load without trimesh
+    import trimesh
 
 VF = tuple[np.ndarray, np.ndarray]  # (vertices (n, 3) float64, faces (m, 3) int64)
 
@@ -498,5 +500,7 @@ def template(name: str) -> trimesh.Trimesh:
     ``process=False`` keeps vertices exactly as built: merging or reordering would only cost time
     and could differ between trimesh versions.
     """
+    import trimesh  # only here: the bundled scenes' names and layouts load without it
+
     v, f = _cached(name)
     return trimesh.Trimesh(vertices=v.copy(), faces=f.copy(), process=False)

@@ -15,12 +15,14 @@ All matrix helpers return float64 ``(4, 4)`` arrays, or ``(n, 4, 4)`` for vector
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-import trimesh
 
 from . import meshes
+
+if TYPE_CHECKING:  # imported where used: names and layouts load without trimesh
+    import trimesh
 
 ArrayLike = np.ndarray | Sequence[float]
 
@@ -199,18 +201,27 @@ class Tree:
         leaves = sum(g is not None for g in self.geometry)
         return len(self.names) - leaves, leaves
 
-    def scene(self) -> trimesh.Scene:
+    def scene(self, copies: Sequence[tuple[str, np.ndarray]] | None = None) -> trimesh.Scene:
         """The finished scene: each used template once in ``scene.geometry`` (named after it),
-        every node in creation order under ``"world"``."""
+        every node in creation order under ``"world"``. With ``copies``, ``(root name, root
+        matrix)`` pairs, the tree is emitted once per pair, each copy's names starting with its
+        own root name instead of ``self.root``."""
+        import trimesh  # only here: the bundled scenes' names and layouts load without it
+
         scene = trimesh.Scene()
         used = dict.fromkeys(g for g in self.geometry if g is not None)  # ordered, no set order
         for name in used:
             scene.geometry[name] = meshes.template(name)
         graph = scene.graph
-        for name, parent, matrix, geom in zip(self.names, self.parents, self.matrices, self.geometry):
-            if geom is None:
-                graph.update(frame_from=parent, frame_to=name, matrix=matrix)
-            else:
-                graph.update(frame_from=parent, frame_to=name, matrix=matrix, geometry=geom)
+        cut = len(self.root)
+        for root, top in copies or [(self.root, self.matrices[0])]:
+            rows = zip(self.names, self.parents, self.matrices, self.geometry)
+            for k, (name, parent, matrix, geom) in enumerate(rows):
+                name = root + name[cut:]
+                parent = parent if k == 0 else root + parent[cut:]
+                matrix = top if k == 0 else matrix
+                if geom is None:
+                    graph.update(frame_from=parent, frame_to=name, matrix=matrix)
+                else:
+                    graph.update(frame_from=parent, frame_to=name, matrix=matrix, geometry=geom)
         return scene
-

@@ -1,0 +1,264 @@
+"""Prepared scenes: a mapped load is the fresh load array for array, reads no triangle, and a
+stale or corrupt file is never trusted: it is refused, reported in one line, and rebuilt."""
+
+import asyncio
+import logging
+
+import numpy as np
+import pytest
+
+from wallcull import instances, prepared
+from wallcull import scene as S
+from wallcull.cli import main
+from wallcull.pipeline import Session
+from wallcull.scene import load, prepare
+from wallcull.wall import Wall
+
+from .randscene import random_scene
+
+ARRAYS = ("parent", "child_start", "child_count", "children", "is_leaf", "synthetic", "local",
+          "world", "mesh_of", "box")
+
+
+@pytest.fixture(autouse=True)
+def cache(tmp_path, monkeypatch):
+    """Each test its own cache folder."""
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("WALLCULL_CACHE", str(folder))
+    return folder
+
+
+@pytest.fixture
+def glb(tmp_path):
+    path = tmp_path / "random.glb"
+    path.write_bytes(random_scene(3, leaves=40).export(file_type="glb"))
+    return path
+
+
+def assert_same_scene(a, b):
+    assert list(a.names) == list(b.names) and a.name == b.name
+    for key in ARRAYS:
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    assert a.geometry == b.geometry and a.stats == b.stats and a.settings == b.settings
+    assert list(a.meshes) == list(b.meshes)
+    for key in a.meshes:
+        for x, y in zip(a.meshes[key], b.meshes[key]):
+            assert x.dtype == y.dtype
+            np.testing.assert_array_equal(x, y)
+    for kind in ("obb", "aabb"):
+        for field in ("center", "axes", "half", "radius"):
+            np.testing.assert_array_equal(getattr(a.bounds(kind), field),
+                                          getattr(b.bounds(kind), field), err_msg=kind)
+
+
+@pytest.mark.parametrize("spec", ["powerplant", "fatehpur*2", "glb"])
+def test_a_prepared_load_is_the_fresh_load(spec, glb, cache):
+    spec = str(glb) if spec == "glb" else spec
+    fresh = load(spec, cache="off")
+    path, built = prepare(spec)
+    assert path.parent == cache and path.is_file() and built is not None
+    mapped = load(spec)
+    assert mapped.prepared == path and fresh.prepared is None
+    assert isinstance(mapped.names, prepared.StringTable)
+    assert_same_scene(mapped, fresh)
+    assert prepare(spec) == (path, None)  # current: not written again
+
+
+def test_a_prepared_load_reads_no_triangles(monkeypatch):
+    """Culling and fitting a frame of a mapped scene needs its bounds, never its meshes."""
+    prepare("powerplant")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a mesh was read")
+
+    monkeypatch.setattr(instances.MeshTable, "mesh", refuse)
+    monkeypatch.setattr(S, "instance_points", refuse)
+    monkeypatch.setattr(S, "instance_extremes", refuse)
+    scene = load("powerplant")
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0})
+    from wallcull.fit import FitOptions
+    from wallcull.paths import scene_path
+
+    session = Session(scene, wall, fit=FitOptions())
+    result = session.frame(scene_path(scene, wall, "orbit", 4)[1])
+    assert sum(len(result.visibility.names(t)) for t in range(wall.tiles)) > 0
+    assert scene.stats["triangles"] > 900_000
+
+
+def test_a_stale_prepared_file_is_rebuilt(glb, caplog):
+    path, _ = prepare(str(glb))
+    glb.write_bytes(random_scene(4, leaves=12).export(file_type="glb"))  # the source changes
+    with caplog.at_level(logging.WARNING, logger="wallcull"):
+        scene = load(str(glb))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"wallcull: prepared scene {path} is stale (its source or wallcull changed): "
+        "rebuilding it"]
+    assert scene.prepared is None
+    assert_same_scene(scene, load(str(glb), cache="off"))
+    assert load(str(glb)).prepared == path  # rewritten: current again
+
+
+def test_a_prepared_file_of_other_code_is_stale(monkeypatch, caplog):
+    prepare("fatehpur")
+    monkeypatch.setattr(S, "_code_version", lambda: "some other wallcull")
+    with caplog.at_level(logging.WARNING, logger="wallcull"):
+        assert load("fatehpur").prepared is None
+    assert "is stale" in caplog.text
+
+
+def flip_a_data_byte(path):
+    data = bytearray(path.read_bytes())
+    data[-100] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def truncate(path):
+    path.write_bytes(path.read_bytes()[:-64])
+
+
+def extend(path):
+    path.write_bytes(path.read_bytes() + b"\0" * 64)
+
+
+def garbage(path):
+    path.write_bytes(b"not a prepared scene at all")
+
+
+def bad_header(path):
+    data = bytearray(path.read_bytes())
+    data[20:24] = b"{{{{"
+    path.write_bytes(bytes(data))
+
+
+def bad_table(path):
+    """A header that parses, but whose array table points outside the data."""
+    import json
+
+    data = path.read_bytes()
+    length = int(np.frombuffer(data[8:16], "<u8")[0])
+    header = json.loads(data[16:16 + length])
+    header["arrays"]["parent"][2] = 10**12
+    text = json.dumps(header).encode().ljust(length)[:length]
+    path.write_bytes(data[:16] + text + data[16 + length:])
+
+
+@pytest.mark.parametrize("damage", [flip_a_data_byte, truncate, extend, garbage, bad_header,
+                                    bad_table])
+def test_a_corrupt_prepared_file_is_refused_and_rebuilt(damage, caplog):
+    path, _ = prepare("fatehpur")
+    damage(path)
+    with pytest.raises(prepared.Corrupt):
+        prepared.read(path)
+    with caplog.at_level(logging.WARNING, logger="wallcull"):
+        scene = load("fatehpur")
+    assert len(caplog.records) == 1 and "is corrupt (" in caplog.text
+    assert "\n" not in caplog.records[0].getMessage()
+    assert scene.prepared is None
+    assert_same_scene(scene, load("fatehpur", cache="off"))
+    prepared.read(path)  # rebuilt: sound again
+
+
+def test_cache_modes(cache):
+    assert load("fatehpur").prepared is None and not cache.exists()  # read: nothing written
+    assert load("fatehpur", cache="write").prepared is None  # built, and written
+    assert load("fatehpur").prepared is not None
+    path = next(cache.iterdir())
+    garbage(path)
+    assert load("fatehpur", cache="off").prepared is None  # off: not even looked at
+    assert path.read_bytes() == b"not a prepared scene at all"
+    with pytest.raises(ValueError):
+        load("fatehpur", cache="sometimes")
+
+
+def test_options_have_their_own_prepared_files():
+    a, _ = prepare("fatehpur")
+    b, _ = prepare("fatehpur", hierarchy="file")
+    c, _ = prepare("fatehpur", branching=4)
+    assert len({a, b, c}) == 3
+    assert load("fatehpur", hierarchy="file").hierarchy == "file"
+
+
+def test_the_format_round_trips_any_array(tmp_path):
+    rng = np.random.default_rng(0)
+    arrays = {"f64": rng.normal(size=(5, 4, 4)), "f32": rng.normal(size=(7, 3)).astype("f4"),
+              "i32": np.arange(-3, 9, dtype="<i4").reshape(4, 3), "bool": rng.random(9) > 0.5,
+              "empty": np.zeros((0, 3)), "big_endian": np.arange(5, dtype=">i8"),
+              "u8": np.frombuffer(b"abc", dtype=np.uint8)}
+    path = tmp_path / "x.wcprep"
+    size = prepared.write(path, arrays, {"hello": [1, "two"]})
+    assert path.stat().st_size == size and size % 64 == 0
+    back, meta = prepared.read(path)
+    assert meta == {"hello": [1, "two"]} and prepared.read_meta(path) == meta
+    assert set(back) == set(arrays)
+    for k, a in arrays.items():
+        np.testing.assert_array_equal(back[k], a)
+        assert back[k].shape == a.shape
+    back["f64"][0, 0, 0] = 42.0  # copy-on-write: writable, and the file is untouched
+    assert prepared.read(path)[0]["f64"][0, 0, 0] == arrays["f64"][0, 0, 0]
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_string_tables_hold_any_names():
+    names = ["world", "", "ünïcödé/名前", "a:b#g0", "x" * 300]
+    table = prepared.StringTable(*prepared.encode_strings(names))
+    assert len(table) == 5 and list(table) == names and table == names
+    assert table[2] == names[2] and table[-1] == names[-1] and table[1:3] == names[1:3]
+    with pytest.raises(IndexError):
+        table[5]
+
+
+def test_prepare_on_the_command_line(capsys, cache):
+    assert main(["prepare", "fatehpur*2"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("fatehpur*2: 1,582 nodes") and str(cache) in out and out.count("\n") == 1
+    assert main(["prepare", "fatehpur*2"]) == 0
+    assert "is current" in capsys.readouterr().out
+    assert main(["prepare", "fatehpur*2", "--force"]) == 0
+    assert "prepared in" in capsys.readouterr().out
+    for bad in (["prepare", "nowhere"], ["prepare", "powerplant*999"],
+                ["prepare", "fatehpur", "--branching", "1"]):
+        assert main(bad) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("wallcull: error: ") and err.count("\n") == 1
+
+
+def test_an_unwritable_cache_is_a_clear_error(tmp_path, monkeypatch, capsys, caplog):
+    blocker = tmp_path / "file"
+    blocker.write_text("in the way")
+    monkeypatch.setenv("WALLCULL_CACHE", str(blocker / "cache"))
+    assert main(["prepare", "fatehpur"]) == 2
+    assert capsys.readouterr().err.startswith("wallcull: error: cannot write")
+    with caplog.at_level(logging.WARNING, logger="wallcull"):
+        assert load("fatehpur", cache="write").prepared is None  # the scene still loads
+    assert "cannot write prepared scene" in caplog.text
+
+
+def test_the_server_prepares_and_maps_its_scenes():
+    """A restarted server (a new store) maps the file the first one wrote; its meshes have the
+    ETags of the fresh scene's."""
+    from wallcull.service import SceneStore, mesh_blob
+
+    first = asyncio.run(SceneStore().get("fatehpur*2"))
+    assert first.prepared is None
+    again = asyncio.run(SceneStore().get("fatehpur*2"))
+    assert again.prepared is not None and again.name == "fatehpur*2"
+    for key in list(first.meshes)[:5]:
+        assert mesh_blob(first, key).etag == mesh_blob(again, key).etag
+
+
+def test_mesh_blobs_are_kept_within_a_budget(monkeypatch):
+    from wallcull import service
+
+    scene = load("fatehpur")
+    keys = list(scene.meshes)
+    sizes = {k: service.mesh_blob(scene, k) for k in keys}  # every mesh once
+    etags = {k: b.etag for k, b in sizes.items()}
+    monkeypatch.setattr(service, "MESH_CACHE_BYTES", 200_000)
+    scene.__dict__.pop("_mesh_blobs")
+    for k in keys:
+        assert service.mesh_blob(scene, k).etag == etags[k]
+        held = scene.__dict__["_mesh_blobs"]
+        total = sum(len(b.body["vertices"]["data"]) + len(b.body["faces"]["data"])
+                    for b in held.values())
+        assert total <= 200_000 or len(held) == 1
+    assert len(scene.__dict__["_mesh_blobs"]) < len(keys)
