@@ -230,8 +230,8 @@ def test_outputs_that_fill_up_are_doubled_not_truncated(powerplant):
     fresh = Culler(state, wall).cull(frusta)
     assert fresh.stats["pairs"] > 4096  # the first buffer's size
     warm = Culler(state, wall)
-    warm._buffers.arrays["out_n"] = np.zeros(8, np.int64)
-    warm._buffers.arrays["out_t"] = np.zeros(8, np.int64)
+    warm._buffers[0].arrays["out_n"] = np.zeros(8, np.int64)
+    warm._buffers[0].arrays["out_t"] = np.zeros(8, np.int64)
     again = warm.cull(frusta)
     assert np.array_equal(fresh.start, again.start) and np.array_equal(fresh.nodes, again.nodes)
 
@@ -315,3 +315,33 @@ def test_regions_split_among_threads_give_the_same_lists(powerplant, monkeypatch
         assert np.array_equal(start, got[0][0]) and np.array_equal(nodes, got[0][1])
         assert tests == got[0][2]
     assert len(got[0][1]) > 40
+
+
+@pytest.mark.parametrize("wall_name", ["wall-8x8.json", "wall-cave.json", "wall-angled.json"])
+def test_adaptive_in_threads_lists_what_one_pass_lists(powerplant, monkeypatch, wall_name):
+    """Big frames run ``adaptive`` over parts of the frustum hierarchy in threads: the same
+    pairs, each tile's in the same order, for any number of parts."""
+    import json
+    from pathlib import Path
+
+    import wallcull.cull as C
+    from wallcull.paths import scene_path
+
+    wall = Wall.from_dict(json.loads((Path(__file__).parents[1] / "examples" / wall_name)
+                                     .read_text()))
+    state = SceneState(powerplant)
+    frames = [Frusta.build(wall, f) for f in scene_path(powerplant, wall, "orbit", 4)]
+    one = Culler(state, wall)
+    expect = [one.cull(f) for f in frames]
+    monkeypatch.setattr(C, "PARALLEL_TESTS", 0)
+    for threads in ("2", "3", "5"):
+        monkeypatch.setenv("WALLCULL_THREADS", threads)
+        culler = Culler(state, wall)
+        assert len(culler._parts) == min(int(threads), wall.tiles)
+        flags = np.sum(culler._parts, axis=0)
+        leaves = culler._fh[:, C._TILE] >= 0
+        assert (flags[leaves] == 1).all()  # every tile in exactly one part
+        for frusta, e in zip(frames, expect):
+            culler.cull(frusta)  # the first frame decides: threads from the next one
+            got = culler.cull(frusta)
+            assert np.array_equal(got.start, e.start) and np.array_equal(got.nodes, e.nodes)

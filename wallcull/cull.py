@@ -79,6 +79,11 @@ _R_BALL, _R_AXES, _R_SPHERE = 3, 4, 13
 #: on all of them; the count is flat between 1 and 4.
 UNFOLD_RATIO = 1.0
 
+#: ``adaptive`` runs in threads, over parts of the frustum hierarchy, after a frame that took at
+#: least this many box-plane tests (about a millisecond; below it a thread costs more than it
+#: saves).
+PARALLEL_TESTS = 100_000
+
 _OUT, _CUTS, _FULL = 0, 1, 2
 
 # Columns of the frustum-hierarchy table (int64).
@@ -349,10 +354,10 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
     return k, tests
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh, fh_unfold,
-              tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, regions, so, sf,
-              sm, ts, tm, out_n, out_t):
+              tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, regions, allowed,
+              so, sf, sm, ts, tm, out_n, out_t):
     """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring).
 
     A stack entry is (object ``so``, frustum node ``sf``, mask ``sm``). At an internal frustum
@@ -374,6 +379,11 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
     ``regions``: ``tile_planes`` when the frustum hierarchy has ``BOUNDS`` and ``PASS`` nodes
     (screens walls), ``None`` for a grid. numba compiles a version for each, so a grid's hot
     loop has no branch it never takes (with it, 5x slower on 8x8).
+
+    ``allowed`` (one flag per frustum node): the part of the frustum hierarchy this call
+    covers. Parts whose tiles are disjoint run in threads at once (:class:`Culler`), each
+    listing exactly the pairs, in the same order, that one call over everything lists for its
+    tiles.
     """
     sides = 4 if regions is None else 6
     k = 0
@@ -425,6 +435,10 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                     break
             # Down every side it reaches, whole: intact where it is inside, cut where it is
             # cut (the plane's "cut" bit set), both sides or neither in an overlap or a gap.
+            if not allowed[fh[f, _FIRST]]:  # another thread's part
+                sa = _OUT
+            if not allowed[fh[f, _SECOND]]:
+                sb = _OUT
             if sa != _OUT:
                 if sb != _OUT:
                     so[sp] = o
@@ -944,7 +958,29 @@ class Culler:
         self._leaves = (scene.leaves, leaf_start, leaf_count)
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
         self._depth_bound = height * max(int(scene.child_count.max()), 2)
-        self._buffers = _Buffers()
+        self._everywhere = np.ones(len(self._fh), np.uint8)
+        self._parts = _fh_parts(self._fh, workers.count())
+        self._buffers = [_Buffers() for _ in range(max(1, len(self._parts)))]
+        self._last_tests = 0
+
+    def _run_adaptive(self, args, stack):
+        """``adaptive`` over the whole frustum hierarchy, or, when the last frame took at least
+        ``PARALLEL_TESTS`` tests, over its parts in threads at once (their tiles are disjoint,
+        so the pairs are those of one call, each tile's in the same order)."""
+        parts = self._parts if self._last_tests >= PARALLEL_TESTS else self._parts[:0]
+
+        def task(k, *_):
+            buf = self._buffers[k]
+            return buf.run(_adaptive, *args, parts[k] if parts else self._everywhere,
+                           buf.get("stack_n", stack), buf.get("stack_m", stack),
+                           buf.get("stack_o", stack), buf.get("tile_n", stack),
+                           buf.get("tile_m", stack))
+
+        if not parts:
+            return task(0)
+        done = workers.run(task, [(k, k + 1) for k in range(len(parts))])
+        return (np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done]),
+                sum(d[2] for d in done))
 
     def cull(self, frusta: Frusta) -> Visibility:
         """The frame's per-tile node lists."""
@@ -1000,7 +1036,7 @@ class Culler:
             planes = np.concatenate([planes, extra])
         if len(primary) > 63:
             raise InputError(f"at most 63 planes bound a view, got {len(primary)}")
-        buf = self._buffers
+        buf = self._buffers[0]
         n = len(box)
         stack = self._depth_bound + n  # the roots are at most all nodes
         stack_n, stack_m = buf.get("stack_n", stack), buf.get("stack_m", stack)
@@ -1023,11 +1059,11 @@ class Culler:
             nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, fh,
                                           self._near_bit, self._tile_sides)
         else:
-            nodes, tiles, tests = buf.run(
-                _adaptive, roots, masks, *self._tree, box, planes, fh, self._unfold,
-                self._tile_sides, view, pitch[0], pitch[1], self._near_bit,
-                self._unknown_at_root, regions, stack_n, stack_m, buf.get("stack_o", stack),
-                buf.get("tile_n", stack), buf.get("tile_m", stack))
+            nodes, tiles, tests = self._run_adaptive(
+                (roots, masks, *self._tree, box, planes, fh, self._unfold, self._tile_sides,
+                 view, pitch[0], pitch[1], self._near_bit, self._unknown_at_root, regions),
+                stack)
+        self._last_tests = tests
         start, ordered = _by_region(nodes, tiles, wall.tiles)
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
@@ -1070,6 +1106,53 @@ def _merge_lists(start_a, nodes_a, start_b, nodes_b, size):
             cover = node + size[node]
         out_start[t + 1] = k
     return out_start, out[:k]
+
+
+def _fh_parts(table: np.ndarray, threads: int) -> list[np.ndarray]:
+    """The frustum hierarchy in up to ``threads`` parts of disjoint tiles, for ``adaptive`` in
+    threads: each part's flags per frustum node (its subtrees and their ancestors). The
+    hierarchy is cut level by level until it has ``threads`` subtrees, and these are dealt out
+    by tile count, largest first to the lightest part. No parts for one thread."""
+    n = len(table)
+    if threads < 2 or n < 3:
+        return []
+    first, second = table[:, _FIRST], table[:, _SECOND]
+    parent = np.full(n, -1)
+    inner = table[:, _TILE] < 0
+    parent[first[inner]] = np.flatnonzero(inner)
+    parent[second[inner]] = np.flatnonzero(inner)
+    order = [0]  # breadth first: every node after its parent
+    for f in order:
+        if inner[f]:
+            order += [first[f], second[f]]
+    below = np.zeros(n, np.int64)  # tiles under each node
+    for f in reversed(order):
+        below[f] = below[first[f]] + below[second[f]] if inner[f] else 1
+    frontier = [0]
+    while len(frontier) < threads and any(inner[f] for f in frontier):
+        frontier = [c for f in frontier for c in ((first[f], second[f]) if inner[f] else (f,))]
+    groups: list[list[int]] = [[] for _ in range(min(threads, len(frontier)))]
+    load = [0] * len(groups)
+    for f in sorted(frontier, key=lambda f: -below[f]):
+        k = load.index(min(load))
+        groups[k].append(f)
+        load[k] += below[f]
+    parts = []
+    for group in groups:
+        flags = np.zeros(n, np.uint8)
+        for f in group:
+            a = parent[f]
+            while a >= 0:
+                flags[a] = 1
+                a = parent[a]
+            todo = [f]
+            while todo:
+                g = todo.pop()
+                flags[g] = 1
+                if inner[g]:
+                    todo += [first[g], second[g]]
+        parts.append(flags)
+    return parts
 
 
 def _screen_fh_table(wall) -> tuple[np.ndarray, np.ndarray]:
