@@ -47,6 +47,17 @@ MAX_BODY = Limits.body
 log = logging.getLogger("wallcull")
 
 
+class App(FastAPI):
+    """FastAPI, with each WebSocket's own ``send`` kept in its scope (``wallcull.send``): a
+    stream's writes, one per frame, go straight to the server's protocol instead of through
+    every middleware's wrapper of ``send`` (:func:`.streams.writer`)."""
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] == "websocket":
+            scope["wallcull.send"] = send
+        await super().__call__(scope, receive, send)
+
+
 def create_app(scene_folder=None, token: str | None = None, max_body: int | None = None,
                max_upload: int | None = None, max_walls: int | None = None, *,
                limits: Limits | None = None, state=None, origins=(), nats: str | None = None,
@@ -85,9 +96,9 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
         if folder is not None:
             folder.close()
 
-    app = FastAPI(title="wallcull", version="0.1.0", lifespan=lifespan,
-                  description="Culling server for tiled display walls. Bodies are JSON or "
-                              "msgpack (Content-Type / Accept: application/msgpack).")
+    app = App(title="wallcull", version="0.1.0", lifespan=lifespan,
+              description="Culling server for tiled display walls. Bodies are JSON or "
+                          "msgpack (Content-Type / Accept: application/msgpack).")
     app.state.server = server
     app.add_middleware(Gate, state=server)
     app.add_middleware(CORSMiddleware, allow_origins=list(origins), allow_credentials=False,

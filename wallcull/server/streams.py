@@ -119,6 +119,20 @@ async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
         await ws.close(code=GONE, reason="the wall was deleted")
 
 
+def writer(ws: WebSocket, binary: bool):
+    """``write(data)`` for an accepted stream's messages (msgpack bytes, or JSON text given as
+    UTF-8 bytes): straight to the server's own ``send`` when :class:`~wallcull.server.App`
+    kept it, else through Starlette's. The middlewares only pass a stream's messages on, and
+    the wrappers cost more than the write itself (measured: a fifth of the server's CPU on
+    8x8 at 60 Hz)."""
+    raw = ws.scope.get("wallcull.send")
+    if raw is None:
+        return ws.send_bytes if binary else (lambda data: ws.send_text(data.decode()))
+    if binary:
+        return lambda data: raw({"type": "websocket.send", "bytes": data})
+    return lambda data: raw({"type": "websocket.send", "text": data.decode()})
+
+
 def _token(ws: WebSocket) -> str | None:
     return ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
 
@@ -195,6 +209,8 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
                 return False
         return True
 
+    write = writer(ws, binary)
+
     async def sender():
         last = since = -1
         while True:
@@ -214,7 +230,7 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
             else:
                 pkt = session.packet(tile, number, full, since)
                 data, delta = protocol.encode(pkt, False), pkt["base"] is not None
-            await (ws.send_bytes(data) if binary else ws.send_text(data.decode()))
+            await write(data)
             since = number if since < 0 else since
             metrics.packet(delta, len(data), "ws")
             last = number
