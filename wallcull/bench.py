@@ -24,7 +24,7 @@ from .paths import scene_path
 from .pipeline import Session
 from .protocol import FrameRecord, History
 from .scene import Scene
-from .wall import Wall
+from .wall import Frame, Wall
 
 WARMUP_FRAMES = 3
 
@@ -198,10 +198,11 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
         hierarchy: str = "auto", moving: float = 0.0, refit: str | None = None,
         fit: FitOptions | None = None, settings: dict | None = None,
-        progress: bool = True, shadow_fits: tuple = ()) -> dict:
+        progress: bool = True, shadow_fits: tuple = (), stereo: float | None = None) -> dict:
     """The whole benchmark; returns the ``bench --json`` document. ``shadow_fits``: fitting
     efforts (:data:`wallcull.lowilie.EFFORTS`) to compare, fit time against shadow-map
-    coverage, with the main method."""
+    coverage, with the main method. ``stereo``: the path's frames are stereo frames with this
+    interpupillary distance (m), the head level with the display (SPEC section 3)."""
     from . import scene as scene_mod
 
     for m in methods:
@@ -215,6 +216,9 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     t2 = time.perf_counter()
     rss = peak_rss_mb()
     path_frames = scene_path(scene, wall, path, frames)
+    if stereo is not None:
+        path_frames = [Frame.make(f.position, f.orientation, f.eye, wall,
+                                  (stereo, (1.0, 0.0, 0.0, 0.0))) for f in path_frames]
     motion = Motion(scene, moving) if moving else None
     by_bounds: dict = {}
     bar = _progress() if progress else nullcontext()
@@ -238,7 +242,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         "scene": {"name": scene.name, **scene.stats, "prepared": scene.prepared is not None,
                   "load_s": t1 - t0,
                   "preprocess_s": t2 - t1, "peak_rss_mb_after_load": rss},
-        "wall": wall.to_dict(), "frames": frames, "path": path, "bounds": bounds[0],
+        "wall": wall.to_dict(), "frames": frames, "path": path, "stereo": stereo,
+        "bounds": bounds[0],
         "pseudo_groups": pseudo_groups, "methods": by_bounds[bounds[0]],
         "moving": moving, "refit": refit, "fit": fit is not None,
         "settings": {"lights": len(scene.settings.get("lights", [])),

@@ -101,7 +101,8 @@ def cmd_bench(args) -> int:
                        moving=args.moving, refit=args.refit,
                        fit=fit, settings=read(args.settings) if args.settings else None,
                        progress=not args.json,
-                       shadow_fits=tuple(efforts) if len(efforts) > 1 else ())
+                       shadow_fits=tuple(efforts) if len(efforts) > 1 else (),
+                       stereo=args.stereo)
     if args.json:
         print(json.dumps(result))
         return 0
@@ -122,8 +123,11 @@ def _print_bench(result: dict) -> None:
                   f"in {s['preprocess_s']:.2f} s, peak {s['peak_rss_mb_after_load']:.0f} MB")
     moving = (f"; {result['moving']:.0%} of the leaves moving, refit "
               f"{result['refit'] or result['bounds']}" if result["moving"] else "")
-    console.print(f"{w['cols']} x {w['rows']} wall, {result['frames']} frames of the "
-                  f"{result['path']} path{moving}")
+    stereo = f", stereo (ipd {result['stereo']:g} m)" if result.get("stereo") else ""
+    shape = (f"wall of {len(w['screens'])} screens" if "screens" in w
+             else f"{w['cols']} x {w['rows']} wall")
+    console.print(f"{shape}, {result['frames']} frames of the "
+                  f"{result['path']} path{stereo}{moving}")
     for kind, methods in result.get("by_bounds", {result["bounds"]: result["methods"]}).items():
         table = Table(title=f"culling time per frame, bounds {kind}")
         refits = any("refit_median_ms" in m for m in methods.values())
@@ -308,6 +312,8 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--path", choices=PATHS, default="orbit",
                    help="orbit: whole scene in view (the paper's worst case); fly: through it")
     q.add_argument("--pseudo-groups", action="store_true")
+    q.add_argument("--stereo", type=float, metavar="IPD",
+                   help="stereo frames with this interpupillary distance, m (e.g. 0.064)")
     q.add_argument("--accuracy", type=int, default=0, metavar="FRAMES",
                    help="count false positives against the exact oracle on this many frames")
     q.add_argument("--moving", type=float, default=0.0, metavar="FRACTION",

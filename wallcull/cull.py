@@ -141,17 +141,18 @@ def _state(s, r):
 
 @njit(cache=True, inline="always")
 def _region(box, o, planes, tile_planes, tile):
-    """State of bound ``o`` against tile ``tile``'s planes (-1: no bound, inside), and tests."""
+    """State of bound ``o`` against tile ``tile``'s planes (-1: no bound, inside), the tests
+    taken, and the planes that cut it (bits; -1 when there is no bound)."""
     if tile < 0:
-        return _FULL, 0
-    state = _FULL
+        return _FULL, 0, -1
+    cut = 0
     for p in range(tile_planes.shape[1]):
         s, r = _sr(box, o, planes, tile_planes[tile, p])
         if s < -r:
-            return _OUT, p + 1
+            return _OUT, p + 1, 0
         if s < r:
-            state = _CUTS
-    return state, tile_planes.shape[1]
+            cut |= 1 << p
+    return _CUTS if cut else _FULL, tile_planes.shape[1], cut
 
 
 @njit(cache=True, inline="always")
@@ -173,15 +174,17 @@ def _split(box, o, planes, fh, f, behind):
 @njit(cache=True, inline="always")
 def _split_any(box, o, planes, fh, f, behind, tile_planes):
     """:func:`_split` for every mode: also children told apart by their own tiles' planes, or
-    not at all (screens walls)."""
+    not at all (screens walls); then also the planes of its own tile that cut each child's
+    part (bits), or -1 where a child has no tile of its own."""
     mode = fh[f, _MODE]
     if mode == _PASS:
-        return _FULL, _FULL, 0
+        return _FULL, _FULL, 0, -1, -1
     if mode == _BOUNDS:
-        sa, na = _region(box, o, planes, tile_planes, fh[f, _PA])
-        sb, nb = _region(box, o, planes, tile_planes, fh[f, _PB])
-        return sa, sb, na + nb
-    return _split(box, o, planes, fh, f, behind)
+        sa, na, ca = _region(box, o, planes, tile_planes, fh[f, _PA])
+        sb, nb, cb = _region(box, o, planes, tile_planes, fh[f, _PB])
+        return sa, sb, na + nb, ca, cb
+    sa, sb, nt = _split(box, o, planes, fh, f, behind)
+    return sa, sb, nt, -1, -1
 
 
 @njit(cache=True)
@@ -330,7 +333,7 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
                 tile = fh[f, _TILE]
                 if tile >= 0:
                     if regions is not None:  # screens: the splits above are not its planes
-                        state, nt = _region(box, leaf, planes, regions, tile)
+                        state, nt, _ = _region(box, leaf, planes, regions, tile)
                         tests += nt
                         if state == _OUT:
                             continue
@@ -343,7 +346,7 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
                 if regions is None:
                     sa, sb, nt = _split(box, leaf, planes, fh, f, behind)
                 else:
-                    sa, sb, nt = _split_any(box, leaf, planes, fh, f, behind, regions)
+                    sa, sb, nt, _, _ = _split_any(box, leaf, planes, fh, f, behind, regions)
                 tests += nt
                 if sb != _OUT:
                     stack[sp] = fh[f, _SECOND]
@@ -406,14 +409,20 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                 break
             if regions is None:  # decided when compiled (see the docstring)
                 sa, sb, nt = _split(box, o, planes, fh, f, (m & _BEHIND) != 0)
+                ca = cb = -1
             else:
-                sa, sb, nt = _split_any(box, o, planes, fh, f, (m & _BEHIND) != 0, regions)
+                sa, sb, nt, ca, cb = _split_any(box, o, planes, fh, f, (m & _BEHIND) != 0,
+                                                regions)
             tests += nt
             bit_a = fh[f, _SIDE_A]
             bit_b = fh[f, _SIDE_B]
             # the split gives each child a new side plane: forget what was known of the old one
             ma = (m & ~(bit_a | (bit_a << _CUT))) | ((bit_a << _CUT) if sa == _CUTS else 0)
             mb = (m & ~(bit_b | (bit_b << _CUT))) | ((bit_b << _CUT) if sb == _CUTS else 0)
+            if ca >= 0:  # a tile's six planes tested here: nothing is left unknown
+                ma = (m & _BEHIND) | (ca << _CUT)
+            if cb >= 0:
+                mb = (m & _BEHIND) | (cb << _CUT)
             if (sa == _CUTS or sb == _CUTS) and child_count[o] > 0:
                 if regions is not None:  # screens all around: distance
                     depth = math.sqrt((box[o, 0] - view[4]) ** 2 + (box[o, 1] - view[5]) ** 2

@@ -312,6 +312,20 @@ class ScreenHierarchy:
                    np.array(col[4]), np.array(col[5]), np.array(col[6], np.int64),
                    list(col[7]), np.array(col[8], np.int64))
 
+    @cached_property
+    def _corners(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(split nodes, first, second)``: for each split node, 0 at the corners of its first
+        child's screens and infinity elsewhere (``(corners, splits)``, corner ``4 t + k`` of
+        tile ``t``), and the same for its second child's."""
+        splits = np.flatnonzero(self.mode == SPLIT)
+        tiles = max(int(self.tile.max()) + 1, 1)
+        first = np.full((4 * tiles, len(splits)), np.inf)
+        second = first.copy()
+        for j, k in enumerate(splits):
+            first[(4 * self.members[self.first[k]][:, None] + np.arange(4)).ravel(), j] = 0
+            second[(4 * self.members[self.second[k]][:, None] + np.arange(4)).ravel(), j] = 0
+        return splits, first, second
+
     def split_planes(self, wall: ScreensWall, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(planes (nodes, 4), valid (nodes,))``: each split node's plane through ``eye``
         and its edge, facing its first child, and whether it still separates its children's
@@ -322,19 +336,18 @@ class ScreenHierarchy:
         split = (self.mode == SPLIT) & (length[:, 0] > 0)
         normal = np.where(length > 0, normal / np.where(length > 0, length, 1), 0.0)
         planes = np.concatenate([normal, -(normal @ eye)[:, None]], axis=1)
-        valid = np.zeros(len(self), bool)
-        quads = wall.quads
+        quads = wall.quads.reshape(-1, 3)  # corner 4 t + k of tile t
         tol = 1e-9 * float(np.abs(quads - eye).max())
-        for k in np.flatnonzero(split):
-            inside = quads[self.members[self.first[k]]].reshape(-1, 3) @ planes[k, :3] \
-                + planes[k, 3]
-            outside = quads[self.members[self.second[k]]].reshape(-1, 3) @ planes[k, :3] \
-                + planes[k, 3]
-            if inside.min() >= -tol and outside.max() <= tol:
-                valid[k] = True
-            elif outside.min() >= -tol and inside.max() <= tol:
-                planes[k] = -planes[k]
-                valid[k] = True
+        nodes, first, second = self._corners
+        side = quads @ planes[nodes, :3].T + planes[nodes, 3]  # (corners, splits)
+        holds = ((side + first).min(axis=0) >= -tol) & ((side - second).max(axis=0) <= tol)
+        turned = ~holds & ((side + second).min(axis=0) >= -tol) \
+            & ((side - first).max(axis=0) <= tol)
+        holds &= split[nodes]
+        turned &= split[nodes]
+        planes[nodes[turned]] = -planes[nodes[turned]]
+        valid = np.zeros(len(self), bool)
+        valid[nodes[holds | turned]] = True
         return planes, valid
 
 
