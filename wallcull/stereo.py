@@ -14,7 +14,10 @@ eyes in one pass; the two planes of a split are no longer one plane negated, so 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 
 def _outer_lines(points: np.ndarray, inward: np.ndarray) -> np.ndarray:
@@ -22,48 +25,70 @@ def _outer_lines(points: np.ndarray, inward: np.ndarray) -> np.ndarray:
     ``(a, b)`` unit) through two of them with all four inside and ``(a, b) . inward > 0``,
     the tightest such (least total distance of the points); the supporting line of their
     hull on the outward side."""
-    k = len(points)
-    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
-    best = np.zeros((k, 3))
-    score = np.full(k, np.inf)
-    scale = np.abs(points).max(axis=(1, 2))
-    for i, j in pairs:
-        p, q = points[:, i], points[:, j]
-        d = q - p
-        normal = np.stack([-d[:, 1], d[:, 0]], axis=1)
-        length = np.linalg.norm(normal, axis=1)
-        ok = length > 1e-12 * np.maximum(scale, 1e-300)
-        normal = normal / np.where(ok, length, 1)[:, None]
-        flip = (normal * inward).sum(axis=1) < 0
-        normal[flip] *= -1
-        c = -(normal * p).sum(axis=1)
-        dist = (points * normal[:, None]).sum(axis=2) + c[:, None]
-        ok &= dist.min(axis=1) >= -1e-12 * scale
-        total = dist.sum(axis=1)
-        better = ok & (total < score)
-        best[better] = np.c_[normal, c][better]
-        score[better] = total[better]
-    if not np.isfinite(score).all():
+    best, found = _outer_kernel(np.ascontiguousarray(points, np.float64),
+                                np.asarray(inward, np.float64))
+    if not found:
         raise ValueError("no supporting line: the eyes' frusta are degenerate")
-    # every point inside, exactly: push the line out by what rounding left outside
-    dist = (points * best[:, None, :2]).sum(axis=2) + best[:, None, 2]
-    best[:, 2] -= np.minimum(dist.min(axis=1), 0)
     return best
 
 
+@njit(cache=True)
+def _outer_kernel(points, inward):
+    k = points.shape[0]
+    best = np.zeros((k, 3))
+    found = True
+    for m in range(k):
+        scale = 0.0
+        for i in range(4):
+            scale = max(scale, abs(points[m, i, 0]), abs(points[m, i, 1]))
+        score = np.inf
+        for i in range(4):
+            for j in range(i + 1, 4):
+                px, py = points[m, i, 0], points[m, i, 1]
+                nx, ny = -(points[m, j, 1] - py), points[m, j, 0] - px
+                length = math.sqrt(nx * nx + ny * ny)
+                if not length > 1e-12 * max(scale, 1e-300):
+                    continue
+                nx, ny = nx / length, ny / length
+                if nx * inward[0] + ny * inward[1] < 0:
+                    nx, ny = -nx, -ny
+                c = -(nx * px + ny * py)
+                total, lowest = 0.0, np.inf
+                for q in range(4):
+                    dist = nx * points[m, q, 0] + ny * points[m, q, 1] + c
+                    total += dist
+                    lowest = min(lowest, dist)
+                if lowest >= -1e-12 * scale and total < score:
+                    score = total
+                    best[m, 0], best[m, 1], best[m, 2] = nx, ny, c
+        if not score < np.inf:
+            found = False
+            continue
+        # every point inside, exactly: push the line out by what rounding left outside
+        lowest = 0.0
+        for q in range(4):
+            lowest = min(lowest, best[m, 0] * points[m, q, 0] + best[m, 1] * points[m, q, 1]
+                         + best[m, 2])
+        best[m, 2] -= lowest
+    return best, found
+
+
+@njit(cache=True)
 def _boundary_points(edge: np.ndarray, eyes: np.ndarray, depth: float, near: float,
                      far: float, axis: int) -> np.ndarray:
     """``(k, 4, 2)``: where each eye's boundary face through the edge lines at ``edge``
     (coordinates along display ``axis``, in the wall plane ``z = -depth``) meets its near and
     far planes, in the cross-section (``axis`` coordinate, z)."""
-    out = []
-    for eye in eyes:
-        e, ez = eye[axis], eye[2]
-        reach = ez + depth  # eye to wall along -z
-        for dist in (near, far):
-            out.append(np.stack([e + (edge - e) * dist / reach,
-                                 np.full(len(edge), ez - dist)], axis=1))
-    return np.stack(out, axis=1)
+    out = np.empty((edge.shape[0], 4, 2))
+    for k in range(edge.shape[0]):
+        for i in range(2):
+            e, ez = eyes[i, axis], eyes[i, 2]
+            reach = ez + depth  # eye to wall along -z
+            for j in range(2):
+                dist = near if j == 0 else far
+                out[k, 2 * i + j, 0] = e + (edge[k] - e) * dist / reach
+                out[k, 2 * i + j, 1] = ez - dist
+    return out
 
 
 def grid_planes(wall, eyes: np.ndarray) -> np.ndarray:
@@ -77,7 +102,8 @@ def grid_planes(wall, eyes: np.ndarray) -> np.ndarray:
                                       (x1, 0, -1.0, lay.R(np.arange(wall.cols))),
                                       (y1, 1, -1.0, lay.T(np.arange(wall.rows))),
                                       (y0, 1, +1.0, lay.B(np.arange(wall.rows)))):
-        points = _boundary_points(edges, eyes, wall.distance, wall.near, wall.far, axis)
+        points = _boundary_points(np.ascontiguousarray(edges), np.asarray(eyes, np.float64),
+                                  float(wall.distance), float(wall.near), float(wall.far), axis)
         lines = _outer_lines(points, np.array([inward, 0.0]))
         out[rows, axis] = lines[:, 0]
         out[rows, 2] = lines[:, 1]
