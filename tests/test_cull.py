@@ -245,7 +245,7 @@ def test_pseudo_groups_on_a_large_wall(powerplant):
     assert grouped == leaf_sets(Culler(state, wall, "fh").cull(frusta))
 
 
-@pytest.mark.parametrize("wall_name", ["4x4", "8x8", "64x64"])
+@pytest.mark.parametrize("wall_name", ["4x4", "8x8", "64x64", "angled", "cave2"])
 def test_adaptive_takes_no_more_tests_than_oh_on_the_bundled_scenes(wall_name):
     """Plane masking and the choice of hierarchy (wallcull.cull): counted, not timed."""
     import json

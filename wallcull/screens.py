@@ -49,6 +49,16 @@ SCREEN_KEYS = {"bottom_left", "bottom_right", "top_left", "resolution"}
 SPLIT, BOUNDS, PASS = 0, 3, 4
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of arrays of 3-vectors (last axis), without its generic overhead: a frame
+    builds its planes from a few hundred of them."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def _vec3(value: Any, what: str) -> np.ndarray:
     return np.array(as_vector(value, 3, what))
 
@@ -185,7 +195,7 @@ class ScreensWall:
         # from the eye)
         starts = q[:, [3, 1, 2, 0]]
         ends = q[:, [0, 2, 3, 1]]
-        normal = np.cross(ends - starts, starts - eye)
+        normal = cross(ends - starts, starts - eye)
         normal /= np.linalg.norm(normal, axis=2, keepdims=True)
         sides = np.concatenate([normal, -(normal @ eye)[..., None]], axis=2)
         n = self.basis[:, 2]
@@ -232,15 +242,15 @@ def hull_cone(directions: np.ndarray) -> np.ndarray | None:
     depth = d @ axis
     if not depth.min() > 1e-6:
         return None
-    a = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
+    a = cross(axis, np.array([1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0]))
     a /= np.linalg.norm(a)
-    b = np.cross(axis, a)
+    b = cross(axis, a)
     image = np.stack([d @ a, d @ b], axis=1) / depth[:, None]
     hull = hull_indices(image)
     if len(hull) < 3:
         return None
     rays = d[hull]
-    normals = np.cross(rays, np.roll(rays, -1, axis=0))  # CCW hull: the inside is on the left
+    normals = cross(rays, np.roll(rays, -1, axis=0))  # CCW hull: the inside is on the left
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     if (normals @ axis < 0).all():
         normals = -normals
@@ -331,7 +341,7 @@ class ScreenHierarchy:
         and its edge, facing its first child, and whether it still separates its children's
         screens from this eye (False for other nodes)."""
         a, b = self.edge_a - eye, self.edge_b - eye
-        normal = np.cross(a, b)
+        normal = cross(a, b)
         length = np.linalg.norm(normal, axis=1, keepdims=True)
         split = (self.mode == SPLIT) & (length[:, 0] > 0)
         normal = np.where(length > 0, normal / np.where(length > 0, length, 1), 0.0)

@@ -41,6 +41,7 @@ REGISTRY: dict[str, Experiment] = {
     "real": _module("real"),
     "frusta": _module("frusta"),
     "frame": _module("frame"),
+    "walls": _module("walls"),
     "scale": _module("scale"),
 }
 
