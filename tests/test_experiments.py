@@ -174,6 +174,22 @@ def test_frame(out):
         assert per["greedy"]["coverage_mean"] > per["sphere"]["coverage_mean"]
 
 
+def test_walls(out):
+    result = E.run("walls", out, quick=True, progress=False)
+    r = check_output(out, "walls", result)
+    assert set(r["walls"]) == {"8 x 8 grid", "angled, 3 panels", "CAVE + floor, 5",
+                               "CAVE2-like, 72"}
+    for w in r["walls"].values():
+        for eyes in ("mono", "stereo"):
+            per = w[eyes]
+            assert per["adaptive"]["nodes_per_frame"] > 0
+            assert per["fh"]["tests_per_frame"] > 0
+        # two eyes see at least what one does (the same frames, the eyes about the head)
+        assert w["stereo"]["fh"]["tests_per_frame"] >= w["mono"]["fh"]["tests_per_frame"]
+    cave2 = r["walls"]["CAVE2-like, 72"]["mono"]
+    assert cave2["adaptive"]["tests_per_frame"] < cave2["oh"]["tests_per_frame"]
+
+
 def test_oracle_bookkeeping_matches_bench_accuracy():
     """The experiments' memoized oracle counts what ``wallcull.bench.accuracy`` counts."""
     scene = C.Pristine("fatehpur").fresh()
