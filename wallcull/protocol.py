@@ -335,11 +335,36 @@ def apply(held: np.ndarray | None, pkt: dict, base: Any = _OWN) -> np.ndarray:
     else:
         if held is None:
             raise InputError(f"delta against frame {base}, whose list is not held")
-        keep = np.setdiff1d(held, np.asarray(pkt.get("removed", ()), dtype=np.int64),
-                            assume_unique=True)
-        out = np.union1d(keep, np.asarray(pkt.get("added", ()), dtype=np.int64))
+        out = _apply_delta(np.asarray(held, dtype=np.int64),
+                           np.asarray(pkt.get("removed", ()), dtype=np.int64),
+                           np.asarray(pkt.get("added", ()), dtype=np.int64))
     if len(out) != pkt["count"]:
         what = f"packet of frame {pkt['frame']}" if "frame" in pkt else \
             f"tile {pkt.get('tile')}'s list"
         raise InputError(f"{what} does not add up: {len(out)} leaves, count {pkt['count']}")
     return out
+
+
+@njit(cache=True)
+def _apply_delta(held, removed, added):
+    """``(held - removed) | added`` of sorted id arrays, sorted and unique, in one merge (what
+    ``np.union1d(np.setdiff1d(held, removed), added)`` gives, without its sorts)."""
+    out = np.empty(held.shape[0] + added.shape[0], np.int64)
+    i = j = k = n = 0
+    while i < held.shape[0] or k < added.shape[0]:
+        if k >= added.shape[0] or (i < held.shape[0] and held[i] < added[k]):
+            value = held[i]
+            i += 1
+            while j < removed.shape[0] and removed[j] < value:
+                j += 1
+            if j < removed.shape[0] and removed[j] == value:
+                continue
+        else:
+            value = added[k]
+            k += 1
+            if i < held.shape[0] and held[i] == value:
+                i += 1
+        if n == 0 or out[n - 1] != value:
+            out[n] = value
+            n += 1
+    return out[:n]

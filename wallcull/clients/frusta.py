@@ -77,6 +77,7 @@ class Frusta:
         held = self.held.get(base, {}) if base is not None else {}
         reversed_z = bool(message.get("reversed_z", False))
         now, out = {}, {}
+        shared = {}  # eye -> the matrix of the message's shared view: built once for all tiles
         for entry in message["tiles"]:
             tile = entry["tile"]
             parts = {None: (entry, message.get("view"))}
@@ -91,7 +92,13 @@ class Frusta:
                                        f"{base}, which is not held")
                     now[tile, eye, key] = value
                 depth = now[tile, eye, "depth"]
-                matrices[eye] = {"view": view(part.get("view", shared_view)),
+                if "view" in part:
+                    matrix = view(part["view"])
+                else:
+                    if eye not in shared:
+                        shared[eye] = view(shared_view)
+                    matrix = shared[eye]
+                matrices[eye] = {"view": matrix,
                                  "projection": projection(now[tile, eye, "extent"], depth,
                                                           reversed_z),
                                  "near": float(depth[0]), "far": float(depth[1])}
