@@ -18,7 +18,7 @@ import numpy as np
 from . import oracle, workers
 from .cull import METHODS
 from .errors import InputError
-from .encode import frame_packets
+from .encode import frame_packets, node_entries
 from .fit import FRUSTUM, FitOptions
 from .paths import scene_path
 from .pipeline import Session
@@ -83,6 +83,10 @@ class Motion:
         return out
 
 
+#: The stages of a frame ``bench --json`` reports: ``encode`` is every tile's entry of the
+#: frame's node messages, encoded once in one compiled pass as the node streams and NATS send
+#: them (a node's message is then a slice of it behind a shared head); ``encode_packets``, not
+#: in ``total``, is every tile's packet as the per-tile streams and ``GET .../packets`` send it.
 STAGES = ("cull", "leaves", "fit", "encode", "total")
 
 
@@ -95,8 +99,9 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     with ``fit``, the fitted frusta are timed too, and the depth precision they buy. With
     ``stages``, the whole frame as the server makes it (the fitted frusta with ``fit`` or the
     server's defaults): ``cull``, ``leaves`` (the per-tile leaf lists), ``fit``, ``encode``
-    (every tile's msgpack packet, a delta against the previous frame as a streaming node gets
-    it) and their ``total``."""
+    (every tile's entry of the node messages, a delta against the previous frame as a
+    streaming node gets it) and their ``total``, and ``encode_packets`` (every tile's packet,
+    as a per-tile stream gets it; see :data:`STAGES`)."""
     session = Session(scene, wall, method, bounds, pseudo_groups,
                       fit or (FitOptions() if stages else None))
     history, tiles, packet_bytes = History(4), np.arange(wall.tiles), []
@@ -107,9 +112,11 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             history.add(FrameRecord(k, 0.0, *result.leaves, result.fits, none, none,
                                     np.zeros((0, 4, 4))))
             frame_packets(history, k, tiles, k - 1 if k else None)
+            node_entries(history, k, k - 1 if k else None)
     history = History(4)
     times, refits, tests, pairs, fits, ratios, coverages = [], [], [], [], [], [], []
-    stage_ms = {name: [] for name in STAGES}
+    stage_ms = {name: [] for name in (*STAGES, "encode_packets")}
+    entry_bytes = []
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
@@ -129,13 +136,17 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             history.add(FrameRecord(k, time.time(), *result.leaves, result.fits, none, none,
                                     np.zeros((0, 4, 4))))
             t0 = time.perf_counter()
+            entries = node_entries(history, k, k - 1 if k else None)
+            t1 = time.perf_counter()
             sent = frame_packets(history, k, tiles, k - 1 if k else None)
-            encode_ms = (time.perf_counter() - t0) * 1e3
+            t2 = time.perf_counter()
             packet_bytes.append(sent.nbytes)
-            timings = {**result.timings, "encode_ms": encode_ms}
+            entry_bytes.append(len(entries.data))
+            timings = {**result.timings, "encode_ms": (t1 - t0) * 1e3}
             for name in STAGES[:-1]:
                 stage_ms[name].append(timings[f"{name}_ms"])
             stage_ms["total"].append(sum(timings[f"{name}_ms"] for name in STAGES[:-1]))
+            stage_ms["encode_packets"].append((t2 - t1) * 1e3)
         stats = result.visibility.stats
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])
@@ -162,6 +173,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
                                 "p99_ms": float(np.percentile(v, 99))}
                          for name, v in stage_ms.items()}
         out["stages"]["packet_bytes_per_frame"] = float(np.median(packet_bytes))
+        out["stages"]["node_entry_bytes_per_frame"] = float(np.median(entry_bytes))
     return out
 
 

@@ -76,8 +76,11 @@ def report(ctx: Context, data: dict) -> str:
     md = ["## The whole frame\n",
           "What a tile waits for each frame, stage by stage, as the server makes it: the "
           "culling, the per-tile leaf lists, the fitted frusta (shadows and mirrors included "
-          "when the scene declares lights and mirrors) and every tile's packet encoded as a "
-          "delta against the previous frame (`wallcull/encode.py`). The power plant's orbit, "
+          "when the scene declares lights and mirrors) and every tile's entry of the node "
+          "messages encoded as a delta against the previous frame, in one compiled pass, as "
+          "the node streams and NATS send them (`wallcull/encode.py`; the last column is the "
+          "per-tile packets of the tile streams instead, not in the total). The power plant's "
+          "orbit, "
           f"adaptive, OBBs; the per-tile fits run on {data['threads']} threads "
           "(`WALLCULL_THREADS`). The same numbers as `wallcull bench --json` under `stages`:\n",
           "    wallcull bench powerplant --wall examples/wall-8x8.json --methods adaptive "
@@ -86,9 +89,10 @@ def report(ctx: Context, data: dict) -> str:
     for key, s in data["stages"].items():
         rows.append([key, *(f"{s[k]['median_ms']:.3f}" for k in STAGES),
                      f"**{s['total']['median_ms']:.3f}** / {s['total']['p99_ms']:.3f}",
-                     C.nbytes(s["packet_bytes_per_frame"])])
+                     C.nbytes(s["node_entry_bytes_per_frame"]),
+                     f"{s['encode_packets']['median_ms']:.3f}"])
     md.append(C.table(["wall / settings", *(f"{k} ms" for k in STAGES), "total ms median / p99",
-                       "packets per frame"], rows))
+                       "node entries per frame", "per-tile packets ms"], rows))
     fig, axes = plt.subplots(1, len(WALLS), figsize=(10, 2.8))
     for ax, (cols, rows) in zip(axes, WALLS):
         keys = [k for k in data["stages"] if k.startswith(f"{cols}x{rows} /")]
