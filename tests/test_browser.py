@@ -410,7 +410,6 @@ def test_console_screenshot(server, http, browser):
         console.wait_for_function(f"window.wallcull.status.ack.every(a => a === {number})",
                                   timeout=30_000)
         console.screenshot(path=str(ROOT / "docs" / "console.png"))
-        views[0].screenshot(path=str(ROOT / "docs" / "view.png"))
     finally:
         for p in (console, *views):
             p.close()
