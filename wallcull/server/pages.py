@@ -45,7 +45,18 @@ MAX_CONSOLES = 32
 TILES = r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$"
 
 WallId = Annotated[str, Path(pattern=WALL_ID)]
-HTML_PAGE = {200: {"description": "An HTML page", "content": {"text/html": {}}}}
+
+
+def _html_or_refusals(*codes: int) -> dict:
+    """OpenAPI ``responses`` of a page: HTML, or a refusal in JSON (said so: a route whose
+    response class is HTML would otherwise document its refusals as HTML)."""
+    out = {200: {"description": "An HTML page", "content": {"text/html": {
+        "schema": {"type": "string"}}}}}
+    for code, response in refusals(*codes).items():
+        response.pop("model", None)
+        out[code] = {**response, "content": {"application/json": {
+            "schema": {"$ref": "#/components/schemas/Detail"}}}}
+    return out
 
 
 def _page(title: str, script: str, config: dict, body: str) -> HTMLResponse:
@@ -64,7 +75,7 @@ def _page(title: str, script: str, config: dict, body: str) -> HTMLResponse:
 
 
 @router.get("/walls/{wid}/view", response_class=HTMLResponse, operation_id="viewPage",
-            responses={**HTML_PAGE, **refusals(404)})
+            responses=_html_or_refusals(404))
 async def view_page(request: Request, state: State, wid: WallId,
                     tiles: Annotated[str | None, Query(pattern=TILES, max_length=4000)] = None,
                     token: Annotated[str | None, Query(max_length=512)] = None,
@@ -96,7 +107,7 @@ async def view_page(request: Request, state: State, wid: WallId,
 
 
 @router.get("/walls/{wid}/console", response_class=HTMLResponse, operation_id="consolePage",
-            responses={**HTML_PAGE, **refusals(404)})
+            responses=_html_or_refusals(404))
 async def console_page(request: Request, state: State, wid: WallId):
     """The operator's console: the wall to scale as it stands in the room, each tile's list
     size, frame latency and state, updated a few times a second

@@ -207,7 +207,7 @@ function mesh(m) {  // a mesh by number: fetched once (the HTTP cache keeps it b
       shift[0] = shift[5] = shift[10] = shift[15] = 1;
       [shift[3], shift[7], shift[11]] = center;
       return { vao, count: faces.length, shift };
-    }));
+    }).catch((e) => { scene.meshes.delete(m); throw e; }));  // asked again next frame
   }
   return scene.meshes.get(m);
 }
