@@ -134,7 +134,10 @@ def create_wall(http, wall: dict, nodes=None, scene: str = SCENE) -> dict:
 
 
 def post(http, wid: str, frame: dict) -> int:
-    r = http.post(f"/walls/{wid}/frames", json={"frame": frame}, headers=AUTH)
+    """Post a frame (its ``updates``, if any, go beside it); its number."""
+    frame = dict(frame)
+    body = {"frame": frame, "updates": frame.pop("updates", {})}
+    r = http.post(f"/walls/{wid}/frames", json=body, headers=AUTH)
     assert r.status_code == 200, r.text
     return r.json()["frame"]
 
@@ -170,7 +173,7 @@ class Reference:
 
         self.http, self.renderers, self.TileRenderer = http, {}, TileRenderer
         nodes = http.get(f"/scenes/{scene}?nodes=true").json()["nodes"]
-        self.mesh = nodes["mesh"]
+        self.mesh, self.names = nodes["mesh"], nodes["name"]
         self.world = np.asarray(nodes["world"], np.float64).reshape(-1, 4, 4)
         self.meshes = {}
         for key in sorted({k for k in self.mesh if k is not None}):
@@ -189,7 +192,11 @@ class Reference:
             for key, mesh in self.meshes.items():
                 renderer.upload(key, mesh.vertices, mesh.faces)
         part = pkt if eye is None else pkt[eye]
-        draws = [(self.mesh[leaf], self.world[leaf], leaf + 1) for leaf in pkt["visible"]
+        world = self.world.copy()
+        moved = pkt.get("transforms")  # a full packet's: every moved leaf it lists
+        if moved:
+            world[moved["ids"]] = np.asarray(moved["matrices"], np.float64).reshape(-1, 4, 4)
+        draws = [(self.mesh[leaf], world[leaf], leaf + 1) for leaf in pkt["visible"]
                  if self.mesh[leaf] is not None]
         return self.renderers[width, height].render(draws, part["view"],
                                                     part["projection"]).ids
@@ -237,9 +244,23 @@ def turn(degrees: float) -> list[float]:
     return [float(np.cos(half)), 0.0, float(np.sin(half)), 0.0]
 
 
-#: Frames in the middle of the blocks: the second reaches the page as a delta.
+def in_front(frame: dict, offset) -> list:
+    """A node's matrix (rows) that puts it at ``offset`` in the display space of ``frame``."""
+    w, x, y, z = frame["orientation"]
+    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    m = np.eye(4)
+    m[:3, 3] = rotation @ np.asarray(offset, float) + frame["position"]
+    return m.tolist()
+
+
+#: Frames in the middle of the blocks: the second reaches the page as a delta, the third also
+#: moves a block (b0, from a corner of the lattice) into the view of grid tile 5.
 BLOCK_FRAMES = [{"position": [2, 2, 14], "orientation": [1, 0, 0, 0]},
                 {"position": [2, -2, 10], "orientation": turn(8), "eye": [0.1, 0, 0.2]}]
+BLOCK_FRAMES.append({**BLOCK_FRAMES[1], "updates": {
+    "b0": {"matrix": in_front(BLOCK_FRAMES[1], [-0.9, 0.5, -6])}}})
 
 
 def compare_frames(http, browser, server, references, scene, wid, frames, tiles, size, token,
@@ -254,15 +275,18 @@ def compare_frames(http, browser, server, references, scene, wid, frames, tiles,
             number = post(http, wid, frame)
             wait_acked(page, number)
             assert page.evaluate("window.wallcull.drawn") == number
+            drawn = {}
             for tile in tiles:
                 want = references(scene).ids(references(scene).packet(wid, tile, number), w, h)
-                check_tile(browser_ids(page, tile), want, f"{what} {tile}, frame {number}", bar)
+                drawn[tile] = browser_ids(page, tile)
+                check_tile(drawn[tile], want, f"{what} {tile}, frame {number}", bar)
             state = barrier(http, wid, number)  # the page's acknowledgements, and no other
             assert state["acked"] == len(tiles) and not state["complete"]
         assert page.evaluate("window.wallcull.fulls") == 0  # every delta applied
         assert page.wallcull_errors == []
-        return page.evaluate("[document.getElementById('wall').width, "
-                             "document.getElementById('wall').height]")
+        canvas = page.evaluate("[document.getElementById('wall').width, "
+                               "document.getElementById('wall').height]")
+        return canvas, drawn  # the canvas size, the last frame's ids by tile
     finally:
         page.close()
         http.delete(f"/walls/{wid}", headers=AUTH)
@@ -275,15 +299,39 @@ def test_grid_tiles_match_the_reference_renderer(server, http, browser, referenc
     info = create_wall(http, GRID, nodes=[[5, 6]], scene=blocks)
     token = next(n["token"] for n in info["credentials"]["nodes"] if n["tiles"] == [5, 6])
     # no ?tiles=: the node credential's own, side by side in one canvas
-    canvas = compare_frames(http, browser, server, references, blocks, info["id"], BLOCK_FRAMES,
-                            (5, 6), (640, 360), token, "grid tile")
+    canvas, drawn = compare_frames(http, browser, server, references, blocks, info["id"],
+                                   BLOCK_FRAMES, (5, 6), (640, 360), token, "grid tile")
     assert canvas == [1280, 360]
+    b0 = references(blocks).names.index("b0")
+    assert (drawn[5] == b0 + 1).mean() > 0.01  # the block moved into view, where it went
+
+
+def test_a_page_that_lost_its_lists_asks_for_full_ones(server, http, browser, references,
+                                                      blocks):
+    wid = create_wall(http, GRID, scene=blocks)["id"]
+    w, h = 160, 90
+    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=5&token={TOKEN}&ids=1"
+                              f"&size={w}x{h}")
+    try:
+        wait_acked(page, post(http, wid, BLOCK_FRAMES[0]))
+        page.evaluate("window.wallcull.forget()")
+        lost = post(http, wid, BLOCK_FRAMES[1])  # a delta against frame 0, which it dropped
+        page.wait_for_function("window.wallcull.fulls === 1", timeout=30_000)
+        assert page.evaluate("window.wallcull.acked") < lost
+        number = post(http, wid, BLOCK_FRAMES[2])  # comes as full lists
+        wait_acked(page, number)
+        ref = references(blocks)
+        check_tile(browser_ids(page, 5), ref.ids(ref.packet(wid, 5, number), w, h),
+                   "grid tile 5 after full lists", bar=AGREE)
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
 
 
 def test_cave_screens_match_the_reference_renderer(server, http, browser, references, blocks):
     wid = create_wall(http, CAVE, scene=blocks)["id"]
-    compare_frames(http, browser, server, references, blocks, wid, BLOCK_FRAMES, (0, 1, 4),
-                   (512, 512), TOKEN, "CAVE screen", query="&tiles=0,1,4")
+    compare_frames(http, browser, server, references, blocks, wid, BLOCK_FRAMES[:2],
+                   (0, 1, 4), (512, 512), TOKEN, "CAVE screen", query="&tiles=0,1,4")
 
 
 def test_the_power_plant_too(server, http, browser, references):

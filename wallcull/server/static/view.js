@@ -13,7 +13,10 @@
 const cfg = JSON.parse(document.getElementById("wallcull-config").textContent);
 const status = document.getElementById("status");
 const canvas = document.getElementById("wall");
-const api = window.wallcull = { drawn: -1, acked: -1, fulls: 0, errors: [], readIds };
+// window.wallcull: the newest frame drawn and acknowledged, full lists asked for, errors;
+// readIds(tile); forget(): drop the lists held, as a node that lost its memory (for tests)
+const api = window.wallcull = { drawn: -1, acked: -1, fulls: 0, errors: [], readIds,
+                                forget: () => node.lists.clear() };
 
 function say(text, error = false) {  // a note in a corner, hidden while frames come
   status.textContent = text;
