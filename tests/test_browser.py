@@ -424,18 +424,23 @@ def test_console_follows_frames_and_acks(server, http, browser):
         http.delete(f"/walls/{wid}", headers=AUTH)
 
 
-def test_console_of_a_cave_is_a_top_view(server, http, browser):
-    wid = create_wall(http, CAVE)["id"]
+@pytest.mark.parametrize("name, tiles", [("cave", 5), ("angled", 3)])
+def test_console_of_screens_around_the_viewer_is_a_top_view(server, http, browser, name, tiles):
+    wall = json.loads((ROOT / "examples" / f"wall-{name}.json").read_text())
+    wid = create_wall(http, wall)["id"]
     console = open_page(browser, f"{server}/walls/{wid}/console")
     try:
         console.wait_for_function("window.wallcull && window.wallcull.updates > 0",
                                   timeout=30_000)
-        assert console.locator("#plan .tile").count() == 5
-        assert console.locator("#plan .viewer").count() == 1  # the viewer, inside
-        # seen from above: the floor is an area, each wall a line (a polygon of no area)
-        boxes = [console.locator(f"#tile-{t} polygon").bounding_box() for t in range(5)]
-        floor = boxes[4]
-        assert floor["width"] > 100 and floor["height"] > 100
+        assert console.locator("#plan .tile").count() == tiles
+        assert console.locator("#plan .viewer").count() == 1  # the viewer, seen from above
+        boxes = [console.locator(f"#tile-{t} polygon").bounding_box() for t in range(tiles)]
+        if name == "cave":  # the floor is an area, each wall a line around it
+            floor = boxes[4]
+            assert floor["width"] > 100 and floor["height"] > 100
+            for wall_box in boxes[:4]:
+                assert min(wall_box["width"], wall_box["height"]) < 0.1 * floor["width"]
+        assert console.wallcull_errors == []
     finally:
         console.close()
         http.delete(f"/walls/{wid}", headers=AUTH)

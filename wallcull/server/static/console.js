@@ -61,10 +61,12 @@ function drawPlan(wall) {
     el("polygon", { points: q.map((p) => p.join(",")).join(" "), "stroke-width": thin ? extent * 0.02 : extent * 0.002 }, g);
     let [cx, cy] = [q.reduce((s, p) => s + p[0], 0) / 4, q.reduce((s, p) => s + p[1], 0) / 4];
     const edge = Math.min(Math.hypot(...sub(q[1], q[0])), Math.hypot(...sub(q[3], q[0])));
-    let size = front ? edge * 0.2 : (thin ? extent * 0.03 : Math.max(edge * 0.06, extent * 0.03));
+    const size = front ? edge * 0.2 : extent * 0.03;
     if (thin) {  // a wall seen from above: its label on the side it faces
       const n = project(normals[t]), k = Math.hypot(...n) || 1;
       [cx, cy] = [cx + n[0] / k * extent * 0.07, cy + n[1] / k * extent * 0.07];
+    } else if (!front) {
+      cy += 3 * size;  // a floor or a ceiling: clear of the viewer, at the origin
     }
     const text = (cls, dy, value) => { const e = el("text", { class: cls, x: cx, y: cy + dy * size, "font-size": size }, g); e.textContent = value; return e; };
     groups[t] = { g, name: text("name", -1.1, `#${t}`), count: text("count", 0, "-"), latency: text("latency", 1.1, "") };
