@@ -58,7 +58,8 @@ function drawPlan(wall) {
   for (const t of order) {
     const q = flat[t], g = el("g", { class: "tile offline", id: `tile-${t}`, "data-tile": t }, plan);
     const thin = area(q) < 1e-3 * extent * extent;
-    el("polygon", { points: q.map((p) => p.join(",")).join(" "), "stroke-width": thin ? extent * 0.02 : extent * 0.002 }, g);
+    el("polygon", { points: q.map((p) => p.join(",")).join(" "), class: thin ? "thin" : "",
+                    "stroke-width": thin ? extent * 0.02 : extent * 0.002 }, g);
     let [cx, cy] = [q.reduce((s, p) => s + p[0], 0) / 4, q.reduce((s, p) => s + p[1], 0) / 4];
     const edge = Math.min(Math.hypot(...sub(q[1], q[0])), Math.hypot(...sub(q[3], q[0])));
     const size = front ? edge * 0.2 : extent * 0.03;
