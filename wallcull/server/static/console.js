@@ -20,7 +20,8 @@ const unit = (a) => { const n = Math.hypot(...a) || 1; return a.map((x) => x / n
 
 function screensOf(wall) {  // every tile as 4 corners in display space (SPEC 2, 2b)
   if (wall.screens) {
-    return wall.screens.map((s) => [s.bottom_left, s.bottom_right, add(s.top_left, sub(s.bottom_right, s.bottom_left)), s.top_left]);
+    return wall.screens.map((s) => [s.bottom_left, s.bottom_right,
+                                    add(s.top_left, sub(s.bottom_right, s.bottom_left)), s.top_left]);
   }
   const [w, h] = wall.tile_size, [gx, gy] = wall.gap || [0, 0], z = -wall.distance;
   const W = wall.cols * w + (wall.cols - 1) * gx, H = wall.rows * h + (wall.rows - 1) * gy;
@@ -69,8 +70,13 @@ function drawPlan(wall) {
     } else if (!front) {
       cy += 3 * size;  // a floor or a ceiling: clear of the viewer, at the origin
     }
-    const text = (cls, dy, value) => { const e = el("text", { class: cls, x: cx, y: cy + dy * size, "font-size": size }, g); e.textContent = value; return e; };
-    groups[t] = { g, name: text("name", -1.1, `#${t}`), count: text("count", 0, "-"), latency: text("latency", 1.1, "") };
+    const text = (cls, dy, value) => {
+      const e = el("text", { class: cls, x: cx, y: cy + dy * size, "font-size": size }, g);
+      e.textContent = value;
+      return e;
+    };
+    groups[t] = { g, name: text("name", -1.1, `#${t}`), count: text("count", 0, "-"),
+                  latency: text("latency", 1.1, "") };
   }
   if (!front) {
     el("circle", { class: "viewer", cx: 0, cy: 0, r: extent * 0.012 }, plan);

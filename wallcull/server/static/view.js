@@ -107,7 +107,9 @@ class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
         const value = {};
         for (const key of ["extent", "depth"]) {
           value[key] = part[key] ?? heldFrusta.get(`${tile}/${eye}/${key}`);
-          if (value[key] === undefined) throw new Error(`tile ${tile}: the delta's ${key} is that of frame ${base}, which is not held`);
+          if (value[key] === undefined) {
+            throw new Error(`tile ${tile}: the delta's ${key} is that of frame ${base}, which is not held`);
+          }
           now.set(`${tile}/${eye}/${key}`, value[key]);
         }
         eyes.push({ eye, view: rigid(part.view ?? shared),
@@ -191,10 +193,14 @@ function bytes(b64) {
 function mesh(m) {  // a mesh by number: fetched once (the HTTP cache keeps it by its ETag)
   if (!scene.meshes.has(m)) {
     const key = scene.keys[m];
-    scene.meshes.set(m, getJSON(`${cfg.root}/scenes/${encodeURIComponent(scene.name)}/meshes/${encodeURIComponent(key)}`).then((body) => {
+    const url = `${cfg.root}/scenes/${encodeURIComponent(scene.name)}/meshes/${encodeURIComponent(key)}`;
+    scene.meshes.set(m, getJSON(url).then((body) => {
       const v = new Float32Array(bytes(body.vertices.data)), faces = new Uint32Array(bytes(body.faces.data));
       const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-      for (let i = 0; i < v.length; i++) { lo[i % 3] = Math.min(lo[i % 3], v[i]); hi[i % 3] = Math.max(hi[i % 3], v[i]); }
+      for (let i = 0; i < v.length; i++) {
+        lo[i % 3] = Math.min(lo[i % 3], v[i]);
+        hi[i % 3] = Math.max(hi[i % 3], v[i]);
+      }
       const center = v.length ? lo.map((x, k) => (x + hi[k]) / 2) : [0, 0, 0];
       for (let i = 0; i < v.length; i++) v[i] -= center[i % 3];  // as render.py: float32 about the centre
       const vao = gl.createVertexArray();
@@ -242,7 +248,8 @@ function layout() {
     if (cfg.ids) {
       const fbo = gl.createFramebuffer(), rbs = [gl.createRenderbuffer(), gl.createRenderbuffer()];
       gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
-      for (const [rb, format, at] of [[rbs[0], gl.R32UI, gl.COLOR_ATTACHMENT0], [rbs[1], gl.DEPTH_COMPONENT24, gl.DEPTH_ATTACHMENT]]) {
+      const parts = [[rbs[0], gl.R32UI, gl.COLOR_ATTACHMENT0], [rbs[1], gl.DEPTH_COMPONENT24, gl.DEPTH_ATTACHMENT]];
+      for (const [rb, format, at] of parts) {
         gl.bindRenderbuffer(gl.RENDERBUFFER, rb);
         gl.renderbufferStorage(gl.RENDERBUFFER, format, w, h);
         gl.framebufferRenderbuffer(gl.FRAMEBUFFER, at, gl.RENDERBUFFER, rb);
@@ -256,7 +263,10 @@ function layout() {
 
 function drawTile(prog, frame, entry, x, y, w, h) {
   const reversed = frame.reversed;
-  if (clipControl) clipControl.clipControlEXT(clipControl.LOWER_LEFT_EXT, reversed ? clipControl.ZERO_TO_ONE_EXT : clipControl.NEGATIVE_ONE_TO_ONE_EXT);
+  if (clipControl) {  // reversed-Z: clip depth in [0, 1], as render.py's glClipControl
+    const c = clipControl;
+    c.clipControlEXT(c.LOWER_LEFT_EXT, reversed ? c.ZERO_TO_ONE_EXT : c.NEGATIVE_ONE_TO_ONE_EXT);
+  }
   gl.depthFunc(reversed ? gl.GREATER : gl.LESS);
   gl.useProgram(prog.p);
   const eyes = entry.eyes, ew = Math.floor(w / eyes.length);
@@ -340,7 +350,9 @@ async function drawPending() {
     const frame = pending;
     pending = null;
     const needed = new Set();
-    for (const e of frame.tiles) for (const leaf of e.leaves) if (scene.meshOf[leaf] >= 0) needed.add(scene.meshOf[leaf]);
+    for (const e of frame.tiles) {
+      for (const leaf of e.leaves) if (scene.meshOf[leaf] >= 0) needed.add(scene.meshOf[leaf]);
+    }
     for (const m of needed) if (!scene.ready.has(m)) scene.ready.set(m, await mesh(m));
     if (pending && pending.number > frame.number) continue;  // a newer frame came meanwhile
     draw(frame);
