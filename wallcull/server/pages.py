@@ -74,6 +74,23 @@ def _page(title: str, script: str, config: dict, body: str) -> HTMLResponse:
 """, headers={"Cache-Control": "no-store"})
 
 
+def _root(request: Request) -> str:
+    """The path the app is served under (uvicorn's ``--root-path``), for the pages' links."""
+    return html.escape(request.scope.get("root_path", "").rstrip("/"))
+
+
+def ranges(tiles: list[int]) -> str:
+    """Sorted tile ids as the short form streams take: ``[0, 1, 2, 5]`` -> ``"0-2,5"``."""
+    parts, k = [], 0
+    while k < len(tiles):
+        j = k
+        while j + 1 < len(tiles) and tiles[j + 1] == tiles[j] + 1:
+            j += 1
+        parts.append(str(tiles[k]) if j == k else f"{tiles[k]}-{tiles[j]}")
+        k = j + 1
+    return ",".join(parts)
+
+
 @router.get("/walls/{wid}/view", response_class=HTMLResponse, operation_id="viewPage",
             responses=_html_or_refusals(404))
 async def view_page(request: Request, state: State, wid: WallId,
@@ -99,8 +116,8 @@ async def view_page(request: Request, state: State, wid: WallId,
         grant = state.walls.grant(token) if token else None
         chosen = sorted(grant.tiles) if grant is not None and grant.wall == wid else \
             list(range(count))
-    root = request.scope.get("root_path", "")
-    config = {"root": root, "wall": wid, "tiles": chosen, "token": token, "ids": ids,
+    config = {"root": _root(request), "wall": wid, "tiles": chosen, "spec": ranges(chosen),
+              "token": token, "ids": ids,
               "size": [int(v) for v in size.split("x")] if size else None}
     return _page(f"wallcull {wid}: tiles {tiles or 'all'}", "view.js", config,
                  '<canvas id="wall"></canvas><div id="status">connecting</div>')
@@ -113,7 +130,7 @@ async def console_page(request: Request, state: State, wid: WallId):
     size, frame latency and state, updated a few times a second
     (``WS /walls/{wid}/console/stream``)."""
     state.walls.get(wid)
-    config = {"root": request.scope.get("root_path", ""), "wall": wid}
+    config = {"root": _root(request), "wall": wid}
     return _page(f"wallcull console {wid}", "console.js", config,
                  '<header><h1>wall <code></code></h1><p id="summary">connecting</p></header>'
                  '<main><svg id="plan" xmlns="http://www.w3.org/2000/svg"></svg>'

@@ -378,7 +378,7 @@ function connect() {
   const url = new URL(`${cfg.root}/walls/${cfg.wall}/nodes/stream`, location.href);
   url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
   url.searchParams.set("format", "json");
-  url.searchParams.set("tiles", cfg.tiles.join(","));
+  url.searchParams.set("tiles", cfg.spec);
   if (cfg.token) url.searchParams.set("token", cfg.token);
   node.reset();
   socket = new WebSocket(url);
