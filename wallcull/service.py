@@ -281,6 +281,11 @@ def mesh_blob(scene: Scene, key: str) -> MeshBlob:
 
 # --------------------------------------------------------------------------- walls
 
+#: Console states (:meth:`WallSession.status`): a tile with no stream is offline once its last
+#: ack is this old (s); a tile is lagging when the newest frame it has not drawn is this old
+#: (s), or when it is more than this many frames behind.
+LIVE, LAG, LAG_FRAMES = 5.0, 0.5, 8
+
 
 @dataclass
 class WallSession:
@@ -291,6 +296,7 @@ class WallSession:
     history: protocol.History
     created: float = field(default_factory=time.time)
     acks: np.ndarray = None  # per tile, last acknowledged frame (-1: none)
+    acked_at: np.ndarray = None  # per tile, server clock when its newest ack came (0: never)
     subscribers: int = 0
     closed: bool = False
     #: the newest frame number handed out before a restart: numbers continue after it
@@ -310,6 +316,7 @@ class WallSession:
 
     def __post_init__(self):
         self.acks = np.full(self.wall.tiles, -1, dtype=np.int64)
+        self.acked_at = np.zeros(self.wall.tiles)
         self._ever_moved = np.zeros(0, dtype=np.int64)
 
     @property
@@ -501,8 +508,39 @@ class WallSession:
             raise Conflict(f"cannot acknowledge frame {number}: latest is {self.latest}")
         if (self.acks[tiles] < number).any():
             self.acks[tiles] = np.maximum(self.acks[tiles], number)
+            self.acked_at[tiles] = time.time()
             old, self._new_ack = self._new_ack, asyncio.Event()
             old.set()
+
+    def status(self, now: float | None = None) -> dict:
+        """What the operator console shows (:mod:`wallcull.server.pages`), per tile as columns:
+        the newest frame's list size, the newest acknowledged frame, the latency of that
+        acknowledgement (from the frame's post to the ack, ms; null once the frame has left
+        the history), the streams open, and a state: ``offline`` (no stream, no ack for
+        ``LIVE`` seconds), ``waiting`` (no frame yet), ``acked`` (the newest frame is drawn),
+        ``drawing`` (not yet) or ``lagging`` (more than ``LAG`` seconds or ``LAG_FRAMES``
+        frames behind). Numpy over the tiles: cheap, and off the frame path."""
+        now = time.time() if now is None else now
+        latest = self.latest
+        record = self.history.get(latest)
+        tiles = self.wall.tiles
+        counts = np.diff(record.start) if record is not None else np.zeros(tiles, np.int64)
+        acks, streams = self.acks, np.zeros(tiles, np.int64)
+        for t, n in self.streams.items():
+            streams[t] = n
+        posted = {n: r.time for n, r in self.history.frames.items()}
+        latency = [round((at - posted[a]) * 1e3, 2) if a in posted and at > 0 else None
+                   for a, at in zip(acks.tolist(), self.acked_at.tolist())]
+        live = (streams > 0) | (now - self.acked_at < LIVE)
+        behind = (latest - acks > LAG_FRAMES) | \
+            ((acks < latest) & (record is not None and now - record.time > LAG))
+        state = np.where(~live, "offline", np.where(
+            latest < 0, "waiting", np.where(acks >= latest, "acked",
+                                            np.where(behind, "lagging", "drawing"))))
+        return {"wall": self.id, "frame": latest, "time": now,
+                "posted": None if record is None else record.time,
+                "count": counts.tolist(), "ack": acks.tolist(), "latency_ms": latency,
+                "streams": streams.tolist(), "state": state.tolist()}
 
     def barrier_state(self, number: int) -> dict:
         acked = int((self.acks >= number).sum())

@@ -6,6 +6,8 @@ is in :mod:`wallcull.service`.
 * :mod:`.streams`: the WebSocket streams: a tile's, a render node's, a driver's frames;
 * :mod:`.nats`: the same node messages published on a NATS broker, acks taken back;
 * :mod:`.asyncapi`: the streams' messages, as an AsyncAPI document (``/asyncapi.json``);
+* :mod:`.pages`: the browser pages: a render node's tile client (WebGL2) and the operator
+  console, with the console's status stream;
 * :mod:`.gate`: what every request passes first: ``OPTIONS``, origins, tokens, body limits;
 * :mod:`.access`, :mod:`.http`, :mod:`.deps`, :mod:`.models`, :mod:`.openapi`,
   :mod:`.metrics`: what the routes share.
@@ -34,7 +36,7 @@ from ..errors import InputError
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from ..service import Conflict, Gone, NotFound, SceneStore, Walls, settled
-from . import asyncapi, openapi, scenes, streams, walls
+from . import asyncapi, openapi, pages, scenes, streams, walls
 from .deps import ServerState
 from .gate import Gate
 from .http import Refused, refusal_detail, status_handler
@@ -136,7 +138,7 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     async def prometheus():
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
-    for module in (scenes, walls, streams):
+    for module in (scenes, walls, streams, pages):
         app.include_router(module.router)
     return app
 

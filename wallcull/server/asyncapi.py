@@ -2,7 +2,8 @@
 lab implements in C++, C# or JavaScript to be a render node or a tracker.
 
 Channels: a tile's WebSocket stream (packets), a render node's (node messages), the frame
-stream of a driver, and the NATS subjects (:mod:`.nats`). The message schemas are JSON Schema
+stream of a driver, the operator console's status stream (:mod:`.pages`), and the NATS
+subjects (:mod:`.nats`). The message schemas are JSON Schema
 (2020-12) of :mod:`wallcull.protocol`'s packets and node messages, strict (no key they do not
 list); the tests validate what the server sends, on every channel, against them.
 """
@@ -104,6 +105,23 @@ SCHEMAS["FrameAnswer"] = _strict(
 SCHEMAS["FrameRefused"] = _strict({"error": {"type": "string"}, "status": INT},
                                   ("error", "status"))
 SCHEMAS["Empty"] = {"description": "an empty request"}
+_COLUMN = "per tile, in tile order: "
+SCHEMAS["ConsoleStatus"] = _strict(
+    {"wall": {"type": "string"}, "frame": {"type": "integer", "minimum": -1},
+     "time": NUMBER, "posted": {"type": ["number", "null"]},
+     "count": {"type": "array", "items": INT, "description": _COLUMN + "list size"},
+     "ack": {"type": "array", "items": {"type": "integer", "minimum": -1},
+             "description": _COLUMN + "the newest frame acknowledged (-1: none)"},
+     "latency_ms": {"type": "array", "items": {"type": ["number", "null"]},
+                    "description": _COLUMN + "from that frame's post to its ack, ms"},
+     "streams": {"type": "array", "items": INT, "description": _COLUMN + "streams open"},
+     "state": {"type": "array", "items": {"enum": ["offline", "waiting", "drawing", "acked",
+                                                   "lagging"]},
+               "description": _COLUMN + "offline, waiting (no frame yet), drawing, acked "
+                                        "(has drawn the newest frame) or lagging"}},
+    ("wall", "frame", "time", "posted", "count", "ack", "latency_ms", "streams", "state"),
+    "a wall's state for the operator console (JSON), whenever it changes; frame: the "
+    "newest (-1: none yet), posted: its server time, time: now (s since the epoch)")
 
 
 def _definitions() -> dict:
@@ -133,6 +151,8 @@ MESSAGES = {
     "frameAnswer": _message("FrameAnswer", "The frame's number and timings"),
     "frameRefused": _message("FrameRefused", "Why a frame was refused"),
     "empty": _message("Empty", "An empty request"),
+    "consoleStatus": {**_message("ConsoleStatus", "A wall's state, for the console"),
+                      "contentType": "application/json"},
 }
 
 
@@ -162,6 +182,11 @@ CHANNELS = {
                     "parameters": _params("wid"),
                     "messages": _ref("framePost", "frameAnswer", "frameRefused"),
                     "bindings": {"ws": {"method": "GET"}}},
+    "consoleStream": {"address": "/walls/{wid}/console/stream",
+                      "title": "The operator console's status of a wall (WebSocket, JSON; "
+                               "open, like GET /walls/{wid})",
+                      "parameters": _params("wid"), "messages": _ref("consoleStatus"),
+                      "bindings": {"ws": {"method": "GET"}}},
     "natsNode": {"address": "{prefix}.{wid}.node.{first}", "title": "NATS: a node's messages",
                  "parameters": _params("prefix", "wid", "first"),
                  "messages": _ref("nodeMessage")},
@@ -191,6 +216,7 @@ OPERATIONS = {
     "nodeControl": _op("receive", "nodeStream", "control"),
     "postFrames": _op("receive", "frameStream", "framePost",
                       reply=("frameAnswer", "frameRefused")),
+    "consoleStatus": _op("send", "consoleStream", "consoleStatus"),
     "publishNodeMessages": _op("send", "natsNode", "nodeMessage"),
     "takeAcks": _op("receive", "natsAck", "control"),
     "answerFull": _op("receive", "natsFull", "empty", reply=("nodeMessage", "streamError")),

@@ -26,6 +26,7 @@ class ServerState:
     bridge: Any = None  # the NATS bridge (wallcull.server.nats), when there is a broker
     streams: int = 0  # WebSocket streams open, on every wall
     uploads: int = 0  # uploads being received or parsed
+    consoles: int = 0  # operator consoles open (wallcull.server.pages)
     operator: str | None = field(init=False, default=None)
 
     def __post_init__(self, token):

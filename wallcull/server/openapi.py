@@ -46,7 +46,7 @@ def document(app, secured: bool) -> dict:
                       routes=app.routes)
     models = {}
     for route in leaf_routes(app.router.routes):
-        if not isinstance(route, APIRoute):
+        if not isinstance(route, APIRoute) or not route.include_in_schema:
             continue
         for method in route.methods:
             op = doc["paths"][route.path_format][method.lower()]

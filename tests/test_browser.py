@@ -1,0 +1,469 @@
+"""The browser pages in a real headless Chromium (Playwright), against a real ``wallcull serve``
+on loopback with a token:
+
+* the tile client (``/walls/{wid}/view``) opened with a node credential draws its tiles, frame
+  after frame (full lists, then deltas), and acknowledges each (the barrier counts them); its
+  id buffer agrees on >= 99.7 % of pixels with ``clients.render`` drawing the same tile (the
+  server's matrices and list, same size), on grid tiles and on CAVE screens; a stereo frame
+  draws each eye in its half of the tile;
+* the scene of those comparisons is ``blocks``, made here: 1,330 boxes and spheres on a
+  lattice around the viewer, none touching. On the power plant, whose beams meet and overlap
+  everywhere, which of two coincident faces wins a pixel is the rasterizer's own precision
+  (SwiftShader's float depth and coarser sub-pixel grid against llvmpipe's), 0.01 to 0.25 %
+  of pixels at 640 x 360 (up to 1.2 % at 320 x 180); it is checked too, at 99 %;
+* the operator console (``/walls/{wid}/console``) draws one element per tile and its numbers
+  follow the frames and the acknowledgements.
+
+``WALLCULL_SCREENSHOT=1`` also saves the console of a 4 x 4 wall with every tile drawn by the
+client as ``docs/console.png`` (the README's picture).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import secrets
+import shutil
+from pathlib import Path
+from urllib.parse import quote
+
+import numpy as np
+import pytest
+
+try:
+    from playwright.sync_api import sync_playwright
+except ImportError:  # pragma: no cover - reported as the skip reason
+    sync_playwright = None
+
+ROOT = Path(__file__).resolve().parent.parent
+CHROMIUM = os.environ.get("WALLCULL_CHROMIUM") or shutil.which("chromium") or \
+    shutil.which("chromium-browser") or "/usr/bin/chromium"
+if sync_playwright is None:
+    pytest.skip("no playwright (pip install playwright; .ci/run installs the test extras)",
+                allow_module_level=True)
+if not Path(CHROMIUM).exists():
+    pytest.skip(f"no chromium at {CHROMIUM} (Debian package chromium; .ci/run installs it)",
+                allow_module_level=True)
+
+import httpx  # noqa: E402
+import jsonschema  # noqa: E402
+
+from wallcull.clients.loadtest import running_server  # noqa: E402
+from wallcull.clients.sim import decode_mesh  # noqa: E402
+from wallcull.server.asyncapi import schema  # noqa: E402
+
+TOKEN = secrets.token_hex(8)
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+SCENE = "powerplant"
+GRID = json.loads((ROOT / "examples" / "wall-4x4.json").read_text())
+CAVE = json.loads((ROOT / "examples" / "wall-cave.json").read_text())
+#: Two frames of each wall: the second reaches the page as a delta against the first.
+GRID_FRAMES = [{"position": [0, 30, 160], "orientation": [1, 0, 0, 0], "eye": [0, 0, 0]},
+               {"position": [5, 25, 120], "orientation": [1, 0, 0, 0], "eye": [0.1, 0, 0.2]}]
+CAVE_FRAMES = [{"position": [0, 8, 45], "orientation": [1, 0, 0, 0]},
+               {"position": [0, 15, 50], "orientation": [0.9961946980917455, 0, 0.08715574274765817, 0]}]
+AGREE = 0.997
+FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync", "--no-first-run",
+         "--enable-unsafe-swiftshader", "--use-angle=swiftshader"]
+
+
+@pytest.fixture(scope="module")
+def server():
+    with running_server(TOKEN, env={"PYTHONPATH": str(ROOT)}) as url:
+        yield url
+
+
+@pytest.fixture(scope="module")
+def http(server):
+    with httpx.Client(base_url=server, timeout=60) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def renderer_available():
+    from wallcull.clients import render
+
+    try:
+        render.reversed_z_available()  # creates the shared EGL context
+    except Exception as exc:  # no EGL on this machine
+        pytest.skip(f"no headless OpenGL (EGL) context for clients.render: {exc}")
+
+
+def blocks_glb() -> bytes:
+    """Boxes and spheres on a 4 m lattice around the origin (the viewer), none touching."""
+    import trimesh
+
+    rng = np.random.default_rng(7)
+    scene, k = trimesh.Scene(), 0
+    shapes = [trimesh.creation.icosphere(1, 0.5), trimesh.creation.box([1, 1, 1])]
+    lattice = range(-20, 21, 4)
+    for p in np.array(np.meshgrid(lattice, lattice, lattice, indexing="ij")).reshape(3, -1).T:
+        if np.abs(p).max() < 4:
+            continue
+        m = trimesh.transformations.random_rotation_matrix(rng.random(3))
+        m[:3, :3] *= rng.uniform(0.6, 1.6)
+        m[:3, 3] = p + rng.uniform(-1, 1, 3)
+        scene.add_geometry(shapes[k % 2], node_name=f"b{k}", geom_name=("sphere", "box")[k % 2],
+                           transform=m)
+        k += 1
+    return scene.export(file_type="glb")
+
+
+@pytest.fixture(scope="module")
+def blocks(http) -> str:
+    r = http.post("/scenes?name=blocks", content=blocks_glb(),
+                  headers={**AUTH, "Content-Type": "model/gltf-binary"})
+    assert r.status_code == 201, r.text
+    return r.json()["name"]
+
+
+def create_wall(http, wall: dict, nodes=None, scene: str = SCENE) -> dict:
+    r = http.post("/walls", json={"wall": wall, "scene": scene, "nodes": nodes}, headers=AUTH)
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def post(http, wid: str, frame: dict) -> int:
+    """Post a frame (its ``updates``, if any, go beside it); its number."""
+    frame = dict(frame)
+    body = {"frame": frame, "updates": frame.pop("updates", {})}
+    r = http.post(f"/walls/{wid}/frames", json=body, headers=AUTH)
+    assert r.status_code == 200, r.text
+    return r.json()["frame"]
+
+
+def open_page(browser, url: str, width=1280, height=720):
+    page = browser.new_page(viewport={"width": width, "height": height})
+    errors = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.goto(url)
+    page.wallcull_errors = errors
+    return page
+
+
+def wait_acked(page, number: int) -> None:
+    page.wait_for_function(f"window.wallcull && window.wallcull.acked >= {number}",
+                           timeout=60_000)
+
+
+def browser_ids(page, tile: int) -> np.ndarray:
+    out = page.evaluate(f"window.wallcull.readIds({tile}, true)")
+    return np.frombuffer(base64.b64decode(out["ids"]), "<u4").reshape(out["height"],
+                                                                       out["width"])
+
+
+class Reference:
+    """``clients.render`` drawing what the server says a tile shows: its full packet's list and
+    matrices (``GET .../packets/{n}?full=true``, which acknowledges nothing), the scene's
+    meshes as the mesh route serves them, leaf ``i`` drawn with id ``i + 1``."""
+
+    def __init__(self, http, scene: str):
+        from wallcull.clients.render import TileRenderer
+
+        self.http, self.renderers, self.TileRenderer = http, {}, TileRenderer
+        nodes = http.get(f"/scenes/{scene}?nodes=true").json()["nodes"]
+        self.mesh, self.names = nodes["mesh"], nodes["name"]
+        self.world = np.asarray(nodes["world"], np.float64).reshape(-1, 4, 4)
+        self.meshes = {}
+        for key in sorted({k for k in self.mesh if k is not None}):
+            r = http.get(f"/scenes/{scene}/meshes/{quote(key, safe='')}")
+            self.meshes[key] = decode_mesh(r.json(), r.headers.get("etag"))
+
+    def packet(self, wid: str, tile: int, number: int) -> dict:
+        r = self.http.get(f"/walls/{wid}/tiles/{tile}/packets/{number}?full=true",
+                          headers=AUTH)
+        assert r.status_code == 200, r.text
+        return r.json()
+
+    def ids(self, pkt: dict, width: int, height: int, eye: str | None = None) -> np.ndarray:
+        if (width, height) not in self.renderers:
+            renderer = self.renderers[width, height] = self.TileRenderer(width, height)
+            for key, mesh in self.meshes.items():
+                renderer.upload(key, mesh.vertices, mesh.faces)
+        part = pkt if eye is None else pkt[eye]
+        world = self.world.copy()
+        moved = pkt.get("transforms")  # a full packet's: every moved leaf it lists
+        if moved:
+            world[moved["ids"]] = np.asarray(moved["matrices"], np.float64).reshape(-1, 4, 4)
+        draws = [(self.mesh[leaf], world[leaf], leaf + 1) for leaf in pkt["visible"]
+                 if self.mesh[leaf] is not None]
+        return self.renderers[width, height].render(draws, part["view"],
+                                                    part["projection"]).ids
+
+    def release(self):
+        for r in self.renderers.values():
+            r.release()
+
+
+@pytest.fixture(scope="module")
+def references(http, renderer_available, blocks):
+    made = {}
+
+    def of(scene: str) -> Reference:
+        if scene not in made:
+            made[scene] = Reference(http, scene)
+        return made[scene]
+
+    yield of
+    for ref in made.values():
+        ref.release()
+
+
+def agreement(a: np.ndarray, b: np.ndarray) -> float:
+    assert a.shape == b.shape
+    return float((a == b).mean())
+
+
+def check_tile(ids: np.ndarray, want: np.ndarray, what: str, bar: float = AGREE) -> None:
+    share = agreement(ids, want)
+    drawn = float((want > 0).mean())
+    assert drawn > 0.05, f"{what}: the reference draws almost nothing ({drawn:.1%})"
+    assert len(np.unique(want)) > 5, f"{what}: too few objects to compare"
+    assert share >= bar, f"{what}: the browser's ids agree on {share:.4%} of pixels only"
+    print(f"{what}: {share:.4%} of pixels agree, {drawn:.0%} drawn, {len(np.unique(want))} ids")
+
+
+def barrier(http, wid: str, number: int) -> dict:
+    return http.get(f"/walls/{wid}/barrier/{number}?timeout=0").json()
+
+
+def turn(degrees: float) -> list[float]:
+    """A unit quaternion: a turn about y."""
+    half = np.radians(degrees) / 2
+    return [float(np.cos(half)), 0.0, float(np.sin(half)), 0.0]
+
+
+def in_front(frame: dict, offset) -> list:
+    """A node's matrix (rows) that puts it at ``offset`` in the display space of ``frame``."""
+    w, x, y, z = frame["orientation"]
+    rotation = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    m = np.eye(4)
+    m[:3, 3] = rotation @ np.asarray(offset, float) + frame["position"]
+    return m.tolist()
+
+
+#: Frames in the middle of the blocks: the second reaches the page as a delta, the third also
+#: moves a block (b0, from a corner of the lattice) into the view of grid tile 5.
+BLOCK_FRAMES = [{"position": [2, 2, 14], "orientation": [1, 0, 0, 0]},
+                {"position": [2, -2, 10], "orientation": turn(8), "eye": [0.1, 0, 0.2]}]
+BLOCK_FRAMES.append({**BLOCK_FRAMES[1], "updates": {
+    "b0": {"matrix": in_front(BLOCK_FRAMES[1], [-0.9, 0.5, -6])}}})
+
+
+def compare_frames(http, browser, server, references, scene, wid, frames, tiles, size, token,
+                   what, bar=AGREE, query=""):
+    """Open the page of ``tiles``, post ``frames`` one by one, and compare each tile's ids
+    with the reference once the page has acknowledged the frame."""
+    w, h = size
+    page = open_page(browser, f"{server}/walls/{wid}/view?token={token}&ids=1&size={w}x{h}"
+                              f"{query}")
+    try:
+        for frame in frames:
+            number = post(http, wid, frame)
+            wait_acked(page, number)
+            assert page.evaluate("window.wallcull.drawn") == number
+            drawn = {}
+            for tile in tiles:
+                want = references(scene).ids(references(scene).packet(wid, tile, number), w, h)
+                drawn[tile] = browser_ids(page, tile)
+                check_tile(drawn[tile], want, f"{what} {tile}, frame {number}", bar)
+            state = barrier(http, wid, number)  # the page's acknowledgements, and no other
+            assert state["acked"] == len(tiles) and not state["complete"]
+        assert page.evaluate("window.wallcull.fulls") == 0  # every delta applied
+        assert page.wallcull_errors == []
+        canvas = page.evaluate("[document.getElementById('wall').width, "
+                               "document.getElementById('wall').height]")
+        return canvas, drawn  # the canvas size, the last frame's ids by tile
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+# --------------------------------------------------------------------------- the tile client
+
+
+def test_grid_tiles_match_the_reference_renderer(server, http, browser, references, blocks):
+    info = create_wall(http, GRID, nodes=[[5, 6]], scene=blocks)
+    token = next(n["token"] for n in info["credentials"]["nodes"] if n["tiles"] == [5, 6])
+    # no ?tiles=: the node credential's own, side by side in one canvas
+    canvas, drawn = compare_frames(http, browser, server, references, blocks, info["id"],
+                                   BLOCK_FRAMES, (5, 6), (640, 360), token, "grid tile")
+    assert canvas == [1280, 360]
+    b0 = references(blocks).names.index("b0")
+    assert (drawn[5] == b0 + 1).mean() > 0.01  # the block moved into view, where it went
+
+
+def test_a_page_that_lost_its_lists_asks_for_full_ones(server, http, browser, references,
+                                                      blocks):
+    wid = create_wall(http, GRID, scene=blocks)["id"]
+    w, h = 160, 90
+    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=5&token={TOKEN}&ids=1"
+                              f"&size={w}x{h}")
+    try:
+        wait_acked(page, post(http, wid, BLOCK_FRAMES[0]))
+        page.evaluate("window.wallcull.forget()")
+        lost = post(http, wid, BLOCK_FRAMES[1])  # a delta against frame 0, which it dropped
+        page.wait_for_function("window.wallcull.fulls === 1", timeout=30_000)
+        assert page.evaluate("window.wallcull.acked") < lost
+        number = post(http, wid, BLOCK_FRAMES[2])  # comes as full lists
+        wait_acked(page, number)
+        ref = references(blocks)
+        check_tile(browser_ids(page, 5), ref.ids(ref.packet(wid, 5, number), w, h),
+                   "grid tile 5 after full lists", bar=AGREE)
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_cave_screens_match_the_reference_renderer(server, http, browser, references, blocks):
+    wid = create_wall(http, CAVE, scene=blocks)["id"]
+    compare_frames(http, browser, server, references, blocks, wid, BLOCK_FRAMES[:2],
+                   (0, 1, 4), (512, 512), TOKEN, "CAVE screen", query="&tiles=0,1,4")
+
+
+def test_the_power_plant_too(server, http, browser, references):
+    """A real scene, at the rasterizers' own agreement on coincident faces (module doc)."""
+    wid = create_wall(http, GRID)["id"]
+    compare_frames(http, browser, server, references, SCENE, wid, GRID_FRAMES, (5, 6),
+                   (640, 360), TOKEN, "power plant tile", bar=0.99, query="&tiles=5-6")
+
+
+def test_stereo_eyes_side_by_side(server, http, browser, references, blocks):
+    wid = create_wall(http, GRID, scene=blocks)["id"]
+    frame = {**BLOCK_FRAMES[0], "stereo": {"ipd": 0.5}}  # wide apart: the halves must differ
+    number = post(http, wid, frame)
+    w, h = 320, 180
+    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=6&token={TOKEN}&ids=1"
+                              f"&size={w}x{h}")
+    try:
+        wait_acked(page, number)
+        ids = browser_ids(page, 6)
+        plain = page.evaluate("window.wallcull.readIds(6)")  # the plain form: an Array
+        assert np.array_equal(np.asarray(plain["ids"], np.uint32).reshape(h, w), ids)
+        ref = references(blocks)
+        pkt = ref.packet(wid, 6, number)
+        left, right = ids[:, :w // 2], ids[:, w // 2:]
+        check_tile(left, ref.ids(pkt, w // 2, h, "left"), "left eye")
+        check_tile(right, ref.ids(pkt, w - w // 2, h, "right"), "right eye")
+        assert agreement(left, right) < AGREE
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_page_without_credential_is_refused_its_stream(server, http, browser):
+    wid = create_wall(http, GRID)["id"]
+    post(http, wid, GRID_FRAMES[0])
+    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=5")
+    try:
+        page.wait_for_function("window.wallcull && window.wallcull.errors.length > 0",
+                               timeout=30_000)
+        assert page.evaluate("window.wallcull.acked") == -1
+        assert barrier(http, wid, 0)["acked"] == 0
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+# --------------------------------------------------------------------------- the console
+
+
+def status_of(page) -> dict:
+    return page.evaluate("window.wallcull.status")
+
+
+def test_console_follows_frames_and_acks(server, http, browser):
+    info = create_wall(http, GRID)
+    wid = info["id"]
+    console = open_page(browser, f"{server}/walls/{wid}/console")
+    view = None
+    try:
+        console.wait_for_function("window.wallcull && window.wallcull.updates > 0",
+                                  timeout=30_000)
+        assert console.locator("#plan .tile").count() == 16
+        assert console.locator("#tiles tbody tr").count() == 16
+        assert status_of(console)["frame"] == -1
+        first = post(http, wid, GRID_FRAMES[0])
+        console.wait_for_function(f"window.wallcull.status.frame === {first}", timeout=30_000)
+        counts = status_of(console)["count"]
+        assert counts[5] > 0
+        assert console.locator("#tile-5 .count").text_content() == f"{counts[5]} leaves"
+        view = open_page(browser, f"{server}/walls/{wid}/view?tiles=5-6&token={TOKEN}"
+                                  "&size=160x90")
+        second = post(http, wid, GRID_FRAMES[1])
+        wait_acked(view, second)
+        console.wait_for_function(f"window.wallcull.status.ack[5] === {second}",
+                                  timeout=30_000)
+        status = status_of(console)
+        jsonschema.validate(status, schema("ConsoleStatus"),
+                            cls=jsonschema.Draft202012Validator)  # as the AsyncAPI says
+        assert status["state"][5] == status["state"][6] == "acked"
+        assert status["streams"][5] == 1 and status["streams"][0] == 0
+        assert status["latency_ms"][5] is not None and status["latency_ms"][5] >= 0
+        assert status["count"] != counts  # the second frame's lists
+        assert "acked" in console.locator("#tile-5").get_attribute("class")
+        assert console.locator("#row-5 td").nth(2).text_content() == str(second)
+        assert console.wallcull_errors == [] and view.wallcull_errors == []
+    finally:
+        console.close()
+        if view is not None:
+            view.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+@pytest.mark.parametrize("name, tiles", [("cave", 5), ("angled", 3)])
+def test_console_of_screens_around_the_viewer_is_a_top_view(server, http, browser, name, tiles):
+    wall = json.loads((ROOT / "examples" / f"wall-{name}.json").read_text())
+    wid = create_wall(http, wall)["id"]
+    console = open_page(browser, f"{server}/walls/{wid}/console")
+    try:
+        console.wait_for_function("window.wallcull && window.wallcull.updates > 0",
+                                  timeout=30_000)
+        assert console.locator("#plan .tile").count() == tiles
+        assert console.locator("#plan .viewer").count() == 1  # the viewer, seen from above
+        boxes = [console.locator(f"#tile-{t} polygon").bounding_box() for t in range(tiles)]
+        if name == "cave":  # the floor is an area, each wall a line around it
+            floor = boxes[4]
+            assert floor["width"] > 100 and floor["height"] > 100
+            for wall_box in boxes[:4]:
+                assert min(wall_box["width"], wall_box["height"]) < 0.1 * floor["width"]
+        assert console.wallcull_errors == []
+    finally:
+        console.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+@pytest.mark.skipif(not os.environ.get("WALLCULL_SCREENSHOT"),
+                    reason="WALLCULL_SCREENSHOT=1 saves docs/console.png")
+def test_console_screenshot(server, http, browser):
+    info = create_wall(http, GRID, nodes=[list(range(8)), list(range(8, 16))])
+    wid = info["id"]
+    tokens = [n["token"] for n in info["credentials"]["nodes"]]
+    post(http, wid, GRID_FRAMES[0])
+    views = [open_page(browser, f"{server}/walls/{wid}/view?token={t}&size=192x108")
+             for t in tokens]
+    console = open_page(browser, f"{server}/walls/{wid}/console", 1280, 720)
+    try:
+        number = post(http, wid, GRID_FRAMES[1])
+        for v in views:
+            wait_acked(v, number)
+        console.wait_for_function(f"window.wallcull.status.ack.every(a => a === {number})",
+                                  timeout=30_000)
+        console.screenshot(path=str(ROOT / "docs" / "console.png"))
+    finally:
+        for p in (console, *views):
+            p.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)

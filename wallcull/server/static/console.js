@@ -1,0 +1,137 @@
+// wallcull's operator console (GET /walls/{wid}/console): the wall drawn to scale as it stands
+// in the room, each tile coloured by its state and labelled with its list size and latency,
+// updated from WS /walls/{wid}/console/stream (a status whenever it changes).
+//
+// A flat wall (a grid, or screens that all face +z) is drawn from the front: x right, y up.
+// Screens around the viewer (a CAVE, angled walls) are drawn from above, their corners
+// projected onto the floor plane: x right, z toward the viewer (down the page); the floor's
+// screens are areas, the walls' are thick lines, labelled on the side they are seen from.
+
+const cfg = JSON.parse(document.getElementById("wallcull-config").textContent);
+const SVG = "http://www.w3.org/2000/svg";
+const plan = document.getElementById("plan"), body = document.querySelector("#tiles tbody");
+const summary = document.getElementById("summary");
+document.querySelector("h1 code").textContent = cfg.wall;
+const api = window.wallcull = { updates: 0, status: null };
+
+const sub = (a, b) => a.map((x, i) => x - b[i]), add = (a, b) => a.map((x, i) => x + b[i]);
+const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+const unit = (a) => { const n = Math.hypot(...a) || 1; return a.map((x) => x / n); };
+
+function screensOf(wall) {  // every tile as 4 corners in display space (SPEC 2, 2b)
+  if (wall.screens) {
+    return wall.screens.map((s) => [s.bottom_left, s.bottom_right,
+                                    add(s.top_left, sub(s.bottom_right, s.bottom_left)), s.top_left]);
+  }
+  const [w, h] = wall.tile_size, [gx, gy] = wall.gap || [0, 0], z = -wall.distance;
+  const W = wall.cols * w + (wall.cols - 1) * gx, H = wall.rows * h + (wall.rows - 1) * gy;
+  const out = [];
+  for (let t = 0; t < wall.cols * wall.rows; t++) {
+    const r = Math.floor(t / wall.cols), c = t % wall.cols;
+    const x0 = -W / 2 + c * (w + gx), y1 = H / 2 - r * (h + gy);
+    out.push([[x0, y1 - h, z], [x0 + w, y1 - h, z], [x0 + w, y1, z], [x0, y1, z]]);
+  }
+  return out;
+}
+
+function el(name, attrs = {}, parent = null) {
+  const e = document.createElementNS(SVG, name);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  if (parent) parent.appendChild(e);
+  return e;
+}
+
+function drawPlan(wall) {
+  const corners = screensOf(wall);
+  const normals = corners.map((c) => unit(cross(sub(c[1], c[0]), sub(c[3], c[0]))));
+  const front = normals.every((n) => n[2] > 0.99);
+  const project = front ? (p) => [p[0], -p[1]] : (p) => [p[0], p[2]];
+  const flat = corners.map((c) => c.map(project));
+  const xs = flat.flat().map((p) => p[0]), ys = flat.flat().map((p) => p[1]);
+  if (!front) { xs.push(0); ys.push(0); }  // the viewer, at the display origin
+  const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  const extent = Math.max(x1 - x0, y1 - y0) || 1, pad = extent * 0.08;
+  plan.setAttribute("viewBox", `${x0 - pad} ${y0 - pad} ${x1 - x0 + 2 * pad} ${y1 - y0 + 2 * pad}`);
+  plan.replaceChildren();
+  const area = (q) => Math.abs(q.reduce((s, p, i) => s + p[0] * q[(i + 1) % 4][1] - q[(i + 1) % 4][0] * p[1], 0)) / 2;
+  const order = flat.map((q, t) => t).sort((a, b) => area(flat[b]) - area(flat[a]));  // floors first
+  const groups = [];
+  for (const t of order) {
+    const q = flat[t], g = el("g", { class: "tile offline", id: `tile-${t}`, "data-tile": t }, plan);
+    const thin = area(q) < 1e-3 * extent * extent;
+    el("polygon", { points: q.map((p) => p.join(",")).join(" "), class: thin ? "thin" : "",
+                    "stroke-width": thin ? extent * 0.02 : extent * 0.002 }, g);
+    let [cx, cy] = [q.reduce((s, p) => s + p[0], 0) / 4, q.reduce((s, p) => s + p[1], 0) / 4];
+    const edge = Math.min(Math.hypot(...sub(q[1], q[0])), Math.hypot(...sub(q[3], q[0])));
+    const size = front ? edge * 0.2 : extent * 0.03;
+    if (thin) {  // a wall seen from above: its label on the side it faces
+      const n = project(normals[t]), k = Math.hypot(...n) || 1;
+      [cx, cy] = [cx + n[0] / k * extent * 0.07, cy + n[1] / k * extent * 0.07];
+    } else if (!front) {
+      cy += 3 * size;  // a floor or a ceiling: clear of the viewer, at the origin
+    }
+    const text = (cls, dy, value) => {
+      const e = el("text", { class: cls, x: cx, y: cy + dy * size, "font-size": size }, g);
+      e.textContent = value;
+      return e;
+    };
+    groups[t] = { g, name: text("name", -1.1, `#${t}`), count: text("count", 0, "-"),
+                  latency: text("latency", 1.1, "") };
+  }
+  if (!front) {
+    el("circle", { class: "viewer", cx: 0, cy: 0, r: extent * 0.012 }, plan);
+  }
+  return groups;
+}
+
+function fillTable(n) {
+  body.replaceChildren();
+  const rows = [];
+  for (let t = 0; t < n; t++) {
+    const tr = document.createElement("tr");
+    tr.id = `row-${t}`;
+    for (let k = 0; k < 6; k++) tr.appendChild(document.createElement("td"));
+    tr.cells[0].textContent = t;
+    body.appendChild(tr);
+    rows.push(tr);
+  }
+  return rows;
+}
+
+function show(groups, rows, s) {
+  const ms = (v) => (v === null ? "" : `${v.toFixed(1)} ms`);
+  s.count.forEach((count, t) => {
+    const state = s.state[t];
+    groups[t].g.setAttribute("class", `tile ${state}`);
+    groups[t].count.textContent = `${count} leaves`;
+    groups[t].latency.textContent = s.ack[t] >= 0 ? `#${s.ack[t]} ${ms(s.latency_ms[t])}` : state;
+    const cells = rows[t].cells;
+    rows[t].className = state;
+    [count, s.ack[t], ms(s.latency_ms[t]), s.streams[t], state].forEach((v, k) => { cells[k + 1].textContent = v; });
+  });
+  const acked = s.state.filter((x) => x === "acked").length;
+  const age = s.posted === null ? "" : `, posted ${(s.time - s.posted).toFixed(1)} s ago`;
+  summary.textContent = `frame ${s.frame}${age}; ${acked} of ${s.count.length} tiles have drawn it`;
+  api.status = s;
+  api.updates += 1;
+}
+
+async function start() {
+  const r = await fetch(`${cfg.root}/walls/${cfg.wall}`);
+  if (!r.ok) { summary.textContent = `no wall ${cfg.wall} (HTTP ${r.status})`; return; }
+  const info = await r.json();
+  const groups = drawPlan(info.wall), rows = fillTable(info.tiles);
+  const connect = () => {
+    const url = new URL(`${cfg.root}/walls/${cfg.wall}/console/stream`, location.href);
+    url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+    const ws = new WebSocket(url);
+    ws.onmessage = (event) => show(groups, rows, JSON.parse(event.data));
+    ws.onclose = (event) => {
+      summary.textContent = event.code === 4404 ? "the wall was deleted" : "disconnected; reconnecting";
+      if (event.code !== 4404) setTimeout(connect, 2000);
+    };
+  };
+  connect();
+}
+
+start().catch((e) => { summary.textContent = String(e); });

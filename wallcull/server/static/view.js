@@ -1,0 +1,422 @@
+// wallcull's tile client: a render node in a browser (GET /walls/{wid}/view).
+//
+// The node stream (JSON) brings one message per frame for this page's tiles; each message is
+// taken as wallcull/clients/node.py takes it (lists rebuilt from the delta's base, extents
+// and depth ranges kept by frame, matrices rebuilt as clients/frusta.py does), every mesh is
+// fetched once, the newest frame is drawn with WebGL2 and acknowledged ({"ack": n}). A
+// message that cannot be taken asks for full lists ({"full": true}). Stereo frames: the left
+// eye in the left half of each tile, the right eye in the right half. With ?ids=1 each tile
+// is also drawn into an R32UI target holding each leaf's draw id (leaf id + 1, 0 for the
+// background), read back by window.wallcull.readIds(tile), row 0 at the top, as
+// wallcull/clients/render.py's Image.ids.
+
+const cfg = JSON.parse(document.getElementById("wallcull-config").textContent);
+const status = document.getElementById("status");
+const canvas = document.getElementById("wall");
+// window.wallcull: the newest frame drawn and acknowledged, full lists asked for, errors;
+// readIds(tile); forget(): drop the lists held, as a node that lost its memory (for tests)
+const api = window.wallcull = { drawn: -1, acked: -1, fulls: 0, errors: [], readIds,
+                                forget: () => node.lists.clear() };
+
+function say(text, error = false) {  // a note in a corner, hidden while frames come
+  status.textContent = text;
+  status.className = error ? "error" : "";
+  status.hidden = false;
+  if (error) api.errors.push(text);
+}
+
+// ------------------------------------------------------------------ lists and matrices
+
+const KEEP = 256;
+
+function applyDelta(held, entry, base) {  // protocol.apply
+  let out;
+  if (base === null || entry.visible !== undefined) {
+    out = Int32Array.from(entry.visible);
+  } else {
+    if (!held) throw new Error(`delta against frame ${base}, whose list is not held`);
+    const removed = new Set(entry.removed || []), added = entry.added || [];
+    const keep = held.filter((leaf) => !removed.has(leaf));
+    out = new Int32Array(keep.length + added.length);
+    let i = 0, j = 0, k = 0;  // merge two sorted lists, without duplicates
+    while (i < keep.length || j < added.length) {
+      const next = j >= added.length || (i < keep.length && keep[i] <= added[j]) ? keep[i++] : added[j++];
+      if (k === 0 || out[k - 1] !== next) out[k++] = next;
+    }
+    out = out.subarray(0, k);
+  }
+  if (out.length !== entry.count) {
+    throw new Error(`tile ${entry.tile}'s list does not add up: ${out.length} leaves, count ${entry.count}`);
+  }
+  return out;
+}
+
+function rigid(v) {  // frusta.view: a 4x4 row-major Float64Array
+  const [w, x, y, z] = v.rotation, [tx, ty, tz] = v.translation;
+  return Float64Array.of(
+    1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), tx,
+    2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ty,
+    2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), tz,
+    0, 0, 0, 1);
+}
+
+function projection(extent, depth, reversed) {  // frusta.projection
+  const n = depth[0], f = depth[1] === null ? Infinity : depth[1];
+  const [l, r, b, t] = extent.map((e) => e * n);
+  const m = new Float64Array(16);
+  m[0] = 2 * n / (r - l); m[2] = (r + l) / (r - l);
+  m[5] = 2 * n / (t - b); m[6] = (t + b) / (t - b);
+  m[14] = -1;
+  if (reversed) [m[10], m[11]] = f === Infinity ? [0, n] : [n / (f - n), f * n / (f - n)];
+  else [m[10], m[11]] = f === Infinity ? [-1, -2 * n] : [-(f + n) / (f - n), -2 * f * n / (f - n)];
+  return m;
+}
+
+function mul(a, b) {  // row-major 4x4 product, float64
+  const out = new Float64Array(16);
+  for (let r = 0; r < 4; r++) {
+    for (let c = 0; c < 4; c++) {
+      out[4 * r + c] = a[4 * r] * b[c] + a[4 * r + 1] * b[4 + c] + a[4 * r + 2] * b[8 + c] + a[4 * r + 3] * b[12 + c];
+    }
+  }
+  return out;
+}
+
+class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
+  constructor() { this.reset(); }
+  reset() { this.lists = new Map(); this.frusta = new Map(); this.frame = -1; }
+
+  take(msg) {
+    const number = msg.frame, base = msg.base ?? null;
+    if (number <= this.frame) throw new Error(`frame ${number} arrived after frame ${this.frame}`);
+    const held = base === null ? new Map() : this.lists.get(base);
+    const heldFrusta = base === null ? new Map() : this.frusta.get(base) || new Map();
+    if (!held) throw new Error(`delta against frame ${base}, which this page does not hold`);
+    const lists = new Map(), now = new Map(), tiles = [];
+    for (const entry of msg.tiles) {
+      const tile = entry.tile;
+      if (base !== null && !held.has(tile) && entry.visible === undefined) {
+        throw new Error(`delta for tile ${tile}, whose list of frame ${base} is not held`);
+      }
+      lists.set(tile, applyDelta(held.get(tile), entry, base));
+      const eyes = [];
+      for (const eye of ["", "left", "right"]) {
+        const part = eye ? entry[eye] : entry;
+        if (!part) continue;
+        const shared = eye ? msg[eye]?.view : msg.view;
+        const value = {};
+        for (const key of ["extent", "depth"]) {
+          value[key] = part[key] ?? heldFrusta.get(`${tile}/${eye}/${key}`);
+          if (value[key] === undefined) {
+            throw new Error(`tile ${tile}: the delta's ${key} is that of frame ${base}, which is not held`);
+          }
+          now.set(`${tile}/${eye}/${key}`, value[key]);
+        }
+        eyes.push({ eye, view: rigid(part.view ?? shared),
+                    projection: projection(value.extent, value.depth, !!msg.reversed_z) });
+      }
+      tiles.push({ tile, leaves: lists.get(tile), eyes: eyes.length > 1 ? eyes.slice(1) : eyes });
+    }
+    this.lists.set(number, lists);
+    this.frusta.set(number, now);
+    this.frame = number;
+    for (const map of [this.lists, this.frusta]) {  // what no delta can be based on now
+      for (const k of map.keys()) if ((base !== null && k < base) || map.size > KEEP) map.delete(k);
+    }
+    return { number, reversed: !!msg.reversed_z, tiles, transforms: msg.transforms };
+  }
+}
+
+// ------------------------------------------------------------------ WebGL2
+
+const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true });
+const clipControl = gl && gl.getExtension("EXT_clip_control");
+
+const VERTEX = `#version 300 es
+uniform mat4 mvp; uniform mat4 mv;
+in vec3 pos; out vec3 v_eye;
+void main() { vec4 p = vec4(pos, 1.0); gl_Position = mvp * p; v_eye = (mv * p).xyz; }`;
+const COLOR = `#version 300 es
+precision highp float;
+uniform vec3 color; in vec3 v_eye; out vec4 f_color;
+void main() {
+  vec3 n = normalize(cross(dFdx(v_eye), dFdy(v_eye)));
+  float shade = 0.25 + 0.75 * abs(dot(n, normalize(-v_eye)));
+  if (!gl_FrontFacing) shade *= 0.5;
+  f_color = vec4(color * shade, 1.0);
+}`;
+const IDS = `#version 300 es
+precision highp float; precision highp int;
+uniform highp uint draw_id; in vec3 v_eye; out highp uint f_id;
+void main() { f_id = draw_id; }`;
+
+function program(fragment) {
+  const p = gl.createProgram();
+  for (const [type, text] of [[gl.VERTEX_SHADER, VERTEX], [gl.FRAGMENT_SHADER, fragment]]) {
+    const s = gl.createShader(type);
+    gl.shaderSource(s, text);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+    gl.attachShader(p, s);
+  }
+  gl.bindAttribLocation(p, 0, "pos");
+  gl.linkProgram(p);
+  if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(p));
+  const u = {};
+  for (const name of ["mvp", "mv", "color", "draw_id"]) u[name] = gl.getUniformLocation(p, name);
+  return { p, u };
+}
+
+function drawColor(id) {  // render.draw_color: hues by the golden ratio, s 0.55, v 0.95
+  const h = (id * 0.618033988749895) % 1, s = 0.55, v = 0.95, i = Math.floor(h * 6), f = h * 6 - i;
+  const p = v * (1 - s), q = v * (1 - s * f), t = v * (1 - s * (1 - f));
+  return [[v, t, p], [q, v, p], [p, v, t], [p, q, v], [t, p, v], [v, p, q]][i % 6];
+}
+
+// ------------------------------------------------------------------ the scene and its meshes
+
+const headers = cfg.token ? { Authorization: `Bearer ${cfg.token}` } : {};
+const scene = { meshOf: null, keys: [], world: null, meshes: new Map() };
+
+async function getJSON(url) {
+  const r = await fetch(url, { headers });
+  if (!r.ok) throw new Error(`${url}: HTTP ${r.status} ${await r.text()}`);
+  return r.json();
+}
+
+function bytes(b64) {
+  const s = atob(b64), out = new Uint8Array(s.length);
+  for (let i = 0; i < s.length; i++) out[i] = s.charCodeAt(i);
+  return out.buffer;
+}
+
+function mesh(m) {  // a mesh by number: fetched once (the HTTP cache keeps it by its ETag)
+  if (!scene.meshes.has(m)) {
+    const key = scene.keys[m];
+    const url = `${cfg.root}/scenes/${encodeURIComponent(scene.name)}/meshes/${encodeURIComponent(key)}`;
+    scene.meshes.set(m, getJSON(url).then((body) => {
+      const v = new Float32Array(bytes(body.vertices.data)), faces = new Uint32Array(bytes(body.faces.data));
+      const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+      for (let i = 0; i < v.length; i++) {
+        lo[i % 3] = Math.min(lo[i % 3], v[i]);
+        hi[i % 3] = Math.max(hi[i % 3], v[i]);
+      }
+      const center = v.length ? lo.map((x, k) => (x + hi[k]) / 2) : [0, 0, 0];
+      for (let i = 0; i < v.length; i++) v[i] -= center[i % 3];  // as render.py: float32 about the centre
+      const vao = gl.createVertexArray();
+      gl.bindVertexArray(vao);
+      gl.bindBuffer(gl.ARRAY_BUFFER, gl.createBuffer());
+      gl.bufferData(gl.ARRAY_BUFFER, v, gl.STATIC_DRAW);
+      gl.enableVertexAttribArray(0);
+      gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, faces, gl.STATIC_DRAW);
+      gl.bindVertexArray(null);
+      const shift = new Float64Array(16);
+      shift[0] = shift[5] = shift[10] = shift[15] = 1;
+      [shift[3], shift[7], shift[11]] = center;
+      return { vao, count: faces.length, shift };
+    }).catch((e) => { scene.meshes.delete(m); throw e; }));  // asked again next frame
+  }
+  return scene.meshes.get(m);
+}
+
+// ------------------------------------------------------------------ layout and drawing
+
+const tiles = new Map();  // tile -> {x, y, w, h, ids: framebuffer?}
+let wall = null, last = null;
+
+function layout() {
+  const chosen = cfg.tiles, res = (t) => wall.screens ? wall.screens[t].resolution : wall.resolution;
+  const place = new Map(chosen.map((t, k) => [t, wall.cols ? [t % wall.cols, Math.floor(t / wall.cols)] : [k, 0]]));
+  const cols = [...place.values()].map((p) => p[0]), rows = [...place.values()].map((p) => p[1]);
+  const c0 = Math.min(...cols), r0 = Math.min(...rows);
+  const nc = Math.max(...cols) - c0 + 1, nr = Math.max(...rows) - r0 + 1;
+  let [w, h] = cfg.size || res(chosen[0]);
+  if (!cfg.size) {  // as large as the window holds, the tiles' aspect kept
+    const dpr = window.devicePixelRatio || 1;
+    const scale = Math.min(window.innerWidth * dpr / (nc * w), window.innerHeight * dpr / (nr * h));
+    [w, h] = [Math.max(1, Math.floor(w * scale)), Math.max(1, Math.floor(h * scale))];
+  }
+  canvas.width = nc * w;
+  canvas.height = nr * h;
+  canvas.style.width = `${canvas.width / (cfg.size ? 1 : window.devicePixelRatio || 1)}px`;
+  for (const [t, [c, r]] of place) {
+    const old = tiles.get(t);
+    if (old && old.ids) { gl.deleteFramebuffer(old.ids.fbo); old.ids.rbs.forEach((b) => gl.deleteRenderbuffer(b)); }
+    const tile = { x: (c - c0) * w, y: (nr - 1 - (r - r0)) * h, w, h, ids: null };
+    if (cfg.ids) {
+      const fbo = gl.createFramebuffer(), rbs = [gl.createRenderbuffer(), gl.createRenderbuffer()];
+      gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+      const parts = [[rbs[0], gl.R32UI, gl.COLOR_ATTACHMENT0], [rbs[1], gl.DEPTH_COMPONENT24, gl.DEPTH_ATTACHMENT]];
+      for (const [rb, format, at] of parts) {
+        gl.bindRenderbuffer(gl.RENDERBUFFER, rb);
+        gl.renderbufferStorage(gl.RENDERBUFFER, format, w, h);
+        gl.framebufferRenderbuffer(gl.FRAMEBUFFER, at, gl.RENDERBUFFER, rb);
+      }
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      tile.ids = { fbo, rbs };
+    }
+    tiles.set(t, tile);
+  }
+}
+
+function drawTile(prog, frame, entry, x, y, w, h) {
+  const reversed = frame.reversed;
+  if (clipControl) {  // reversed-Z: clip depth in [0, 1], as render.py's glClipControl
+    const c = clipControl;
+    c.clipControlEXT(c.LOWER_LEFT_EXT, reversed ? c.ZERO_TO_ONE_EXT : c.NEGATIVE_ONE_TO_ONE_EXT);
+  }
+  gl.depthFunc(reversed ? gl.GREATER : gl.LESS);
+  gl.useProgram(prog.p);
+  const eyes = entry.eyes, ew = Math.floor(w / eyes.length);
+  eyes.forEach((eye, k) => {
+    gl.viewport(x + k * ew, y, eyes.length > 1 && k === 1 ? w - ew : ew, h);
+    for (const leaf of entry.leaves) {
+      const m = scene.meshOf[leaf];
+      if (m < 0) continue;
+      const g = scene.ready.get(m);
+      if (!g.count) continue;
+      const mv = mul(eye.view, mul(scene.world.subarray(16 * leaf, 16 * leaf + 16), g.shift));
+      gl.uniformMatrix4fv(prog.u.mvp, true, Float32Array.from(mul(eye.projection, mv)));
+      if (prog.u.mv) gl.uniformMatrix4fv(prog.u.mv, true, Float32Array.from(mv));
+      if (prog.u.color) gl.uniform3fv(prog.u.color, drawColor(leaf + 1));
+      if (prog.u.draw_id) gl.uniform1ui(prog.u.draw_id, leaf + 1);
+      gl.bindVertexArray(g.vao);
+      gl.drawElements(gl.TRIANGLES, g.count, gl.UNSIGNED_INT, 0);
+    }
+  });
+}
+
+function draw(frame) {
+  gl.enable(gl.DEPTH_TEST);
+  gl.enable(gl.SCISSOR_TEST);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  gl.scissor(0, 0, canvas.width, canvas.height);
+  gl.clearColor(0, 0, 0, 1);
+  gl.clear(gl.COLOR_BUFFER_BIT);
+  for (const entry of frame.tiles) {
+    const t = tiles.get(entry.tile);
+    if (!t) continue;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.scissor(t.x, t.y, t.w, t.h);
+    gl.clearColor(0.1, 0.1, 0.1, 1);
+    gl.clearDepth(frame.reversed ? 0 : 1);
+    gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+    drawTile(programs.color, frame, entry, t.x, t.y, t.w, t.h);
+    if (t.ids) {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, t.ids.fbo);
+      gl.scissor(0, 0, t.w, t.h);
+      gl.clearBufferuiv(gl.COLOR, 0, Uint32Array.of(0, 0, 0, 0));
+      gl.clearBufferfv(gl.DEPTH, 0, Float32Array.of(frame.reversed ? 0 : 1));
+      drawTile(programs.ids, frame, entry, 0, 0, t.w, t.h);
+    }
+  }
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  gl.bindVertexArray(null);
+}
+
+function readIds(tile, base64 = false) {
+  // the id target of a tile (?ids=1): {width, height, ids}, row 0 on top; ids an Array, or
+  // with base64 the little-endian uint32 bytes in base64 (a quicker way out of the page)
+  const t = tiles.get(tile);
+  if (!t || !t.ids) throw new Error(`tile ${tile} has no id target (open the page with ?ids=1)`);
+  const px = new Uint32Array(t.w * t.h * 4), ids = new Uint32Array(t.w * t.h);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, t.ids.fbo);
+  gl.readPixels(0, 0, t.w, t.h, gl.RGBA_INTEGER, gl.UNSIGNED_INT, px);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  for (let r = 0; r < t.h; r++) {
+    for (let c = 0; c < t.w; c++) ids[r * t.w + c] = px[4 * ((t.h - 1 - r) * t.w + c)];
+  }
+  if (!base64) return { width: t.w, height: t.h, ids: Array.from(ids) };
+  const b = new Uint8Array(ids.buffer);
+  let text = "";
+  for (let i = 0; i < b.length; i += 0x8000) text += String.fromCharCode(...b.subarray(i, i + 0x8000));
+  return { width: t.w, height: t.h, ids: btoa(text) };
+}
+
+// ------------------------------------------------------------------ the stream
+
+const node = new NodeState();
+let socket = null, pending = null, drawing = false, programs = null;
+
+function moveLeaves(transforms) {
+  if (!transforms) return;
+  transforms.ids.forEach((leaf, k) => scene.world.set(transforms.matrices[k], 16 * leaf));
+}
+
+async function drawPending() {
+  while (pending) {
+    const frame = pending;
+    pending = null;
+    const needed = new Set();
+    for (const e of frame.tiles) {
+      for (const leaf of e.leaves) if (scene.meshOf[leaf] >= 0) needed.add(scene.meshOf[leaf]);
+    }
+    for (const m of needed) if (!scene.ready.has(m)) scene.ready.set(m, await mesh(m));
+    if (pending && pending.number > frame.number) continue;  // a newer frame came meanwhile
+    draw(frame);
+    last = frame;
+    api.drawn = frame.number;
+    if (socket && socket.readyState === WebSocket.OPEN) {
+      socket.send(JSON.stringify({ ack: frame.number }));
+      api.acked = frame.number;
+    }
+    status.hidden = true;
+  }
+  drawing = false;
+}
+
+function schedule() {
+  if (drawing) return;
+  drawing = true;
+  const run = () => drawPending().catch((e) => { drawing = false; say(String(e), true); });
+  if (document.hidden) setTimeout(run, 0); else requestAnimationFrame(run);
+}
+
+function connect() {
+  const url = new URL(`${cfg.root}/walls/${cfg.wall}/nodes/stream`, location.href);
+  url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+  url.searchParams.set("format", "json");
+  url.searchParams.set("tiles", cfg.spec);
+  if (cfg.token) url.searchParams.set("token", cfg.token);
+  node.reset();
+  socket = new WebSocket(url);
+  socket.onmessage = (event) => {
+    const msg = JSON.parse(event.data);
+    if (msg.error) { say(`server: ${msg.error}`, true); return; }
+    try {
+      const frame = node.take(msg);
+      moveLeaves(frame.transforms);
+      pending = frame;
+      schedule();
+    } catch (e) {  // a delta this page cannot apply: start again from full lists
+      node.reset();
+      api.fulls += 1;
+      say(`${e.message}: asking for full lists`, true);
+      socket.send(JSON.stringify({ full: true }));
+    }
+  };
+  socket.onclose = (event) => {
+    say(`stream closed (${event.code}${event.reason ? ": " + event.reason : ""})`, event.code !== 4404);
+    if (event.code !== 4404) setTimeout(connect, 2000);  // 4404: the wall was deleted
+  };
+}
+
+async function start() {
+  if (!gl) { say("this browser has no WebGL2", true); return; }
+  programs = { color: program(COLOR), ids: program(IDS) };
+  const info = await getJSON(`${cfg.root}/walls/${cfg.wall}`);
+  [wall, scene.name] = [info.wall, info.scene];
+  const nodes = (await getJSON(`${cfg.root}/scenes/${encodeURIComponent(scene.name)}?nodes=true`)).nodes;
+  scene.keys = [...new Set(nodes.mesh.filter((k) => k !== null))].sort();
+  const number = new Map(scene.keys.map((k, i) => [k, i]));
+  scene.meshOf = Int32Array.from(nodes.mesh, (k) => (k === null ? -1 : number.get(k)));
+  scene.world = Float64Array.from(nodes.world.flat());
+  scene.ready = new Map();
+  layout();
+  window.addEventListener("resize", () => { if (!cfg.size) { layout(); if (last) draw(last); } });
+  connect();
+}
+
+start().catch((e) => say(String(e), true));
