@@ -33,6 +33,7 @@ from functools import cached_property
 from typing import Any, Mapping
 
 import numpy as np
+from numba import njit
 
 from .errors import InputError
 from .validate import MAX_LENGTH, MAX_TILES, WALL_DEFAULTS, as_count, as_number, as_vector
@@ -323,18 +324,18 @@ class ScreenHierarchy:
                    list(col[7]), np.array(col[8], np.int64))
 
     @cached_property
-    def _corners(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(split nodes, first, second)``: for each split node, 0 at the corners of its first
-        child's screens and infinity elsewhere (``(corners, splits)``, corner ``4 t + k`` of
-        tile ``t``), and the same for its second child's."""
+    def _corners(self) -> tuple[np.ndarray, ...]:
+        """``(split nodes, first start, first corners, second start, second corners)``: for
+        each split node, the corners of its first child's screens and of its second's, in CSR
+        form (corner ``4 t + k`` of tile ``t``)."""
         splits = np.flatnonzero(self.mode == SPLIT)
-        tiles = max(int(self.tile.max()) + 1, 1)
-        first = np.full((4 * tiles, len(splits)), np.inf)
-        second = first.copy()
-        for j, k in enumerate(splits):
-            first[(4 * self.members[self.first[k]][:, None] + np.arange(4)).ravel(), j] = 0
-            second[(4 * self.members[self.second[k]][:, None] + np.arange(4)).ravel(), j] = 0
-        return splits, first, second
+
+        def csr(children):
+            rows = [(4 * self.members[c][:, None] + np.arange(4)).ravel() for c in children]
+            start = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).astype(np.int64)
+            return start, (np.concatenate(rows) if rows else np.zeros(0)).astype(np.int64)
+
+        return (splits, *csr(self.first[splits]), *csr(self.second[splits]))
 
     def split_planes(self, wall: ScreensWall, eye: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(planes (nodes, 4), valid (nodes,))``: each split node's plane through ``eye``
@@ -348,17 +349,39 @@ class ScreenHierarchy:
         planes = np.concatenate([normal, -(normal @ eye)[:, None]], axis=1)
         quads = wall.quads.reshape(-1, 3)  # corner 4 t + k of tile t
         tol = 1e-9 * float(np.abs(quads - eye).max())
-        nodes, first, second = self._corners
-        side = quads @ planes[nodes, :3].T + planes[nodes, 3]  # (corners, splits)
-        holds = ((side + first).min(axis=0) >= -tol) & ((side - second).max(axis=0) <= tol)
-        turned = ~holds & ((side + second).min(axis=0) >= -tol) \
-            & ((side - first).max(axis=0) <= tol)
-        holds &= split[nodes]
-        turned &= split[nodes]
-        planes[nodes[turned]] = -planes[nodes[turned]]
+        nodes, *corners = self._corners
+        side = _separates(quads, planes, nodes, *corners, tol)
+        side[~split[nodes]] = 0
+        turned = nodes[side < 0]
+        planes[turned] = -planes[turned]
         valid = np.zeros(len(self), bool)
-        valid[nodes[holds | turned]] = True
+        valid[nodes[side != 0]] = True
         return planes, valid
+
+
+@njit(cache=True)
+def _separates(quads, planes, nodes, first_start, first, second_start, second, tol):
+    """For each split node, +1 when its plane has its first child's screens' corners on its
+    inside and its second's on its outside (within ``tol``), -1 when the other way round, 0
+    when it separates them neither way."""
+    out = np.zeros(nodes.shape[0], np.int64)
+    for j in range(nodes.shape[0]):
+        k = nodes[j]
+        nx, ny, nz, d = planes[k, 0], planes[k, 1], planes[k, 2], planes[k, 3]
+        a_lo, a_hi, b_lo, b_hi = np.inf, -np.inf, np.inf, -np.inf
+        for i in range(first_start[j], first_start[j + 1]):
+            c = first[i]
+            v = quads[c, 0] * nx + quads[c, 1] * ny + quads[c, 2] * nz + d
+            a_lo, a_hi = min(a_lo, v), max(a_hi, v)
+        for i in range(second_start[j], second_start[j + 1]):
+            c = second[i]
+            v = quads[c, 0] * nx + quads[c, 1] * ny + quads[c, 2] * nz + d
+            b_lo, b_hi = min(b_lo, v), max(b_hi, v)
+        if a_lo >= -tol and b_hi <= tol:
+            out[j] = 1
+        elif b_lo >= -tol and a_hi <= tol:
+            out[j] = -1
+    return out
 
 
 def _best_split(quads: np.ndarray, group: np.ndarray, eye: np.ndarray, scale: float):
