@@ -202,7 +202,8 @@ def test_ordering_check_catches_a_tile_running_ahead():
 def test_a_node_that_joins_late_over_nats_asks_for_full_lists(nats_server, scene):
     """Raw NATS, as a lab's own client would speak it: subscribe, request full lists, draw,
     acknowledge; the next message is a delta against that frame; a node that stops
-    acknowledging is published nothing more after the window."""
+    acknowledging is published nothing more after the window, and comes back when it
+    acknowledges what it was sent."""
     import jsonschema
     import msgpack
     import nats as nats_py
@@ -249,6 +250,14 @@ def test_a_node_that_joins_late_over_nats_asks_for_full_lists(nats_server, scene
                 except nats_py.errors.TimeoutError:
                     break
             assert got == list(range(6, 5 + WINDOW))  # then silence: it stopped acknowledging
+            # late acknowledgements of what it was sent bring it back (its window counts the
+            # frames it was sent, not the frames posted meanwhile)
+            await nc.publish(f"wallcull.{wid}.ack.0", msgpack.packb({"ack": got[-1]}))
+            await nc.flush()
+            await asyncio.sleep(0.2)
+            await driver.post(wid, frames[6 + 2 * WINDOW])
+            back = msgpack.unpackb((await sub.next_msg(timeout=5)).data)
+            assert back["frame"] == 6 + 2 * WINDOW and back["base"] == got[-1]
             await nc.drain()
             await driver.call("DELETE", f"/walls/{wid}", auth=True)
 

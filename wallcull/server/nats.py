@@ -82,19 +82,24 @@ class NatsBridge:
     async def _publish(self, session: WallSession) -> None:
         nodes = [(self.subject(session.id, "node", tiles[0]), np.asarray(tiles, np.int64))
                  for tiles in session.nodes]
+        sent = [-1] * len(nodes)  # the newest frame published to each node
         last = -1
         try:
             while not session.closed:
                 number = await session.next_frame(last)
-                for subject, tiles in nodes:
-                    if last >= 0 and session.acks[tiles].min() < last - WINDOW + 1:
-                        continue  # it stopped acknowledging: it will ask for full lists
+                for k, (subject, tiles) in enumerate(nodes):
+                    if sent[k] >= 0 and session.acks[tiles].min() < sent[k] - WINDOW + 1:
+                        continue  # none of the last WINDOW frames it was sent acknowledged
                     data, delta = session.node_message(tiles, number)
                     await self.nc.publish(subject, data)
                     self.metrics.packet(delta, len(data), "nats")
+                    sent[k] = number
                 last = number
         except NotFound:
             pass  # the wall was deleted
+        except Exception:
+            log.exception("NATS publisher of wall %s stopped", session.id)
+            raise
         finally:
             self.tasks.pop(session.id, None)
 
