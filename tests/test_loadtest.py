@@ -72,9 +72,15 @@ def check_walkthrough(report, tiles, frames):
 
 def test_loadtest_ws(tmp_path):
     report = loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "60",
-                      "--duration", "3", "--mode", "ws")
+                      "--duration", "3", "--mode", "ws", "--prefetch")
     check_walkthrough(report, 4, 180)
     assert report["config"]["mode"] == "ws" and "barrier" not in report
+    # each of the 4 nodes fetched every mesh of the scene once, before the first frame, not
+    # only those its tile showed
+    from wallcull.scene import load
+
+    assert report["config"]["prefetch"]
+    assert report["nodes"]["mesh_fetches"] == 4 * len(load("powerplant").meshes)
 
 
 def test_loadtest_pull_barrier_two_processes(tmp_path):

@@ -254,11 +254,29 @@ def test_mesh_blobs_are_kept_within_a_budget(monkeypatch):
     sizes = {k: service.mesh_blob(scene, k) for k in keys}  # every mesh once
     etags = {k: b.etag for k, b in sizes.items()}
     monkeypatch.setattr(service, "MESH_CACHE_BYTES", 200_000)
-    scene.__dict__.pop("_mesh_blobs")
+    scene.__dict__.pop("_mesh_cache")
     for k in keys:
         assert service.mesh_blob(scene, k).etag == etags[k]
-        held = scene.__dict__["_mesh_blobs"]
+        cache = scene.__dict__["_mesh_cache"]
         total = sum(len(b.body["vertices"]["data"]) + len(b.body["faces"]["data"])
-                    for b in held.values())
-        assert total <= 200_000 or len(held) == 1
-    assert len(scene.__dict__["_mesh_blobs"]) < len(keys)
+                    for b in cache.blobs.values())
+        assert total == cache.held
+        assert total <= 200_000 or len(cache.blobs) == 1
+    assert len(scene.__dict__["_mesh_cache"].blobs) < len(keys)
+
+
+def test_a_new_wall_warms_its_scene_meshes_within_the_budget(monkeypatch):
+    """Encoded ahead of the nodes' first requests, in a thread, up to the budget."""
+    from wallcull import service
+
+    scene = load("fatehpur")
+    scene.__dict__.pop("_mesh_cache", None)
+    assert service.warm_meshes(scene) == len(scene.meshes)
+    assert len(scene.__dict__["_mesh_cache"].blobs) == len(scene.meshes)
+    monkeypatch.setattr(service, "MESH_CACHE_BYTES", 100_000)
+    scene.__dict__.pop("_mesh_cache")
+    warmed = service.warm_meshes(scene)
+    assert 0 < warmed < len(scene.meshes)
+    assert scene.__dict__["_mesh_cache"].held <= 100_000 + max(
+        len(b.body["vertices"]["data"]) + len(b.body["faces"]["data"])
+        for b in scene.__dict__["_mesh_cache"].blobs.values())

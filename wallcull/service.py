@@ -16,6 +16,7 @@ import os
 import re
 import secrets
 import tempfile
+import threading
 import time
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
@@ -252,31 +253,69 @@ class MeshBlob:
 MESH_CACHE_BYTES = 64 << 20
 
 
+class _MeshCache:
+    """A scene's encoded meshes, least recently served first, within ``MESH_CACHE_BYTES``;
+    safe to fill from a thread while the event loop serves from it."""
+
+    def __init__(self):
+        self.blobs: OrderedDict[str, MeshBlob] = OrderedDict()
+        self.held = 0
+        self.lock = threading.Lock()
+
+
+def _mesh_cache(scene: Scene) -> _MeshCache:
+    cache = scene.__dict__.get("_mesh_cache")
+    if cache is None:
+        cache = scene.__dict__.setdefault("_mesh_cache", _MeshCache())
+    return cache
+
+
+def _blob_bytes(blob: MeshBlob) -> int:
+    return len(blob.body["vertices"]["data"]) + len(blob.body["faces"]["data"])
+
+
 def mesh_blob(scene: Scene, key: str) -> MeshBlob:
     """Mesh ``key`` of a scene as typed arrays (little-endian float32 vertices, uint32 faces),
     its ETag the hash of those bytes. Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
     per scene, least recently served dropped first: a scene of many distinct meshes is never
     held in memory whole."""
-    cache = scene.__dict__.setdefault("_mesh_blobs", OrderedDict())
-    if key in cache:
-        cache.move_to_end(key)
-        return cache[key]
+    cache = _mesh_cache(scene)
+    with cache.lock:
+        found = cache.blobs.get(key)
+        if found is not None:
+            cache.blobs.move_to_end(key)
+            return found
     if key not in scene.meshes:
         raise NotFound(f"no mesh {key!r} in scene {scene.name!r}")
     v, f = scene.meshes[key]
     vb = np.ascontiguousarray(v, dtype="<f4").tobytes()
     fb = np.ascontiguousarray(f, dtype="<u4").tobytes()
     etag = '"' + hashlib.sha256(vb + b"|" + fb).hexdigest()[:32] + '"'
-    blob = cache[key] = MeshBlob({"mesh": key,
-                                  "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
-                                  "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}},
-                                 etag)
-    held = sum(len(b.body["vertices"]["data"]) + len(b.body["faces"]["data"])
-               for b in cache.values())
-    while held > MESH_CACHE_BYTES and len(cache) > 1:
-        _, old = cache.popitem(last=False)
-        held -= len(old.body["vertices"]["data"]) + len(old.body["faces"]["data"])
+    blob = MeshBlob({"mesh": key,
+                     "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
+                     "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}}, etag)
+    with cache.lock:
+        if key not in cache.blobs:
+            cache.blobs[key] = blob
+            cache.held += _blob_bytes(blob)
+        while cache.held > MESH_CACHE_BYTES and len(cache.blobs) > 1:
+            _, old = cache.blobs.popitem(last=False)
+            cache.held -= _blob_bytes(old)
     return blob
+
+
+def warm_meshes(scene: Scene) -> int:
+    """Encode a scene's meshes ahead of the render nodes' first requests, while they fit in
+    ``MESH_CACHE_BYTES`` (run in a thread when a wall is created: encoding a mesh on the event
+    loop when a node first asks for it stalled every stream, and nodes waiting for meshes
+    fell behind). Returns how many were encoded."""
+    count = 0
+    for key in list(scene.meshes.keys()):
+        if _mesh_cache(scene).held >= MESH_CACHE_BYTES:
+            break
+        mesh_blob(scene, key)
+        count += 1
+    return count
 
 
 # --------------------------------------------------------------------------- walls

@@ -385,10 +385,11 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                       render: bool = False, draw_time: float = 0.0,
                       settings: dict | None = None, shadow_fit: str = "refined",
                       tiles_per_node: int = 1, transport: str = "ws",
-                      nats: str | None = None) -> dict:
+                      nats: str | None = None, prefetch: bool = False) -> dict:
     """Run one walkthrough load test (see the module docstring) and return its report.
     ``transport`` "nats": the nodes take their messages from a NATS broker (``nats``, or one
-    started here), the server publishing there."""
+    started here), the server publishing there. ``prefetch``: every node fetches the scene's
+    meshes before the first frame, as a render PC loads its scene before it joins a wall."""
     import psutil
 
     from wallcull.clients.driver import PATH_FRAMES, Driver
@@ -428,7 +429,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                    "--cache-bytes", str(cache_bytes), "--out", f"{tmp.name}/nodes-{k}.json",
                    "--quiet", "--draw-time", str(draw_time),
                    "--tiles-per-node", str(tiles_per_node)] + (["--render"] if render else []) \
-                + (["--nats", nats] if transport == "nats" else [])
+                + (["--nats", nats] if transport == "nats" else []) \
+                + (["--prefetch"] if prefetch else [])
             procs.append(await asyncio.create_subprocess_exec(
                 *cmd, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
                 cwd=str(ROOT)))
@@ -509,7 +511,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                          "path_frames": path_frames or PATH_FRAMES, "warmup_frames": warm,
                          "cache_bytes": cache_bytes, "method": method, "render": render,
                          "draw_time": draw_time, "tiles_per_node": tiles_per_node,
-                         "nodes": len(groups), "transport": transport},
+                         "nodes": len(groups), "transport": transport, "prefetch": prefetch},
               "machine": host}
     report.update(analyze(driver, sorted(nodes, key=lambda t: t["tile"]), warm))
     report["driver"] = driver["summary"]
@@ -861,6 +863,9 @@ def register(sub) -> None:
                    help="the nodes' messages over the server's WebSockets, or a NATS broker "
                         "(--nats URL, else a nats-server started for the run)")
     q.add_argument("--nats", metavar="URL", help="--transport nats: this broker")
+    q.add_argument("--prefetch", action="store_true",
+                   help="nodes fetch every mesh before the first frame (as a render PC loads "
+                        "its scene), instead of as they come into view")
     q.add_argument("--barrier", action="store_true", help="the driver waits on the swap barrier")
     q.add_argument("--path", choices=("orbit", "fly"), default="orbit")
     q.add_argument("--path-frames", type=int, help="frames per loop of the path (default 600)")
@@ -913,7 +918,7 @@ def cmd_loadtest(args) -> int:
             render=args.render, draw_time=args.draw_time,
             settings=read_settings(args.settings) if args.settings else None,
             shadow_fit=args.shadow_fit, tiles_per_node=args.tiles_per_node,
-            transport=args.transport, nats=args.nats))
+            transport=args.transport, nats=args.nats, prefetch=args.prefetch))
     write(report, args.out)
     if args.json:
         print(json.dumps(report))

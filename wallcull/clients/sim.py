@@ -278,7 +278,7 @@ class TileClient:
                  cache_bytes: int = DEFAULT_CACHE, renderer=None, keep: int = KEEP,
                  measure_full: bool = True, wait: float = 5.0, draw_time: float = 0.0,
                  on_list: Callable | None = None, on_event: Callable | None = None,
-                 reconnect_for: float = 60.0):
+                 reconnect_for: float = 60.0, prefetch: bool = False):
         if mode not in ("ws", "pull"):
             raise ValueError(f"mode must be ws or pull, got {mode!r}")
         self.server, self.wall_id, self.tile, self.scene = server.rstrip("/"), wall_id, tile, scene
@@ -291,6 +291,7 @@ class TileClient:
         self.measure_full = measure_full
         self.wait = wait
         self.draw_time = draw_time
+        self.prefetch = prefetch
         self.on_list, self.on_event = on_list, on_event
         self.lists: OrderedDict[int, np.ndarray] = OrderedDict()
         self.world = scene.world  # copied on the first moved leaf
@@ -511,6 +512,10 @@ class TileClient:
         """Receive packets until frame ``until`` has been taken, or nothing came for
         ``idle_timeout`` seconds (after a first packet), or the task is cancelled."""
         try:
+            if self.prefetch:  # as a render PC loads its scene before it joins the wall
+                for number in range(len(self.scene.keys)):
+                    if self.cache.get(self.scene.keys[number]) is None:
+                        await self.fetch_mesh(number)
             if self.mode == "ws":
                 await self._run_ws(until, idle_timeout)
             else:
@@ -848,6 +853,7 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
                    ready: Callable[[list[TileClient]], None] | None = None,
                    stop: asyncio.Event | None = None,
                    reconnect_for: float = 60.0, tiles_per_node: int = 1,
+                   prefetch: bool = False,
                    nats: str | None = None) -> list[TileClient]:
     """Run the nodes of ``tiles`` on wall ``wall`` (an id, or ``"auto"``) until they stop
     (see :meth:`TileClient.run`) or ``stop`` is set; returns the clients with their stats.
@@ -865,7 +871,7 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
     renderers = make_renderers(ids, info["wall"], render_size) if render else {}
     common = dict(mode=mode, binary=binary, cache_bytes=cache_bytes, measure_full=measure_full,
                   draw_time=draw_time, on_list=on_list, on_event=on_event,
-                  reconnect_for=reconnect_for)
+                  reconnect_for=reconnect_for, prefetch=prefetch)
     if tiles_per_node > 1 or nats:
         if mode != "ws":
             raise ValueError("nodes of several tiles take the node stream: mode ws")
@@ -985,6 +991,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--idle-timeout", type=float,
                    help="stop when no packet came for this many seconds (after the first)")
+    p.add_argument("--prefetch", action="store_true",
+                   help="fetch every mesh of the scene (within the cache) before streaming")
     p.add_argument("--no-full-size", action="store_true",
                    help="do not compute what each delta would have cost as a full list")
     p.add_argument("--out", help="write every record to this JSON file")
@@ -1014,7 +1022,8 @@ async def _main(args) -> int:
                              idle_timeout=args.idle_timeout, start=start,
                              measure_full=not args.no_full_size, draw_time=args.draw_time,
                              ready=ready, stop=stop, reconnect_for=args.reconnect_for,
-                             tiles_per_node=args.tiles_per_node, nats=args.nats)
+                             tiles_per_node=args.tiles_per_node, nats=args.nats,
+                             prefetch=args.prefetch)
     if args.out:
         tmp = f"{args.out}.tmp"
         with open(tmp, "w") as f:

@@ -27,6 +27,7 @@ class ServerState:
     streams: int = 0  # WebSocket streams open, on every wall
     uploads: int = 0  # uploads being received or parsed
     consoles: int = 0  # operator consoles open (wallcull.server.pages)
+    warming: set = field(default_factory=set)  # meshes being encoded for new walls
     operator: str | None = field(init=False, default=None)
 
     def __post_init__(self, token):

@@ -11,7 +11,7 @@ from fastapi.responses import Response
 from .. import settings as cfg
 from ..credentials import DRIVER, NODE, OPERATOR
 from ..fit import FitOptions
-from ..service import NotFound
+from ..service import NotFound, warm_meshes
 from ..wall import Wall
 from .access import needs
 from .deps import State
@@ -52,6 +52,10 @@ async def create_wall(request: Request, state: State,
                                  body.nodes, settings)
     if state.bridge is not None:
         state.bridge.watch(session)
+    # the nodes' first mesh requests find them encoded (a thread: the loop keeps serving)
+    warming = asyncio.ensure_future(asyncio.to_thread(warm_meshes, scene))
+    state.warming.add(warming)
+    warming.add_done_callback(state.warming.discard)
     credentials, session.credentials = session.credentials, None  # shown once
     return reply(request, {**session.info(), "credentials": credentials}, 201)
 
