@@ -75,7 +75,7 @@ _R_BALL, _R_AXES, _R_SPHERE = 3, 4, 13
 
 #: ``adaptive`` unfolds a cut object when it would reach more tiles than this many times the
 #: levels of frustum hierarchy below the split (see :func:`_adaptive`). Measured on the bench
-#: scenes and walls (``python -m wallcull.cull``): 2 keeps its box-plane tests below ``oh``'s
+#: scenes and walls (``wallcull bench``): 2 keeps its box-plane tests below ``oh``'s
 #: on all of them; the count is flat between 1 and 4.
 UNFOLD_RATIO = 1.0
 
