@@ -463,3 +463,17 @@ def test_a_rejected_frame_moves_nothing():
     pkt = server.packet(0, number)
     assert pkt["visible"] == leaves[start[0]:start[1]].tolist() and "transforms" not in pkt
     np.testing.assert_array_equal(server.session.state.world, replica.state.world)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sets(st.integers(0, 80)), st.sets(st.integers(0, 80)), st.sets(st.integers(0, 80)))
+def test_a_delta_is_applied_as_set_operations_would(held, removed, added):
+    """The compiled merge a node applies a delta with equals numpy's set operations, also for
+    ids removed that it does not hold and ids added that it holds."""
+    from wallcull.protocol import _apply_delta
+
+    def arr(values):
+        return np.array(sorted(values), dtype=np.int64)
+
+    want = np.union1d(np.setdiff1d(arr(held), arr(removed), assume_unique=True), arr(added))
+    assert np.array_equal(_apply_delta(arr(held), arr(removed), arr(added)), want)
