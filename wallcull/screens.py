@@ -190,28 +190,13 @@ class ScreensWall:
         """``(T, 6, 4)``: each tile frustum's planes in display space, seen from ``eye``:
         left, right, top, bottom (through the eye and the edges, facing the screen's inside),
         near and far (parallel to the screen)."""
-        q = self.quads
-        # left: tl -> bl, right: br -> tr, top: tr -> tl, bottom: bl -> br; the cross product
-        # of an edge with the ray to its start faces the screen's inside (the quad is CCW seen
-        # from the eye)
-        starts = q[:, [3, 1, 2, 0]]
-        ends = q[:, [0, 2, 3, 1]]
-        normal = cross(ends - starts, starts - eye)
-        normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-        sides = np.concatenate([normal, -(normal @ eye)[..., None]], axis=2)
-        n = self.basis[:, 2]
-        out = np.empty((self.tiles, 6, 4))
-        out[:, :4] = sides
-        out[:, 4, :3], out[:, 4, 3] = -n, n @ eye - self.near
-        out[:, 5, :3], out[:, 5, 3] = n, self.far - n @ eye
-        return out
+        return _tile_planes(self.quads, np.ascontiguousarray(self.basis[:, 2]),
+                            np.asarray(eye, np.float64), float(self.near), float(self.far))
 
     def reach(self, eye: np.ndarray) -> float:
         """How far from ``eye`` any tile frustum reaches: its far cap's farthest corner."""
-        rays = self.quads - eye  # (T, 4, 3)
-        n = self.basis[:, 2][:, None]
-        cos = (-(rays * n).sum(axis=2)) / np.linalg.norm(rays, axis=2)
-        return float(self.far / cos.min())
+        return _reach(self.quads, np.ascontiguousarray(self.basis[:, 2]),
+                      np.asarray(eye, np.float64), float(self.far))
 
     def primary_planes(self, eye: np.ndarray) -> np.ndarray:
         """``(k, 4)`` display-space planes bounding every tile frustum: a box around the eye,
@@ -225,6 +210,48 @@ class ScreensWall:
             planes.append(np.concatenate([cone, np.zeros((len(cone), 1))], axis=1))
             planes[-1][:, 3] = -(cone @ eye)
         return np.concatenate(planes)
+
+
+# left: tl -> bl, right: br -> tr, top: tr -> tl, bottom: bl -> br (corners of a quad)
+_EDGE_START, _EDGE_END = (3, 1, 2, 0), (0, 2, 3, 1)
+
+
+@njit(cache=True)
+def _tile_planes(quads, normals, eye, near, far):
+    """:meth:`ScreensWall.tile_planes`, compiled. A side's normal is the cross product of its
+    edge with the ray from the eye to the edge's start, which faces the screen's inside (the
+    quad is CCW seen from the eye)."""
+    out = np.empty((quads.shape[0], 6, 4))
+    for t in range(quads.shape[0]):
+        for p in range(4):
+            s, e = _EDGE_START[p], _EDGE_END[p]
+            ax, ay, az = (quads[t, e, 0] - quads[t, s, 0], quads[t, e, 1] - quads[t, s, 1],
+                          quads[t, e, 2] - quads[t, s, 2])
+            bx, by, bz = (quads[t, s, 0] - eye[0], quads[t, s, 1] - eye[1],
+                          quads[t, s, 2] - eye[2])
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            length = math.sqrt(nx * nx + ny * ny + nz * nz)
+            nx, ny, nz = nx / length, ny / length, nz / length
+            out[t, p, 0], out[t, p, 1], out[t, p, 2] = nx, ny, nz
+            out[t, p, 3] = -(nx * eye[0] + ny * eye[1] + nz * eye[2])
+        n_eye = normals[t, 0] * eye[0] + normals[t, 1] * eye[1] + normals[t, 2] * eye[2]
+        for k in range(3):
+            out[t, 4, k], out[t, 5, k] = -normals[t, k], normals[t, k]
+        out[t, 4, 3], out[t, 5, 3] = n_eye - near, far - n_eye
+    return out
+
+
+@njit(cache=True)
+def _reach(quads, normals, eye, far):
+    """:meth:`ScreensWall.reach`, compiled."""
+    lowest = np.inf
+    for t in range(quads.shape[0]):
+        for c in range(4):
+            rx, ry, rz = quads[t, c, 0] - eye[0], quads[t, c, 1] - eye[1], quads[t, c, 2] - eye[2]
+            cos = -(rx * normals[t, 0] + ry * normals[t, 1] + rz * normals[t, 2]) \
+                / math.sqrt(rx * rx + ry * ry + rz * rz)
+            lowest = min(lowest, cos)
+    return far / lowest
 
 
 def hull_cone(directions: np.ndarray) -> np.ndarray | None:
