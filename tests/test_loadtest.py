@@ -156,7 +156,14 @@ def test_msgpack_ints_len_is_exact(n, hi):
 
 
 def test_tiles_and_splits():
+    from wallcull.validate import tiles_text
+
     assert parse_tiles("0-3,7, 9-10") == [0, 1, 2, 3, 7, 9, 10]
+    assert tiles_text([0, 1, 2, 3, 7, 9, 10]) == "0-3,7,9-10"
+    rng = np.random.default_rng(5)
+    for _ in range(200):  # the short form reads back as the same tiles
+        tiles = sorted(set(rng.integers(0, 40, rng.integers(1, 30)).tolist()))
+        assert parse_tiles(tiles_text(tiles)) == tiles
     assert parse_tiles("all", 4) == [0, 1, 2, 3]
     assert parse_tiles("3,1-2,2") == [1, 2, 3]
     for bad in ("", "a-b", "3-", "-1", "5-3", "99999999999"):

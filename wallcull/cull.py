@@ -986,7 +986,7 @@ class Culler:
         """``adaptive`` over the whole frustum hierarchy, or, when the last frame took at least
         ``PARALLEL_TESTS`` tests, over its parts in threads at once (their tiles are disjoint,
         so the pairs are those of one call, each tile's in the same order)."""
-        parts = self._parts if self._last_tests >= PARALLEL_TESTS else self._parts[:0]
+        parts = self._parts if self._last_tests >= PARALLEL_TESTS else []
 
         def task(k, *_):
             buf = self._buffers[k]

@@ -72,3 +72,17 @@ def parse_tiles(spec: str, count: int | None = None) -> list[int]:
     if not out:
         raise InputError("no tiles given")
     return sorted(out)
+
+
+def tiles_text(tiles) -> str:
+    """Sorted tile ids in the short form :func:`parse_tiles` reads: ``[0, 1, 2, 5]`` ->
+    ``"0-2,5"``."""
+    tiles = [int(t) for t in tiles]
+    parts, k = [], 0
+    while k < len(tiles):
+        j = k
+        while j + 1 < len(tiles) and tiles[j + 1] == tiles[j] + 1:
+            j += 1
+        parts.append(str(tiles[k]) if j == k else f"{tiles[k]}-{tiles[j]}")
+        k = j + 1
+    return ",".join(parts)

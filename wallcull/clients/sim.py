@@ -62,7 +62,7 @@ import numpy as np
 
 from wallcull import protocol
 from wallcull.errors import InputError
-from wallcull.validate import parse_tiles
+from wallcull.validate import parse_tiles, tiles_text
 
 from .node import NodeState, full_size, sorted_ints_len
 from .rawhttp import MSGPACK, Connection, HTTPError, run
@@ -664,7 +664,7 @@ class NodeClient(TileClient):
 
     def stream_url(self, path: str | None = None, query: str = "") -> str:
         return super().stream_url(f"/walls/{self.wall_id}/nodes/stream",
-                                  "tiles=" + ",".join(map(str, self.tiles)))
+                                  "tiles=" + tiles_text(self.tiles))
 
     async def receive(self, message: dict, size: int, recv: float) -> bool:
         """Take one node message: rebuild, record, draw every tile, acknowledge once."""

@@ -28,7 +28,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ..errors import InputError
 from ..service import NotFound
-from ..validate import parse_tiles
+from ..validate import parse_tiles, tiles_text
 from .deps import ServerState, State
 from .models import WALL_ID, refusals
 from .streams import GONE
@@ -79,18 +79,6 @@ def _root(request: Request) -> str:
     return html.escape(request.scope.get("root_path", "").rstrip("/"))
 
 
-def ranges(tiles: list[int]) -> str:
-    """Sorted tile ids as the short form streams take: ``[0, 1, 2, 5]`` -> ``"0-2,5"``."""
-    parts, k = [], 0
-    while k < len(tiles):
-        j = k
-        while j + 1 < len(tiles) and tiles[j + 1] == tiles[j] + 1:
-            j += 1
-        parts.append(str(tiles[k]) if j == k else f"{tiles[k]}-{tiles[j]}")
-        k = j + 1
-    return ",".join(parts)
-
-
 @router.get("/walls/{wid}/view", response_class=HTMLResponse, operation_id="viewPage",
             responses=_html_or_refusals(404))
 async def view_page(request: Request, state: State, wid: WallId,
@@ -116,7 +104,7 @@ async def view_page(request: Request, state: State, wid: WallId,
         grant = state.walls.grant(token) if token else None
         chosen = sorted(grant.tiles) if grant is not None and grant.wall == wid else \
             list(range(count))
-    config = {"root": _root(request), "wall": wid, "tiles": chosen, "spec": ranges(chosen),
+    config = {"root": _root(request), "wall": wid, "tiles": chosen, "spec": tiles_text(chosen),
               "token": token, "ids": ids,
               "size": [int(v) for v in size.split("x")] if size else None}
     return _page(f"wallcull {wid}: tiles {tiles or 'all'}", "view.js", config,
