@@ -16,13 +16,19 @@ WORKDIR /app
 # Dependencies first (a layer that survives source edits): install the project's requirements
 # from pyproject.toml alone, then the sources.
 COPY pyproject.toml README.md ./
+COPY clients/pyproject.toml ./clients/
 RUN python -c "import tomllib; d = tomllib.load(open('pyproject.toml', 'rb')); \
-print('\n'.join(d['project']['dependencies']))" > /tmp/requirements.txt \
+c = tomllib.load(open('clients/pyproject.toml', 'rb')); \
+print('\n'.join(d['project']['dependencies'] + d['project']['optional-dependencies']['nats'] \
++ [r for r in c['project']['dependencies'] if r != 'wallcull']))" > /tmp/requirements.txt \
  && pip install -r /tmp/requirements.txt
 
+COPY LICENSE ./
 COPY wallcull ./wallcull
+COPY clients ./clients
 COPY examples ./examples
-RUN pip install --no-deps . \
+COPY scenes ./scenes
+RUN pip install --no-deps . ./clients \
  && useradd --create-home --uid 10001 wallcull \
  && mkdir -p /tmp/numba-cache /var/lib/wallcull \
  && chown wallcull /tmp/numba-cache /var/lib/wallcull

@@ -24,7 +24,7 @@ from wallcull.wall import Wall
 ROOT = Path(__file__).resolve().parent.parent
 TOKEN = "t0ken"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-SETTINGS = json.loads((ROOT / "examples" / "powerplant-lights.json").read_text())
+SETTINGS = json.loads((ROOT / "scenes" / "powerplant-lights.json").read_text())
 
 
 def valid(name: str, message) -> None:

@@ -49,8 +49,8 @@ if not Path(CHROMIUM).exists():
 import httpx  # noqa: E402
 import jsonschema  # noqa: E402
 
-from wallcull.clients.loadtest import running_server  # noqa: E402
-from wallcull.clients.sim import decode_mesh  # noqa: E402
+from wallcull_clients.loadtest import running_server  # noqa: E402
+from wallcull_clients.sim import decode_mesh  # noqa: E402
 from wallcull.server.asyncapi import schema  # noqa: E402
 
 TOKEN = secrets.token_hex(8)
@@ -91,7 +91,7 @@ def browser():
 
 @pytest.fixture(scope="module")
 def renderer_available():
-    from wallcull.clients import render
+    from wallcull_clients import render
 
     try:
         render.reversed_z_available()  # creates the shared EGL context
@@ -169,7 +169,7 @@ class Reference:
     meshes as the mesh route serves them, leaf ``i`` drawn with id ``i + 1``."""
 
     def __init__(self, http, scene: str):
-        from wallcull.clients.render import TileRenderer
+        from wallcull_clients.render import TileRenderer
 
         self.http, self.renderers, self.TileRenderer = http, {}, TileRenderer
         nodes = http.get(f"/scenes/{scene}?nodes=true").json()["nodes"]

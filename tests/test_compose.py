@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from wallcull.clients.loadtest import free_port
+from wallcull_clients.loadtest import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
@@ -117,8 +117,8 @@ def test_token_comes_from_the_environment(monkeypatch):
     # the programs read it from the environment: nobody passes it on a command line
     for name in SERVICES:
         assert not any("token" in a.lower() for a in command(name, ENV))
-    from wallcull.clients.driver import parser as driver_parser
-    from wallcull.clients.sim import parser as sim_parser
+    from wallcull_clients.driver import parser as driver_parser
+    from wallcull_clients.sim import parser as sim_parser
 
     monkeypatch.setenv("WALLCULL_TOKEN", "from-env")
     assert sim_parser().parse_args([]).token == "from-env"

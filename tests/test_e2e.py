@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wallcull.clients import broker
-from wallcull.clients.driver import Driver
-from wallcull.clients.sim import run_wall
-from wallcull.clients.loadtest import running_server
+from wallcull_clients import broker
+from wallcull_clients.driver import Driver
+from wallcull_clients.sim import run_wall
+from wallcull_clients.loadtest import running_server
 from wallcull.pipeline import Session
 from wallcull.scene import load
 from wallcull.wall import Wall

@@ -85,7 +85,7 @@ def _groups(tiles: int) -> list[list[int]]:
 
 
 def test_packets_with_lights_and_mirrors_decode_to_the_dicts():
-    settings_ = json.loads((ROOT / "examples" / "powerplant-lights3.json").read_text())
+    settings_ = json.loads((ROOT / "scenes" / "powerplant-lights3.json").read_text())
     scene = load("powerplant", settings=settings_)
     wall = Wall.from_dict(json.loads((ROOT / "examples" / "wall-4x4.json").read_text()))
     from wallcull.paths import scene_path
@@ -140,7 +140,7 @@ def test_any_subset_of_tiles_in_any_order():
                                                ("wall-cave.json", True),
                                                ("wall-angled.json", False)])
 def test_screens_and_stereo_packets_and_node_messages(wall_file, stereo):
-    settings_ = json.loads((ROOT / "examples" / "powerplant-lights.json").read_text())
+    settings_ = json.loads((ROOT / "scenes" / "powerplant-lights.json").read_text())
     scene = load("powerplant", settings=settings_)
     wall = Wall.from_dict(json.loads((ROOT / "examples" / wall_file).read_text()))
     from wallcull.fit import FitOptions
@@ -166,7 +166,7 @@ def test_a_node_rebuilds_the_servers_matrices_from_the_extents(wall_file, stereo
     """clients.frusta turns node messages (full, then deltas that leave out extents that did
     not change) back into every tile's view and projection, and each eye's: equal to the
     server's fits within 1e-6 of the matrix's largest entry."""
-    from wallcull.clients.frusta import Frusta
+    from wallcull_clients.frusta import Frusta
     from wallcull.fit import FitOptions
     from wallcull.paths import scene_path
 
@@ -200,7 +200,7 @@ def test_a_node_rebuilds_the_servers_matrices_from_the_extents(wall_file, stereo
 
 def test_a_node_tells_what_its_deltas_would_have_cost_as_full_lists():
     """clients.node.full_size: exactly the bytes of the server's full message of the frame."""
-    from wallcull.clients.node import NodeState, full_size
+    from wallcull_clients.node import NodeState, full_size
     from wallcull.fit import FitOptions
     from wallcull.paths import scene_path
 

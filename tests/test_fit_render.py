@@ -11,7 +11,7 @@ from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
 from wallcull.wall import Frame, Wall
 
-render = pytest.importorskip("wallcull.clients.render")
+render = pytest.importorskip("wallcull_clients.render")
 try:
     render.TileRenderer(8, 8)
 except Exception as exc:  # noqa: BLE001

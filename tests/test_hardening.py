@@ -1,8 +1,8 @@
 """Issue 10's failures, each a regression test against a real ``wallcull serve`` on loopback
 (a subprocess with a state folder of its own), through the hostile clients of
-:mod:`wallcull.clients.hostile`. Bounds here are generous properties (memory grows by less
+:mod:`wallcull_clients.hostile`. Bounds here are generous properties (memory grows by less
 than 50 MB, every node comes back); the timings are measured by the same functions run at
-full size (``python -m wallcull.clients.hostile all``, README) and, as the 8 x 8 soak,
+full size (``python -m wallcull_clients.hostile all``, README) and, as the 8 x 8 soak,
 ``@pytest.mark.slow``."""
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import json
 import msgpack
 import pytest
 
-from wallcull.clients import hostile
-from wallcull.clients.driver import Driver
-from wallcull.clients.rawhttp import Connection
+from wallcull_clients import hostile
+from wallcull_clients.driver import Driver
+from wallcull_clients.rawhttp import Connection
 
 MiB = 1 << 20
 WALL = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0}
@@ -130,7 +130,7 @@ def test_msgpack_nested_1000_deep_is_a_400_on_a_real_server():
 def test_big_bodies_and_big_answers_leave_the_event_loop_free():
     """A 1 MiB body of empty updates (issue 10: the loop blocked 0.45 s) and the node list of
     a 50,000-node scene (0.8 s at 100,000): a probe keeps being answered. The bound is loose
-    (the machine is shared); ``python -m wallcull.clients.hostile loop`` measures it."""
+    (the machine is shared); ``python -m wallcull_clients.hostile loop`` measures it."""
     r = run(hostile.loop(1.0, 50_000))
     assert r["updates"]["status"] == 422  # more than 10,000 updates, refused unvalidated
     assert r["nodes"]["upload_status"] == 201 and r["nodes"]["status"] == 200

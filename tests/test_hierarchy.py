@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 
 from wallcull import hierarchy as H
 from wallcull.scene import Scene, Source
-from wallcull.scenes import build
+from wallcull.bundled import build
 
 from .oldscene import old_arrays, old_leaf_bounds
 from .randscene import random_scene

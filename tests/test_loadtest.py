@@ -17,12 +17,12 @@ import msgpack
 import numpy as np
 import pytest
 
-from wallcull.clients.driver import Driver
-from wallcull.clients.rawhttp import Connection
-from wallcull.clients.sim import (Mesh, MeshCache, TileClient, msgpack_ints_len, parse_tiles,
+from wallcull_clients.driver import Driver
+from wallcull_clients.rawhttp import Connection
+from wallcull_clients.sim import (Mesh, MeshCache, TileClient, msgpack_ints_len, parse_tiles,
                          shared_scene, sorted_ints_len)
 from wallcull import protocol
-from wallcull.clients.loadtest import analyze, running_server, split
+from wallcull_clients.loadtest import analyze, running_server, split
 
 ROOT = Path(__file__).resolve().parent.parent
 WALL_2x2 = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.012, 0.012],
@@ -328,7 +328,7 @@ def test_pull_and_stream_nodes_against_a_real_server(server):
 def test_protocol_apply_is_what_the_nodes_use():
     """The node's rebuild is protocol.apply: a packet whose count disagrees is an error the
     node records (and it asks for a full list) rather than a wrong list drawn."""
-    from wallcull.clients.sim import SceneInfo
+    from wallcull_clients.sim import SceneInfo
 
     scene = SceneInfo("s", ["m"], np.array([-1, 0, 0]), np.tile(np.eye(4), (3, 1, 1)),
                       np.array([1, 2]))
@@ -349,12 +349,12 @@ def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
     """--render: each node draws its leaves with the real OpenGL renderer, with the view and
     projection of its packet. Every pixel drawn belongs to a leaf of the tile's list, and tiles
     with leaves in view draw some."""
-    render = pytest.importorskip("wallcull.clients.render")
+    render = pytest.importorskip("wallcull_clients.render")
     try:
         render.reversed_z_available()
     except Exception as exc:  # noqa: BLE001 - no EGL here
         pytest.skip(f"no headless OpenGL: {exc}")
-    from wallcull.clients.sim import run_wall
+    from wallcull_clients.sim import run_wall
 
     async def go():
         async with Driver(server, TOKEN) as d:

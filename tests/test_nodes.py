@@ -13,7 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 
-from wallcull.clients.node import NodeState
+from wallcull_clients.node import NodeState
 from wallcull.fit import FitOptions
 from wallcull.paths import camera_path
 from wallcull.pipeline import Session

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from wallcull.clients import render
+from wallcull_clients import render
 
 try:
     render.reversed_z_available()  # creates the shared EGL context
 except Exception as exc:  # no EGL / no GPU driver on this machine: nothing here can run
     pytest.skip(f"no headless OpenGL (EGL) context: {exc}", allow_module_level=True)
 
-from wallcull.clients.render import Image, TileRenderer
+from wallcull_clients.render import Image, TileRenderer
 
 W, H = 96, 64
 

@@ -1,7 +1,6 @@
 """The object hierarchy: loading real files, the flat-array invariants, the automatic spatial
 hierarchy, and dynamic moves that refit only what moved."""
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +15,8 @@ from wallcull.wall import Frame, Frusta, Wall
 
 from .randscene import look_at_frame, random_scene, random_wall
 
-# The third-party scenes live beside the project (../shared/scenes); WALLCULL_SHARED_SCENES
-# points elsewhere. Tests that need them skip when they are absent.
-SHARED = Path(os.environ.get("WALLCULL_SHARED_SCENES",
-                             Path(__file__).resolve().parents[2] / "shared" / "scenes"))
-needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason=f"{SHARED} not present")
+# The third-party scenes the project ships (scenes/README.md: sources and licences).
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
 
 def check_invariants(scene: Scene):
@@ -49,31 +45,28 @@ def _ancestor(scene, a, b):
     return False
 
 
-@needs_shared
 @pytest.mark.parametrize("name,leaves", [("CesiumMilkTruck.glb", 5), ("TestScene.gltf", 9),
                                          ("FM1_satellite.3DXML", 62)])
 def test_real_scenes_load_and_follow_the_file_tree(name, leaves):
-    scene = load(str(SHARED / name))
+    scene = load(str(SCENES / name))
     check_invariants(scene)
     assert len(scene.leaves) == leaves
-    tm = load_trimesh(SHARED / name)
+    tm = load_trimesh(SCENES / name)
     assert len(tm.graph.nodes_geometry) == leaves
 
 
-@needs_shared
 def test_names_are_stable_across_loads():
     """trimesh names the extra primitives of a glTF mesh at random; ours do not change."""
-    a = load(str(SHARED / "CesiumMilkTruck.glb")).names
-    b = load(str(SHARED / "CesiumMilkTruck.glb")).names
+    a = load(str(SCENES / "CesiumMilkTruck.glb")).names
+    b = load(str(SCENES / "CesiumMilkTruck.glb")).names
     assert a == b
     assert "0:Cesium_Milk_Truck_1" in a
 
 
-@needs_shared
 def test_flat_obj_gets_a_spatial_hierarchy_that_can_be_switched_off():
-    flat = load(str(SHARED / "sportsCar.zip"), hierarchy="file")
+    flat = load(str(SCENES / "sportsCar.zip"), hierarchy="file")
     assert flat.stats["internal"] == 0 and len(flat.leaves) == 1075
-    auto = load(str(SHARED / "sportsCar.zip"), hierarchy="auto", branching=8)
+    auto = load(str(SCENES / "sportsCar.zip"), hierarchy="auto", branching=8)
     check_invariants(auto)
     assert auto.synthetic.sum() > 50 and (auto.child_count <= 8).all()
     assert sorted(auto.names[i] for i in auto.leaves) == sorted(flat.names[i] for i in flat.leaves)

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from wallcull import scenes
-from wallcull.scenes import meshes
-from wallcull.scenes.generate import digest, tree_stats
-from wallcull.scenes.tree import members, placements, polyline_pipe
+from wallcull import bundled
+from wallcull.bundled import meshes
+from wallcull.bundled.generate import digest, tree_stats
+from wallcull.bundled.tree import members, placements, polyline_pipe
 
 TARGETS = {
     #              internal, leaves, branching, triangles (lo, hi), half extent x/z, max height
@@ -31,7 +31,7 @@ TARGETS = {
 @pytest.fixture(scope="module")
 def built():
     """name -> scene built with seed 0, shared by the read-only tests below."""
-    return {name: scenes.build(name) for name in scenes.BUNDLED}
+    return {name: bundled.build(name) for name in bundled.BUNDLED}
 
 
 def world_transforms(scene: trimesh.Scene) -> dict[str, np.ndarray]:
@@ -43,26 +43,26 @@ def world_transforms(scene: trimesh.Scene) -> dict[str, np.ndarray]:
 
 
 def test_bundled_names_and_descriptions():
-    assert {"fatehpur", "powerplant"} <= set(scenes.BUNDLED)
-    assert all(isinstance(d, str) and d and "\n" not in d for d in scenes.BUNDLED.values())
+    assert {"fatehpur", "powerplant"} <= set(bundled.BUNDLED)
+    assert all(isinstance(d, str) and d and "\n" not in d for d in bundled.BUNDLED.values())
 
 
 def test_unknown_name_raises_key_error():
     with pytest.raises(KeyError):
-        scenes.build("taj_mahal")
+        bundled.build("taj_mahal")
     with pytest.raises(KeyError):
-        scenes.settings("taj_mahal")
+        bundled.settings("taj_mahal")
 
 
 def test_bundled_settings_are_valid_and_fresh_copies():
     from wallcull.settings import parse
 
-    assert parse(scenes.settings("powerplant")).empty  # asks for nothing
-    fatehpur = parse(scenes.settings("fatehpur"))
+    assert parse(bundled.settings("powerplant")).empty  # asks for nothing
+    fatehpur = parse(bundled.settings("fatehpur"))
     assert [l.name for l in fatehpur.lights] == ["sun"]
     assert [m.name for m in fatehpur.mirrors] == ["anup_talao"]
-    scenes.settings("fatehpur")["lights"].clear()
-    assert scenes.settings("fatehpur")["lights"]  # callers cannot change the registry
+    bundled.settings("fatehpur")["lights"].clear()
+    assert bundled.settings("fatehpur")["lights"]  # callers cannot change the registry
 
 
 # ---------------------------------------------------------------------------------------------
@@ -71,7 +71,7 @@ def test_bundled_settings_are_valid_and_fresh_copies():
 
 @pytest.mark.parametrize("name", ["fatehpur", "powerplant"])
 def test_same_seed_same_scene(built, name):
-    again = scenes.build(name)
+    again = bundled.build(name)
     a, b = built[name], again
     assert list(a.graph.transforms.edge_data) == list(b.graph.transforms.edge_data)
     ta, tb = world_transforms(a), world_transforms(b)
@@ -83,7 +83,7 @@ def test_same_seed_same_scene(built, name):
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_other_seed_other_scene_same_shape(built, seed):
     for name, (internal, leaves, branching, (tri_lo, tri_hi), *_rest) in TARGETS.items():
-        other = scenes.build(name, seed=seed)
+        other = bundled.build(name, seed=seed)
         assert digest(other) != digest(built[name])
         s = tree_stats(other)
         assert abs(s["internal"] - internal) <= 0.1 * internal, s
@@ -94,7 +94,7 @@ def test_other_seed_other_scene_same_shape(built, seed):
 
 def test_digest_independent_of_python_hash_seed(built):
     """No set order or ``hash()`` leaks into the scene: another interpreter, another hash seed."""
-    code = "from wallcull import scenes; from wallcull.scenes.generate import digest; print(digest(scenes.build('fatehpur')))"
+    code = "from wallcull import bundled; from wallcull.bundled.generate import digest; print(digest(bundled.build('fatehpur')))"
     env = dict(os.environ, PYTHONHASHSEED="12345")
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")

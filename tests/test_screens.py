@@ -378,7 +378,7 @@ def test_screens_in_cull_json_have_no_row_or_col(tmp_path):
 
 
 def test_a_cave_screen_renders_exactly_like_the_whole_scene():
-    render = pytest.importorskip("wallcull.clients.render")
+    render = pytest.importorskip("wallcull_clients.render")
     try:
         r = render.TileRenderer(96, 96)
     except Exception as exc:  # noqa: BLE001

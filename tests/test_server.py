@@ -32,7 +32,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from starlette.testclient import WebSocketDenialResponse
 from starlette.websockets import WebSocketDisconnect
 
-from wallcull.clients.hostile import glb as glb_build
+from wallcull_clients.hostile import glb as glb_build
 from wallcull.paths import camera_path
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
@@ -1277,7 +1277,7 @@ def test_the_server_keeps_answering_while_a_frame_is_culled(monkeypatch):
 def test_a_wall_can_declare_its_own_lights_and_mirrors(client):
     """``settings`` on POST /walls replaces the scene's own (the power plant declares none),
     ``shadow_fit`` picks the fitting effort; bad settings are refused before any frame."""
-    lights = json.loads((pathlib.Path(__file__).parent.parent / "examples" /
+    lights = json.loads((pathlib.Path(__file__).parent.parent / "scenes" /
                          "powerplant-lights.json").read_text())
     frame = {"position": [0.0, 60.0, 160.0], "orientation": [0.9659258, -0.2588190, 0.0, 0.0]}
     plain, lit = new_wall(client, "powerplant"), new_wall(client, "powerplant", settings=lights,

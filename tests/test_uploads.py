@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from wallcull.clients.hostile import glb, many_nodes, vertex_bomb
+from wallcull_clients.hostile import glb, many_nodes, vertex_bomb
 from wallcull.errors import InputError
 from wallcull.limits import Limits
 from wallcull.uploads import check_glb, glb_chunks, parse_sandboxed

@@ -259,9 +259,9 @@ def cmd_prepare(args) -> int:
 
 
 def cmd_scenes(args) -> int:
-    from wallcull import scenes
+    from wallcull import bundled
 
-    for name, text in [*scenes.BUNDLED.items(), *scenes.TILED.items()]:
+    for name, text in [*bundled.BUNDLED.items(), *bundled.TILED.items()]:
         print(f"{name}\t{text}")
     return 0
 
@@ -379,8 +379,20 @@ def parser() -> argparse.ArgumentParser:
     q = sub.add_parser("scenes", help="list the bundled scenes")
     q.set_defaults(func=cmd_scenes)
     from .experiments import register; register(sub)
-    from .clients.loadtest import register; register(sub)
+    _register_plugins(sub)
     return p
+
+
+#: Entry-point group through which other distributions add subcommands: the clients add
+#: ``wallcull loadtest``. Each entry point names a ``register(subparsers)`` function.
+PLUGINS = "wallcull.commands"
+
+
+def _register_plugins(sub) -> None:
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=PLUGINS):
+        ep.load()(sub)
 
 
 def main(argv=None) -> int:

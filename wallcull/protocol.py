@@ -24,7 +24,7 @@ since the base.
 A *node message* carries one frame to a render node that drives several tiles (one message
 and one acknowledgement per node per frame; a node of one tile is the special case). What the
 tiles share goes once; each tile's projection goes as its frustum's extent and depth range,
-which a node turns back into the exact matrix (:mod:`wallcull.clients.frusta`)::
+which a node turns back into the exact matrix (:mod:`wallcull_clients.frusta`)::
 
     {"frame": n, "time": t, "base": b,          # one base for every tile: the node's ack
      "reversed_z": true,                        # only when the projections are reversed-Z

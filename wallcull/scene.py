@@ -35,7 +35,7 @@ import numpy as np
 from . import bounds as bnd
 from . import hierarchy as tree
 from . import prepared
-from . import scenes as bundled
+from . import bundled
 from .errors import InputError
 from .hierarchy import spatial_groups  # noqa: F401 - part of this module's interface
 from .instances import MeshTable, instance_extremes, instance_points, leaf_bounds

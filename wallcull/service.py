@@ -82,7 +82,7 @@ class SceneStore:
         self._locks: dict[str, asyncio.Lock] = {}
 
     def names(self) -> list[dict]:
-        from wallcull import scenes as bundled
+        from wallcull import bundled
 
         out = [{"name": n, "source": "bundled", "description": d}
                for n, d in bundled.BUNDLED.items()]
@@ -105,7 +105,7 @@ class SceneStore:
         return path
 
     async def get(self, name: str) -> Scene:
-        from wallcull import scenes as bundled
+        from wallcull import bundled
 
         if name in self.cache:
             self.cache.move_to_end(name)
@@ -134,7 +134,7 @@ class SceneStore:
     def upload_name(self, name: str, replace: bool = False) -> str:
         """The file name an upload called ``name`` gets, refused before its body is read when it
         is not a plain name, is a bundled scene's, or exists and ``replace`` is false."""
-        from wallcull import scenes as bundled
+        from wallcull import bundled
 
         if not name.lower().endswith(".glb"):
             name += ".glb"

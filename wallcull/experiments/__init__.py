@@ -59,7 +59,7 @@ raw numbers in `NAME.json` beside them). Nothing here is edited by hand: to chan
 The experiments follow section 5 of Nirnimesh, Harish and Narayanan, *Culling an Object Hierarchy
 to a Frustum Hierarchy* (2006): its Figs. 4, 5 and 6, then what the paper does not measure, the
 accuracy each bound type buys (false positives against the exact oracle of `wallcull/oracle.py`)
-and the third-party scenes of `../shared/scenes/`. Every number is the product's: scenes come from
+and the third-party scenes of `scenes/`. Every number is the product's: scenes come from
 `wallcull.scene.load`, frames from `wallcull.paths.camera_path`, and each frame is culled by a
 `wallcull.pipeline.Session`, whose `timings["cull_ms"]` is the time reported (the frame's planes,
 the first-level cull and the traversal, down to per-tile lists), after three warm-up frames.
@@ -90,7 +90,7 @@ def register(subparsers) -> None:
     q.add_argument("--quick", action="store_true", help="a tiny version, for the test suite")
     q.add_argument("--seed", type=int, default=0, help="seed of every random choice")
     q.add_argument("--scenes", default=None,
-                   help="folder of the third-party scenes (default ../shared/scenes/)")
+                   help="folder of the third-party scenes (default: the project's scenes/)")
     q.add_argument("--report", default=None,
                    help=f"where `all` writes {REPORT} (default: the project's docs/{REPORT} "
                         f"with the default --out, else inside --out)")

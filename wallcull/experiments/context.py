@@ -24,9 +24,8 @@ class Context:
     out: Path
     quick: bool = False
     seed: int = 0
-    # the third-party scenes beside the project, or wherever WALLCULL_SHARED_SCENES says
-    scenes_dir: Path = field(default_factory=lambda: Path(os.environ.get(
-        "WALLCULL_SHARED_SCENES", ROOT.parent / "shared" / "scenes")))
+    # the project's third-party scenes (scenes/), or wherever --scenes says
+    scenes_dir: Path = ROOT / "scenes"
     progress: Any = None  # a rich Progress, or None
     plots: list[str] = field(default_factory=list)
 

@@ -7,9 +7,9 @@ Two measurements, on the power plant's orbit (the whole scene in view), timed by
 reports under ``stages``):
 
 * **stages**: median and p99 of each stage on SPEC walls of 4 x 4, 8 x 8 and 64 x 64 tiles, with
-  no lights, with a lamp and a floor mirror (``examples/powerplant-lights.json``) and with three
+  no lights, with a lamp and a floor mirror (``scenes/powerplant-lights.json``) and with three
   lights (one inside the plant, a spot, a far sun) and two mirrors, one bounded
-  (``examples/powerplant-lights3.json``);
+  (``scenes/powerplant-lights3.json``);
 * **the fitting effort**: shadow frusta from the symmetric bounding-sphere frustum, the paper's
   greedy quadrilateral, or the refined one (``--shadow-fit``): time per frame against the share
   of the shadow map the receivers fill.
@@ -36,7 +36,7 @@ STAGES = ("cull", "leaves", "fit", "encode")
 
 def _settings(name: str) -> dict:
     file = SETTINGS[name]
-    return json.loads((ROOT / "examples" / file).read_text()) if file else {}
+    return json.loads((ROOT / "scenes" / file).read_text()) if file else {}
 
 
 def run(ctx: Context) -> tuple[dict, str]:
@@ -84,7 +84,7 @@ def report(ctx: Context, data: dict) -> str:
           f"adaptive, OBBs; the per-tile fits run on {data['threads']} threads "
           "(`WALLCULL_THREADS`). The same numbers as `wallcull bench --json` under `stages`:\n",
           "    wallcull bench powerplant --wall examples/wall-8x8.json --methods adaptive "
-          "--fit --settings examples/powerplant-lights.json --json\n"]
+          "--fit --settings scenes/powerplant-lights.json --json\n"]
     rows = []
     for key, s in data["stages"].items():
         rows.append([key, *(f"{s[k]['median_ms']:.3f}" for k in STAGES),

@@ -27,7 +27,7 @@ from wallcull.pipeline import Session
 from . import common as C
 from .context import Context
 
-LIGHT = np.array([10.0, 75.0, 5.0])  # above the power plant, as examples/powerplant-lights.json
+LIGHT = np.array([10.0, 75.0, 5.0])  # above the power plant, as scenes/powerplant-lights.json
 
 
 def run(ctx: Context) -> tuple[dict, str]:
@@ -186,7 +186,7 @@ def report(ctx: Context, data: dict) -> str:
     md.append("\n" + ctx.savefig(fig, "frusta-quads.png", "quadrilateral areas") + "\n")
 
     s = f["summary"]
-    md.append(f"\n**Shadow frusta.** A light above the power plant (`examples/powerplant-lights"
+    md.append(f"\n**Shadow frusta.** A light above the power plant (`scenes/powerplant-lights"
               f".json`), {f['fits']} tile frusta over {f['frames']} frames of the `fly` path on "
               f"the 4 x 4 wall, each fitted around the bounds the tile shows (what `fit.py` does "
               f"for every tile and light); {f['cube_maps']} tiles surrounded the light and would "

@@ -1,4 +1,4 @@
-"""The same measurements on third-party scenes (``../shared/scenes/``): every method's culling
+"""The same measurements on third-party scenes (``scenes/``): every method's culling
 time on 4 x 4 and 8 x 8, every bound type's false positives; on the flat sports car, the
 automatic hierarchy and pseudo-groups on and off."""
 
@@ -68,7 +68,7 @@ def flat_hierarchy(path: str, auto: C.Pristine, frames_n: int, task) -> dict:
 
 def report(ctx: C.Context, data: dict) -> str:
     md = ["## Real scenes\n",
-          f"The third-party scenes of `../shared/scenes/` (see its README for sources and "
+          f"The third-party scenes of `scenes/` (see its README for sources and "
           f"licences), loaded with `wallcull.scene.load` (automatic hierarchy under parents of "
           f"more than 32 children), {data['frames']} frames of the `orbit` path on SPEC walls, "
           "eigenvector OBBs unless said otherwise.\n"]

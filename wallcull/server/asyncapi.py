@@ -93,7 +93,7 @@ SCHEMAS["NodeMessage"] = _strict(
      "tiles": {"type": "array", "items": {"$ref": "#/$defs/TileEntry"}}},
     ("frame", "time", "base", "tiles"),
     "one frame for a render node of several tiles (wallcull.protocol; the matrices: "
-    "wallcull.clients.frusta)")
+    "wallcull_clients.frusta)")
 SCHEMAS["Control"] = {**_strict({"ack": INT, "full": {"type": "boolean"}}, (),
                                 "from a node: it has drawn frame ack; full: send full lists "
                                 "next"), "minProperties": 1}

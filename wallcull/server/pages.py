@@ -2,7 +2,7 @@
 
 * ``GET /walls/{wid}/view?tiles=3,4``: the page a render PC opens full-screen, one browser
   window per output. It draws its tiles side by side in one WebGL2 canvas (``static/view.js``):
-  the node stream in JSON, lists and matrices rebuilt as :mod:`wallcull.clients.node` does,
+  the node stream in JSON, lists and matrices rebuilt as :mod:`wallcull_clients.node` does,
   meshes fetched once, one acknowledgement per frame drawn.
 * ``GET /walls/{wid}/console``: the wall drawn to scale (front view of a flat wall, top view
   of screens around the viewer), each tile's list size, latency and state, live

@@ -1,14 +1,14 @@
 // wallcull's tile client: a render node in a browser (GET /walls/{wid}/view).
 //
 // The node stream (JSON) brings one message per frame for this page's tiles; each message is
-// taken as wallcull/clients/node.py takes it (lists rebuilt from the delta's base, extents
+// taken as clients/wallcull_clients/node.py takes it (lists rebuilt from the delta's base, extents
 // and depth ranges kept by frame, matrices rebuilt as clients/frusta.py does), every mesh is
 // fetched once, the newest frame is drawn with WebGL2 and acknowledged ({"ack": n}). A
 // message that cannot be taken asks for full lists ({"full": true}). Stereo frames: the left
 // eye in the left half of each tile, the right eye in the right half. With ?ids=1 each tile
 // is also drawn into an R32UI target holding each leaf's draw id (leaf id + 1, 0 for the
 // background), read back by window.wallcull.readIds(tile), row 0 at the top, as
-// wallcull/clients/render.py's Image.ids.
+// clients/wallcull_clients/render.py's Image.ids.
 
 const cfg = JSON.parse(document.getElementById("wallcull-config").textContent);
 const status = document.getElementById("status");

@@ -1,7 +1,7 @@
 """A picture of a wall: every tile rendered from its own culled list and fitted frusta, by the
 real OpenGL renderer, laid out with the wall's bezels. The README's picture comes from here:
 
-    python -m wallcull.clients.picture powerplant --wall examples/wall-4x4.json --out docs/wall.png
+    python -m wallcull_clients.picture powerplant --wall examples/wall-4x4.json --out docs/wall.png
 """
 
 from __future__ import annotations

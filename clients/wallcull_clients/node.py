@@ -1,6 +1,6 @@
 """What a render node keeps between node messages (:mod:`wallcull.protocol`), and what it makes
 of each: every tile's leaf list, rebuilt from the delta's base, and its matrices
-(:mod:`wallcull.clients.frusta`), and the world transforms of the leaves that moved.
+(:mod:`wallcull_clients.frusta`), and the world transforms of the leaves that moved.
 
 A delta's base is the newest frame the node had acknowledged when the server made the
 message; acknowledgements only grow, so the lists (and extents) older than the newest base

@@ -6,8 +6,8 @@ Walkthrough mode (the default)::
         --mode ws --clients-procs 1 [--barrier] [--path orbit|fly] --out DIR [--json]
 
 starts ``wallcull serve`` on a free loopback port, creates the wall, starts the render nodes
-(``python -m wallcull.clients.sim``, the tiles split over ``--clients-procs`` processes, each node an
-asyncio task) and, once every node is connected, the driver (``python -m wallcull.clients.driver``), which
+(``python -m wallcull_clients.sim``, the tiles split over ``--clients-procs`` processes, each node an
+asyncio task) and, once every node is connected, the driver (``python -m wallcull_clients.driver``), which
 posts ``rate x duration`` frames of the camera path. It then writes ``report.json`` and
 ``report.md`` to ``--out``:
 
@@ -32,11 +32,11 @@ Request mode::
 
     wallcull loadtest --requests 20000 [--concurrency 64]
 
-creates a wall, posts one frame, then a separate process (``python -m wallcull.clients.loadtest``) sends
+creates a wall, posts one frame, then a separate process (``python -m wallcull_clients.loadtest``) sends
 ``GET /walls/{wid}/tiles/{t}/packets/latest`` over ``--concurrency`` keep-alive connections
 (tiles spread over the connections; no tile has acknowledged anything, so each answer is a full
 list) and reports requests/s. The load generator is the minimal asyncio HTTP/1.1 client of
-:mod:`wallcull.clients.rawhttp` (on uvloop when installed): ``httpx`` tops out near the rates measured.
+:mod:`wallcull_clients.rawhttp` (on uvloop when installed): ``httpx`` tops out near the rates measured.
 """
 
 from __future__ import annotations
@@ -110,7 +110,7 @@ class Server:
     async def start(self, timeout: float = 120.0) -> "Server":
         import psutil
 
-        from wallcull.clients.rawhttp import Connection
+        from wallcull_clients.rawhttp import Connection
 
         cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1",
                "--port", str(self.port), "--log-level", self.log_level, "--state", self.state,
@@ -204,7 +204,7 @@ async def metrics(url: str) -> dict:
     """The server's counters: packets and bytes by kind and transport, stage times, errors."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    from wallcull.clients.rawhttp import Connection
+    from wallcull_clients.rawhttp import Connection
 
     async with Connection(url) as conn:
         r = await conn.request("GET", "/metrics", accept="text/plain")
@@ -367,7 +367,7 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
 
 
 def _wall_spec(text: str) -> dict:
-    from ..documents import read_json
+    from wallcull.documents import read_json
 
     path = Path(text)
     if not text.strip().startswith("{") and not path.exists() and (ROOT / text).exists():
@@ -392,7 +392,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     meshes before the first frame, as a render PC loads its scene before it joins a wall."""
     import psutil
 
-    from wallcull.clients.driver import PATH_FRAMES, Driver
+    from wallcull_clients.driver import PATH_FRAMES, Driver
     from wallcull.wall import Wall
 
     host = machine()  # before we load it
@@ -423,7 +423,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         Path(credentials).write_text(json.dumps(info["credentials"]))
         ranges = [(groups[a][0], groups[b][-1]) for a, b in split(len(groups), clients_procs)]
         for k, (a, b) in enumerate(ranges):
-            cmd = [sys.executable, "-m", "wallcull.clients.sim", "--server", url, "--wall", wid,
+            cmd = [sys.executable, "-m", "wallcull_clients.sim", "--server", url, "--wall", wid,
                    "--tiles", f"{a}-{b}", "--mode", mode, "--credentials", credentials,
                    "--until-frame", str(frames - 1), "--idle-timeout", "5",
                    "--cache-bytes", str(cache_bytes), "--out", f"{tmp.name}/nodes-{k}.json",
@@ -444,7 +444,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         server_ps = own.ps if own else None
         broker_ps = psutil.Process(broker.proc.pid) if broker is not None else None
         client_ps = [psutil.Process(p.pid) for p in procs]
-        cmd = [sys.executable, "-m", "wallcull.clients.driver", "--server", url, "--wall-id", wid,
+        cmd = [sys.executable, "-m", "wallcull_clients.driver", "--server", url, "--wall-id", wid,
                "--rate", str(rate), "--frames", str(frames), "--path", path,
                "--path-frames", str(path_frames or PATH_FRAMES),
                "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
@@ -573,7 +573,7 @@ async def _watch(url, wid, frames, drv, show: bool) -> None:
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                                TimeElapsedColumn)
 
-    from wallcull.clients.rawhttp import Connection
+    from wallcull_clients.rawhttp import Connection
 
     columns = (TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                TextColumn("{task.fields[rate]}"), TimeElapsedColumn())
@@ -616,7 +616,7 @@ async def hammer(server: str, targets: list[str], total: int, concurrency: int,
     """``total`` GETs (or as many as fit in ``duration`` seconds) over ``concurrency``
     keep-alive connections, connection ``i`` asking for ``targets[i % len(targets)]``
     (with ``token`` as a bearer token: packets need a credential)."""
-    from wallcull.clients.rawhttp import Connection
+    from wallcull_clients.rawhttp import Connection
 
     issued = 0
     statuses: Counter = Counter()
@@ -661,7 +661,7 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
                         progress: bool = True) -> dict:
     """Single-packet request throughput of one server (see the module docstring)."""
 
-    from wallcull.clients.driver import Driver
+    from wallcull_clients.driver import Driver
 
     wall = _wall_spec(wall) if isinstance(wall, str) else wall
     token = token or secrets.token_hex(8)
@@ -674,7 +674,7 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
             info = await d.create_wall(scene, wall)
             frames = await d.frames(scene, info["wall"], "orbit", 1)
             await d.post(info["id"], frames[0])
-        cmd = [sys.executable, "-m", "wallcull.clients.loadtest", "--server", url, "--wall-id",
+        cmd = [sys.executable, "-m", "wallcull_clients.loadtest", "--server", url, "--wall-id",
                info["id"], "--tiles", str(info["tiles"]), "--requests", str(requests),
                "--concurrency", str(concurrency)]
         cpu0 = cpu_seconds(own.ps) if own else float("nan")
@@ -721,8 +721,8 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
 
 
 def _hammer_main(argv=None) -> int:
-    """``python -m wallcull.clients.loadtest``: the request-mode load generator (prints JSON)."""
-    p = argparse.ArgumentParser(prog="python -m wallcull.clients.loadtest")
+    """``python -m wallcull_clients.loadtest``: the request-mode load generator (prints JSON)."""
+    p = argparse.ArgumentParser(prog="python -m wallcull_clients.loadtest")
     p.add_argument("--server", required=True)
     p.add_argument("--wall-id", required=True)
     p.add_argument("--tiles", type=int, default=1)
@@ -894,8 +894,8 @@ def register(sub) -> None:
 
 
 def cmd_loadtest(args) -> int:
-    from ..errors import InputError
-    from ..settings import read as read_settings
+    from wallcull.errors import InputError
+    from wallcull.settings import read as read_settings
 
     if args.clients_procs < 1 or args.tiles_per_node < 1:
         raise InputError("--clients-procs and --tiles-per-node must be at least 1")

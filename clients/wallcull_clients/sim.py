@@ -39,7 +39,7 @@ it for good (the wall was deleted, the credential is refused) or stays away long
 
 Run a wall of them::
 
-    python -m wallcull.clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws \
+    python -m wallcull_clients.sim --server http://127.0.0.1:8000 --wall ID --tiles 0-63 --mode ws \
         --credentials credentials.json
 """
 
@@ -956,7 +956,7 @@ def pixels(text: str) -> tuple[int, int]:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m wallcull.clients.sim",
+    p = argparse.ArgumentParser(prog="python -m wallcull_clients.sim",
                                 description="Simulated render clients of a wallcull wall.")
     p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
     p.add_argument("--wall", default="auto",

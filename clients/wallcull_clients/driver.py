@@ -15,7 +15,7 @@ Every request is retried with backoff while the server is away (:mod:`.retry`); 
 fails with a message and a non-zero status when the server stays away longer than
 ``--retry-for`` seconds or refuses a request for good.
 
-    python -m wallcull.clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
+    python -m wallcull_clients.driver --server http://127.0.0.1:8000 --scene powerplant \\
         --wall examples/wall-8x8.json --rate 60 --frames 600 [--barrier] [--path fly] \\
         [--credentials-out credentials.json]
 """
@@ -251,7 +251,7 @@ def _count_or_all(text: str):
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m wallcull.clients.driver",
+    p = argparse.ArgumentParser(prog="python -m wallcull_clients.driver",
                                 description="Post a walkthrough's frames to a wallcull wall.")
     p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
     p.add_argument("--scene", default="powerplant")
@@ -279,7 +279,7 @@ def parser() -> argparse.ArgumentParser:
                         "credential (default: $WALLCULL_TOKEN)")
     p.add_argument("--credentials-out", metavar="FILE",
                    help="write the created wall's credentials here (mode 0600) for the nodes "
-                        "(python -m wallcull.clients.sim --credentials FILE)")
+                        "(python -m wallcull_clients.sim --credentials FILE)")
     p.add_argument("--retry-for", type=float, default=60.0, metavar="SECONDS",
                    help="how long to keep retrying a lost server before failing")
     p.add_argument("--out", help="write the per-frame log to this JSON file")

@@ -1,8 +1,8 @@
 """Build a bundled scene by name, and measure the shape of any scene tree.
 
 The bundled scenes are generated, not stored: a few template meshes instanced thousands of times
-(see :mod:`wallcull.scenes.meshes`) under a tree laid out by :mod:`wallcull.scenes.fatehpur` or
-:mod:`wallcull.scenes.powerplant`. Generation is deterministic: the same name and seed give the same
+(see :mod:`wallcull.bundled.meshes`) under a tree laid out by :mod:`wallcull.bundled.fatehpur` or
+:mod:`wallcull.bundled.powerplant`. Generation is deterministic: the same name and seed give the same
 node names, tree, transforms and vertices, bit for bit, because all randomness comes from one
 ``numpy.random.default_rng(seed)`` consumed in a fixed order.
 """

@@ -5,13 +5,13 @@ state folder), does to it what issue 10 found a client could do, and reports wha
 server: its resident memory (sampled every 20 ms), the statuses it answered, its frame rate,
 how long its event loop stalled, how long nodes took to come back after it was killed.
 
-    python -m wallcull.clients.hostile glb-bomb     # a 1 kB GLB declaring 10^8 vertices
-    python -m wallcull.clients.hostile uploads      # 10 concurrent unauthenticated 60 MB uploads
-    python -m wallcull.clients.hostile streams      # 1000 stream opens without a credential
-    python -m wallcull.clients.hostile acks         # an ack with another tile's credential
-    python -m wallcull.clients.hostile loop         # 1 MiB of updates; 100k nodes described
-    python -m wallcull.clients.hostile restart      # SIGKILL mid-run on an 8 x 8 wall
-    python -m wallcull.clients.hostile all --json
+    python -m wallcull_clients.hostile glb-bomb     # a 1 kB GLB declaring 10^8 vertices
+    python -m wallcull_clients.hostile uploads      # 10 concurrent unauthenticated 60 MB uploads
+    python -m wallcull_clients.hostile streams      # 1000 stream opens without a credential
+    python -m wallcull_clients.hostile acks         # an ack with another tile's credential
+    python -m wallcull_clients.hostile loop         # 1 MiB of updates; 100k nodes described
+    python -m wallcull_clients.hostile restart      # SIGKILL mid-run on an 8 x 8 wall
+    python -m wallcull_clients.hostile all --json
 
 The tests run bounded versions of the same functions (``tests/test_hardening.py``).
 """
@@ -348,14 +348,14 @@ async def _wall_running(s: Server, wall: dict, rate: float = 0.0, scene: str = "
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     nodes = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "wallcull.clients.sim", "--server", s.url, "--wall", info["id"],
+        sys.executable, "-m", "wallcull_clients.sim", "--server", s.url, "--wall", info["id"],
         "--credentials", str(creds), "--quiet", "--no-full-size", cwd=str(ROOT), env=env,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL)
     await nodes.stdout.readline()  # {"ready": ...}
     async with Driver(s.url, TOKEN) as d:
         await d.wait_clients(info["id"], info["tiles"], 60)
     driver = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "wallcull.clients.driver", "--server", s.url, "--wall-id",
+        sys.executable, "-m", "wallcull_clients.driver", "--server", s.url, "--wall-id",
         info["id"], "--token", info["credentials"]["driver"], "--rate", str(rate), "--frames",
         "20000", cwd=str(ROOT), env=env, stdout=asyncio.subprocess.DEVNULL,
         stderr=asyncio.subprocess.PIPE)
@@ -428,7 +428,7 @@ async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
             info = await d.create_wall(scene, spec)
         (out / "credentials.json").write_text(json.dumps(info["credentials"]))
         nodes = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "wallcull.clients.sim", "--server", s.url, "--wall", info["id"],
+            sys.executable, "-m", "wallcull_clients.sim", "--server", s.url, "--wall", info["id"],
             "--credentials", str(out / "credentials.json"), "--until-frame", str(frames - 1),
             "--idle-timeout", "20", "--out", str(out / "nodes.json"), "--quiet",
             "--no-full-size", "--mode", mode, cwd=str(ROOT), env=env,
@@ -439,7 +439,7 @@ async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
             async with Driver(s.url, TOKEN) as d:
                 await d.wait_clients(info["id"], info["tiles"], 60)
         driver = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "wallcull.clients.driver", "--server", s.url, "--wall-id",
+            sys.executable, "-m", "wallcull_clients.driver", "--server", s.url, "--wall-id",
             info["id"], "--token", info["credentials"]["driver"], "--rate", str(rate),
             "--frames", str(frames), "--out", str(out / "driver.json"), cwd=str(ROOT), env=env,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
@@ -493,7 +493,7 @@ SCENARIOS = {"glb-bomb": glb_bomb, "uploads": uploads, "streams": streams, "acks
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m wallcull.clients.hostile",
+    p = argparse.ArgumentParser(prog="python -m wallcull_clients.hostile",
                                 description="Hostile clients against a real server, measured.")
     p.add_argument("scenario", choices=[*SCENARIOS, "all"])
     p.add_argument("--json", action="store_true", help="one JSON object per scenario")
