@@ -8,10 +8,20 @@ from scipy.spatial.transform import Rotation
 
 
 def random_mesh(rng: np.random.Generator, kind: str | None = None) -> trimesh.Trimesh:
-    """A small mesh; degenerate kinds included (flat, a segment, a point, repeated points)."""
+    """A small mesh; degenerate kinds included (flat, a segment, a point, repeated points).
+    ``"many"``: a soup of 40 to 400 triangles, to be cut into clusters."""
     kind = kind or rng.choice(["box", "blob", "blob", "flat", "line", "point", "sliver"])
     if kind == "box":
         return trimesh.creation.box(extents=rng.uniform(0.05, 2.0, 3))
+    if kind == "many":
+        n = int(rng.integers(20, 200))
+        v = rng.normal(size=(n, 3)) * rng.uniform(0.05, 3.0, 3)
+        # triangles between near neighbours mostly, a few long ones across
+        f = np.sort(rng.integers(0, n, size=(int(rng.integers(40, 400)), 3)), axis=1)
+        v = v[np.argsort(v[:, int(rng.integers(3))])]
+        near = rng.random(len(f)) < 0.8
+        f[near] = f[near, :1] + np.sort(rng.integers(0, 4, size=(near.sum(), 3)), axis=1)
+        return trimesh.Trimesh(vertices=v, faces=np.minimum(f, n - 1), process=False)
     n = int(rng.integers(3, 24))
     if kind == "blob":
         v = rng.normal(size=(n, 3)) * rng.uniform(0.05, 1.5, 3)
@@ -37,9 +47,10 @@ def random_transform(rng: np.random.Generator, spread: float, scale: bool = True
 
 
 def random_scene(seed: int, leaves: int = 20, offset=(0.0, 0.0, 0.0), flat: bool = False,
-                 self_geometry: bool = True) -> trimesh.Scene:
+                 self_geometry: bool = True, big: float = 0.0) -> trimesh.Scene:
     """A random node tree of depth up to 4 with random leaf meshes; the root group is moved by
-    ``offset`` (tests of large coordinates)."""
+    ``offset`` (tests of large coordinates); a fraction ``big`` of the leaves have meshes of
+    many triangles (to be cut into clusters)."""
     rng = np.random.default_rng(seed)
     scene = trimesh.Scene()
     top = np.eye(4)
@@ -54,7 +65,7 @@ def random_scene(seed: int, leaves: int = 20, offset=(0.0, 0.0, 0.0), flat: bool
                                matrix=random_transform(rng, 3.0, scale=False))
             groups.append(name)
             parent = name
-        mesh = random_mesh(rng)
+        mesh = random_mesh(rng, "many" if big and rng.random() < big else None)
         geom = f"mesh{i}"
         scene.add_geometry(mesh, geom_name=geom, node_name=f"leaf{i}", parent_node_name=parent,
                            transform=random_transform(rng, 4.0))

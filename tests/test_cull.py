@@ -10,7 +10,7 @@ from wallcull.cull import METHODS, Culler, cull
 from wallcull.scene import Scene, SceneState
 from wallcull.wall import Frame, Frusta, Wall
 
-from wallcull.oracle import visible_leaves
+from wallcull.oracle import visible_leaves, visible_units
 from .randscene import look_at_frame, random_scene, random_wall
 
 BOUNDS = ("obb", "aabb", "sphere")
@@ -18,6 +18,28 @@ BOUNDS = ("obb", "aabb", "sphere")
 
 def leaf_sets(vis):
     return [set(vis.tile_leaves(t).tolist()) for t in range(vis.tiles)]
+
+
+def drawn_triangles(vis, tile: int) -> dict[int, set[int]]:
+    """What a tile draws: leaf id -> the triangles of its mesh (its list, less what its
+    ranges leave out)."""
+    count = vis.scene.cluster_faces[1]
+    out = {int(leaf): set(range(count[leaf])) for leaf in vis.tile_leaves(tile)}
+    for leaf, ranges in vis.draw_ranges().tile(tile):
+        out[leaf] = set().union(*(range(a, a + b) for a, b in ranges))
+    return out
+
+
+def check_units(scene: Scene, vis, units: list[set[int]], what: str):
+    """Every cluster (or whole leaf) the oracle sees in a tile is drawn there, all of it."""
+    first, count = scene.cluster_faces
+    for t, seen in enumerate(units):
+        drawn = drawn_triangles(vis, t)
+        for unit in seen:
+            leaf = scene.cluster_leaf[unit] if scene.cluster_of[unit] >= 0 else unit
+            tris = set(range(first[unit], first[unit] + count[unit]))
+            assert tris <= drawn.get(int(leaf), set()), \
+                f"{what} misses cluster {unit} of {scene.names[leaf]} in tile {t}"
 
 
 def check_against_oracle(scene: Scene, wall_spec: dict, frame_spec: dict):
@@ -28,6 +50,7 @@ def check_against_oracle(scene: Scene, wall_spec: dict, frame_spec: dict):
     extent = np.ptp(scene.leaf_points[0], axis=0).max()
     tol = 1e-7 * max(extent, np.linalg.norm(frame.position))
     truth = visible_leaves(scene, wall_spec, frame_spec, tol)
+    units = visible_units(scene, wall_spec, frame_spec, tol) if len(scene.clusters) else None
     for kind in BOUNDS:
         state = SceneState(scene, kind)
         got = {}
@@ -39,6 +62,8 @@ def check_against_oracle(scene: Scene, wall_spec: dict, frame_spec: dict):
                 missed = truth[t] - got[method][t]
                 assert not missed, (f"{method} ({kind}) misses leaves "
                                     f"{sorted(scene.names[i] for i in missed)} in tile {t}")
+            if units is not None:
+                check_units(scene, vis, units, f"{method} ({kind})")
         # Same bounds, same tests: the per-tile methods agree, the FH methods agree; the split
         # planes above a tile can only remove leaves, and adaptive, which tests objects it
         # unfolds at a tile against that tile's own planes, lies between (see wallcull.cull).
@@ -59,6 +84,41 @@ def test_no_method_misses_a_leaf_the_oracle_sees(seed, flat, hierarchy):
     center = scene.leaf_points[0].mean(axis=0)
     frame = look_at_frame(rng, center, float(rng.uniform(2, 25)), wall)
     check_against_oracle(scene, wall, frame)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), hierarchy=st.sampled_from(["auto", "file"]),
+       size=st.sampled_from([32, 48, 100]), far=st.booleans())
+def test_no_method_misses_a_cluster_the_oracle_sees(seed, hierarchy, size, far):
+    """Leaves of many triangles cut into clusters (and trees of clusters): every cluster with
+    a triangle in a tile frustum is drawn there, by every method and bound type; near the
+    origin and 1e7 away."""
+    rng = np.random.default_rng(seed)
+    offset = np.array([1e7, -3e6, 2e7]) if far else np.zeros(3)
+    tscene = random_scene(seed, leaves=int(rng.integers(1, 12)), offset=offset, big=0.6)
+    scene = Scene.from_trimesh(tscene, hierarchy=hierarchy, branching=int(rng.integers(2, 6)),
+                               clusters=size)
+    wall = random_wall(rng)
+    center = scene.leaf_points[0].mean(axis=0)
+    frame = look_at_frame(rng, center, float(rng.uniform(2, 25)), wall)
+    check_against_oracle(scene, wall, frame)
+
+
+def test_random_clustered_cases_are_not_vacuous():
+    """The clustered scenes above have clusters, and tiles that see some but not all of them."""
+    parts = 0
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        scene = Scene.from_trimesh(random_scene(seed, leaves=int(rng.integers(1, 12)), big=0.6),
+                                   clusters=32)
+        assert len(scene.clusters)
+        wall = random_wall(rng)
+        frame = look_at_frame(rng, scene.leaf_points[0].mean(axis=0), float(rng.uniform(2, 25)),
+                              wall)
+        vis = cull(SceneState(scene), Frusta.build(Wall.from_dict(wall),
+                                                   Frame.from_dict(frame, Wall.from_dict(wall))))
+        parts += len(vis.draw_ranges().part_leaf)
+    assert parts >= 6
 
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -210,15 +270,31 @@ def test_tile_lists_are_sorted_disjoint_subtrees(powerplant, method):
     state = SceneState(powerplant)
     culler = Culler(state, wall, "adaptive" if method == "pseudo" else method,
                     pseudo_groups=method == "pseudo")
+    size, of_cluster = powerplant.size, powerplant.cluster_leaf
+    first, count = powerplant.cluster_faces
     for frusta in _frames(powerplant, wall):
         vis = culler.cull(frusta)
         start, leaves = vis.leaf_lists()
+        ranges = vis.draw_ranges()
+        partial = 0
         for t in range(wall.tiles):
             nodes = vis.tile_nodes(t)
-            assert (np.diff(nodes) > 0).all()
-            expect = np.unique(powerplant.subtree_leaves(nodes))
+            assert (nodes[1:] >= (nodes + size[nodes])[:-1]).all()  # sorted, disjoint subtrees
+            cluster = of_cluster[nodes] >= 0
+            expect = np.union1d(powerplant.subtree_leaves(nodes[~cluster]), of_cluster[nodes[cluster]])
             assert np.array_equal(leaves[start[t]:start[t + 1]], expect)
-            assert len(expect) == len(powerplant.subtree_leaves(nodes))  # disjoint
+            # a leaf reached through some of its clusters: their triangles, merged into ranges
+            shown = {}
+            for node in nodes[cluster]:
+                shown.setdefault(int(of_cluster[node]), set()).update(
+                    range(first[node], first[node] + count[node]))
+            want = {leaf: tris for leaf, tris in shown.items() if len(tris) < count[leaf]}
+            got = {leaf: set().union(*(range(a, a + b) for a, b in r)) for leaf, r in ranges.tile(t)}
+            assert got == want
+            for leaf, r in ranges.tile(t):
+                assert (r[1:, 0] > r[:-1].sum(axis=1)).all()  # sorted, apart: merged
+            partial += len(want)
+        assert partial > 0  # the frames do cut leaves
 
 
 def test_outputs_that_fill_up_are_doubled_not_truncated(powerplant):

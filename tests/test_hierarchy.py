@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from wallcull import hierarchy as H
-from wallcull.scene import Scene, Source
+from wallcull.scene import CLUSTERS, Scene, Source
 from wallcull.bundled import build
 
 from .oldscene import old_arrays, old_leaf_bounds
@@ -18,7 +18,7 @@ STRUCTURE = ("parent", "child_start", "child_count", "children", "is_leaf", "syn
 
 def check_same_as_before(tm, hierarchy="auto", branching=8):
     old = old_arrays(tm, hierarchy, branching)
-    new = Scene.from_trimesh(tm, hierarchy=hierarchy, branching=branching)
+    new = Scene.from_trimesh(tm, hierarchy=hierarchy, branching=branching, clusters=None)
     assert list(new.names) == old["names"]
     for key in STRUCTURE:
         np.testing.assert_array_equal(getattr(new, key), old[key], err_msg=key)
@@ -100,10 +100,10 @@ def test_tree_helpers_agree_with_loops(seed, n):
 def test_tiled_copies_are_the_scene_trimesh_builds(name):
     """``NAME*K`` tiled as arrays (what load does) against the K copies put in a trimesh
     scene graph and read back: the same scene, array for array and bound for bound."""
-    tiled = Source.of(name).build("auto", 8)
+    tiled = Source.of(name).build("auto", 8, CLUSTERS)
     full = Scene.from_trimesh(build(name), name=name)
     assert list(tiled.names) == list(full.names)
-    for key in (*STRUCTURE, "mesh_of", "local", "world"):
+    for key in (*STRUCTURE, "mesh_of", "cluster_of", "local", "world"):
         np.testing.assert_array_equal(getattr(tiled, key), getattr(full, key), err_msg=key)
     assert list(tiled.meshes) == list(full.meshes)
     for kind in ("obb", "aabb"):
@@ -115,18 +115,18 @@ def test_tiled_copies_are_the_scene_trimesh_builds(name):
 @pytest.mark.slow
 def test_forty_tiled_plants_are_the_scene_trimesh_builds():
     """Enough copies for the automatic hierarchy to group the plants (40 > 4 x 8)."""
-    tiled = Source.of("powerplant*40").build("auto", 8)
+    tiled = Source.of("powerplant*40").build("auto", 8, CLUSTERS)
     full = Scene.from_trimesh(build("powerplant*40"), name="powerplant*40")
     assert tiled.synthetic.any()
     assert list(tiled.names) == list(full.names)
-    for key in (*STRUCTURE, "mesh_of", "local", "world"):
+    for key in (*STRUCTURE, "mesh_of", "cluster_of", "local", "world"):
         np.testing.assert_array_equal(getattr(tiled, key), getattr(full, key), err_msg=key)
     np.testing.assert_array_equal(tiled.bounds().half, full.bounds().half)
 
 
 def test_tiled_scenes_are_copies_side_by_side():
-    one = Source.of("powerplant").build("auto", 8)
-    four = Source.of("powerplant*4").build("auto", 8)
+    one = Source.of("powerplant").build("auto", 8, CLUSTERS)
+    four = Source.of("powerplant*4").build("auto", 8, CLUSTERS)
     assert len(four.leaves) == 4 * len(one.leaves)
     assert four.stats["triangles"] == 4 * one.stats["triangles"]
     roots = [four.names[i] for i in four.children[:four.child_count[0]]]

@@ -27,7 +27,26 @@ def check_invariants(scene: Scene):
         assert (scene.parent[kids] == i).all()
         assert set(range(i + 1, i + scene.size[i])) == \
             {j for j in range(n) if _ancestor(scene, i, j)}
-    assert (scene.child_count[scene.is_leaf] == 0).all()
+    # Below a leaf lies its cluster tree alone: groups whose triangles are their children's,
+    # over clusters (no children) that cut the mesh's triangles into consecutive runs, in order.
+    clusters = scene.cluster_of >= 0
+    assert not (clusters & scene.is_leaf).any()
+    first, count = scene.cluster_faces
+    for leaf in scene.leaves:
+        below = np.arange(leaf + 1, leaf + scene.size[leaf])
+        assert clusters[below].all() and (scene.cluster_leaf[below] == leaf).all()
+        for node in (leaf, *below):
+            kids = scene.children[scene.child_start[node]:scene.child_start[node] + scene.child_count[node]]
+            if len(kids):
+                assert len(kids) <= max(int(scene.hierarchy.partition(":")[2] or 8), 2)
+                assert first[kids[0]] == first[node]
+                assert (first[kids[1:]] == (first + count)[kids[:-1]]).all()
+                assert (first + count)[kids[-1]] == (first + count)[node]
+        units = below[scene.child_count[below] == 0]
+        if len(units):
+            assert count[units].max() <= scene.cluster_size
+            assert count[leaf] == len(scene.leaf_mesh(leaf)[1])
+    assert (scene.cluster_leaf[~clusters] == -1).all()
     assert all(scene.geometry[i] is not None for i in scene.leaves)
     start, count = scene.leaf_range
     for i in range(n):
@@ -68,7 +87,7 @@ def test_flat_obj_gets_a_spatial_hierarchy_that_can_be_switched_off():
     assert flat.stats["internal"] == 0 and len(flat.leaves) == 1075
     auto = load(str(SCENES / "sportsCar.zip"), hierarchy="auto", branching=8)
     check_invariants(auto)
-    assert auto.synthetic.sum() > 50 and (auto.child_count <= 8).all()
+    assert auto.synthetic.sum() > 50 and (auto.child_count[~auto.is_leaf] <= 8).all()
     assert sorted(auto.names[i] for i in auto.leaves) == sorted(flat.names[i] for i in flat.leaves)
 
 
@@ -174,8 +193,13 @@ def test_only_moved_nodes_and_their_ancestors_change():
     assert sorted(up.tolist()) == sorted(ancestors)
     changed = np.flatnonzero((state.bounds.center != before.center).any(1)
                              | (state.bounds.half != before.half).any(1))
-    assert set(changed.tolist()) <= set(ancestors) | {leaf}
-    assert leaf in changed
+    below = set(range(leaf, leaf + scene.size[leaf]))  # the leaf and its clusters
+    assert len(below) > 1
+    assert set(changed.tolist()) <= set(ancestors) | below
+    assert below <= set(changed.tolist())
+    shift = scene.world[scene.parent[leaf]][:3, :3] @ [1.0, 0, 0]
+    np.testing.assert_allclose(state.bounds.center[sorted(below)],
+                               before.center[sorted(below)] + shift)
     np.testing.assert_allclose(state.bounds.center[leaf], before.center[leaf]
                                + scene.world[scene.parent[leaf]][:3, :3] @ [1.0, 0, 0])
 

@@ -23,7 +23,7 @@ from .fit import FRUSTUM, FitOptions
 from .paths import scene_path
 from .pipeline import Session
 from .protocol import FrameRecord, History
-from .scene import Scene
+from .scene import CLUSTERS, Scene
 from .wall import Frame, Wall
 
 WARMUP_FRAMES = 3
@@ -208,7 +208,8 @@ def accuracy(scene: Scene, wall: Wall, frames, methods, bounds_kinds, progress=N
 
 def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=("obb",),
         path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
-        hierarchy: str = "auto", moving: float = 0.0, refit: str | None = None,
+        hierarchy: str = "auto", clusters: int | None = CLUSTERS, moving: float = 0.0,
+        refit: str | None = None,
         fit: FitOptions | None = None, settings: dict | None = None,
         progress: bool = True, shadow_fits: tuple = (), stereo: float | None = None) -> dict:
     """The whole benchmark; returns the ``bench --json`` document. ``shadow_fits``: fitting
@@ -221,7 +222,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         if m not in METHODS:
             raise InputError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
     t0 = time.perf_counter()
-    scene = scene_mod.load(scene_spec, hierarchy=hierarchy, settings=settings)
+    scene = scene_mod.load(scene_spec, hierarchy=hierarchy, settings=settings,
+                           clusters=clusters)
     t1 = time.perf_counter()
     for kind in bounds:
         scene.bounds(kind)

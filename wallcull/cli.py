@@ -44,7 +44,17 @@ def _load(args):
 
     settings = read(args.settings) if getattr(args, "settings", None) else None
     return load(args.scene, hierarchy=args.hierarchy, branching=args.branching,
-                settings=settings)
+                settings=settings, clusters=args.clusters)
+
+
+def _cluster_size(text: str):
+    """``--clusters``: 'off' or a number of triangles (one-line error otherwise)."""
+    from .clusters import parse_size
+
+    try:
+        return parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def cmd_cull(args) -> int:
@@ -60,8 +70,10 @@ def cmd_cull(args) -> int:
     session.frame(frame_spec)  # the first call compiles the kernels; time the second
     result = session.frame(frame_spec)
     tiles = tile_records(result, leaves=args.leaves)
-    stats = {**result.visibility.stats, **result.timings, "bounds": args.bounds,
-             "scene": scene.name}
+    vis = result.visibility
+    stats = {**vis.stats, **result.timings, "bounds": args.bounds, "scene": scene.name,
+             "clusters": scene.cluster_size or "off", "triangles": int(vis.triangles().sum()),
+             "draw_calls": int(vis.draw_calls().sum())}
     if args.json:
         print(json.dumps({"tiles": tiles, "stats": stats}))
         return 0
@@ -72,11 +84,13 @@ def cmd_cull(args) -> int:
         names = ", ".join(tile["visible"]) or "-"
         extras = "".join(f", {len(tile[k])} {k}" for k in ("shadows", "mirrors") if k in tile)
         where = f" (row {tile['row']}, col {tile['col']})" if "row" in tile else ""
+        parts = f", {len(tile['ranges'])} in part" if tile["ranges"] else ""
         print(f"tile {tile['id']:>3}{where}: depth "
               f"{tile['near']:.4g}-{tile['far']:.4g}{extras}; {len(tile['visible'])} "
-              f"{'leaves' if args.leaves else 'nodes'}: {names}")
+              f"{'leaves' if args.leaves else 'nodes'}{parts}: {names}")
     print(f"culled in {stats['cull_ms']:.3f} ms with {stats['primary_tests'] + stats['tests']} "
-          f"box-plane tests; frusta fitted in {stats['fit_ms']:.3f} ms")
+          f"box-plane tests; frusta fitted in {stats['fit_ms']:.3f} ms; the tiles draw "
+          f"{stats['triangles']:,} triangles in {stats['draw_calls']:,} draw calls")
     return 0
 
 
@@ -98,6 +112,7 @@ def cmd_bench(args) -> int:
     result = bench.run(args.scene, wall, frames=args.frames, methods=methods, bounds=bounds,
                        path=args.path, pseudo_groups=args.pseudo_groups,
                        accuracy_frames=args.accuracy, hierarchy=args.hierarchy,
+                       clusters=args.clusters,
                        moving=args.moving, refit=args.refit,
                        fit=fit, settings=read(args.settings) if args.settings else None,
                        progress=not args.json,
@@ -247,14 +262,53 @@ def cmd_prepare(args) -> int:
 
     t0 = time.perf_counter()
     path, scene = prepare(args.scene, hierarchy=args.hierarchy, branching=args.branching,
-                          force=args.force)
+                          force=args.force, clusters=args.clusters)
     if scene is None:
         print(f"{args.scene}: {path} is current (--force writes it again)")
         return 0
     s = scene.stats
-    print(f"{args.scene}: {s['nodes']:,} nodes, {s['leaves']:,} leaves, {len(scene.meshes):,} "
-          f"meshes, prepared in {time.perf_counter() - t0:.1f} s: {path} "
+    print(f"{args.scene}: {s['nodes']:,} nodes, {s['leaves']:,} leaves, {s['clusters']:,} "
+          f"clusters, {len(scene.meshes):,} meshes, prepared in {time.perf_counter() - t0:.1f} s: {path} "
           f"({path.stat().st_size / 1e6:,.0f} MB)")
+    return 0
+
+
+def cmd_overdraw(args) -> int:
+    from rich.console import Console
+    from rich.progress import track
+    from rich.table import Table
+
+    from . import overdraw
+
+    from .scene import parse_clusters
+
+    sizes = [parse_clusters(k.strip()) for k in args.sizes.split(",") if k.strip()]
+    wall = _wall(args.wall)
+    if args.frames < 1:
+        raise InputError(f"--frames must be at least 1, got {args.frames}")
+    steps = iter(track(range(args.frames), description="overdraw", transient=True,
+                       console=Console(stderr=True), disable=args.json))
+    report = overdraw.run(args.scene, wall, args.path, args.frames, sizes, args.method,
+                          args.bounds, args.hierarchy, args.branching,
+                          progress=lambda: next(steps, None)).summary()
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    console = Console()
+    console.print(f"[bold]{report['scene']}[/]: {report['triangles']:,} triangles; "
+                  f"{describe_wall(wall)}; {args.frames} frames of the {args.path} path; method "
+                  f"{args.method}, bounds {args.bounds}")
+    table = Table(title="triangles drawn per frame, summed over the tiles")
+    for col in ("lists", "triangles", "x floor", "draw calls", "cull ms"):
+        table.add_column(col, justify="right")
+    table.add_row("no culling", f"{report['none']:,.0f}", f"{report['none_over_floor']:.1f}",
+                  "", "")
+    for e in report["settings"]:
+        name = "leaves" if e["clusters"] == "off" else f"clusters of {e['clusters']}"
+        table.add_row(name, f"{e['triangles']:,.0f}", f"{e['over_floor']:.2f}",
+                      f"{e['draw_calls']:,.0f}", f"{e['cull_ms_median']:.3f}")
+    table.add_row("floor", f"{report['floor']:,.0f}", "1.00", "", "")
+    console.print(table)
     return 0
 
 
@@ -270,18 +324,26 @@ def parser() -> argparse.ArgumentParser:
     from .bounds import KINDS
     from .cull import METHODS
     from .lowilie import EFFORTS
+    from .clusters import MAX_SIZE, MIN_SIZE
     from .paths import PATHS
-    from .scene import BRANCHING
+    from .scene import BRANCHING, CLUSTERS
 
     p = _Parser(prog="wallcull", description="Culling server for tiled display walls.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    def scene_args(q):
+    def build_args(q, clusters=True):
         q.add_argument("scene", help="scene file, or a bundled scene name (wallcull scenes)")
         q.add_argument("--hierarchy", choices=("auto", "file"), default="auto",
                        help="auto: spatial groups under parents with very many children")
         q.add_argument("--branching", type=int, default=BRANCHING,
-                       help="branching factor of the automatic hierarchy")
+                       help="branching factor of the automatic hierarchy (and of cluster trees)")
+        if clusters:
+            q.add_argument("--clusters", type=_cluster_size, default=CLUSTERS, metavar="off|K",
+                           help=f"cut leaves of more than K triangles into clusters of at most "
+                                f"K ({MIN_SIZE}-{MAX_SIZE}; default {CLUSTERS}), or 'off'")
+
+    def scene_args(q):
+        build_args(q)
         q.add_argument("--settings", metavar="SETTINGS.json",
                        help="scene settings (lights, mirrors) instead of the scene's own")
 
@@ -340,13 +402,22 @@ def parser() -> argparse.ArgumentParser:
 
     q = sub.add_parser("prepare", help="write a scene's prepared file, so that it loads in "
                                        "seconds (in $WALLCULL_CACHE, else ~/.cache/wallcull)")
-    q.add_argument("scene", help="scene file, or a bundled scene name (wallcull scenes)")
-    q.add_argument("--hierarchy", choices=("auto", "file"), default="auto",
-                   help="auto: spatial groups under parents with very many children")
-    q.add_argument("--branching", type=int, default=BRANCHING,
-                   help="branching factor of the automatic hierarchy")
+    build_args(q)
     q.add_argument("--force", action="store_true", help="write it even if a current one exists")
     q.set_defaults(func=cmd_prepare)
+
+    q = sub.add_parser("overdraw", help="triangles the tiles draw over a camera path: with leaf "
+                                        "lists, with clusters, the exact floor, no culling")
+    build_args(q, clusters=False)
+    q.add_argument("--wall", help="WALL.json, or the JSON inline (default: SPEC's 4 x 4 wall)")
+    q.add_argument("--path", choices=PATHS, default="orbit")
+    q.add_argument("--frames", type=int, default=60)
+    q.add_argument("--sizes", default=f"{CLUSTERS}", metavar="K[,K...]",
+                   help=f"cluster sizes to compare with the leaf lists (default {CLUSTERS})")
+    q.add_argument("--method", choices=METHODS, default="adaptive")
+    q.add_argument("--bounds", choices=KINDS, default="obb")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=cmd_overdraw)
 
     q = sub.add_parser("serve", help="run the culling server (HTTP + WebSocket)")
     q.add_argument("--host", default="127.0.0.1")

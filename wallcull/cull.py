@@ -756,25 +756,89 @@ def _by_region(nodes, regions, m):
 
 
 @njit(cache=True)
-def _expand(start, nodes, leaf_start, leaf_count, leaves):
-    """Every region's leaves in CSR form, from its nodes (each a whole subtree). The nodes of a
-    region are disjoint subtrees in preorder, so their leaf runs come out sorted and unique."""
+def _expand(start, nodes, leaf_start, leaf_count, leaves, cluster_leaf):
+    """Every region's leaves in CSR form, from its nodes (each a whole subtree, or a cluster,
+    which stands for its leaf: ``cluster_leaf``, -1 for other nodes). The nodes of a region are
+    disjoint subtrees in preorder, so their leaf runs come out sorted, and a leaf's clusters
+    are consecutive, so each leaf comes once."""
     m = start.shape[0] - 1
     out_start = np.zeros(m + 1, np.int64)
     for t in range(m):
         total = 0
+        last = -1
         for j in range(start[t], start[t + 1]):
-            total += leaf_count[nodes[j]]
+            i = nodes[j]
+            c = cluster_leaf[i]
+            if c < 0:
+                total += leaf_count[i]
+            elif c != last:
+                total += 1
+                last = c
         out_start[t + 1] = out_start[t] + total
     out = np.empty(out_start[m], np.int64)
     w = 0
     for t in range(m):
+        last = -1
         for j in range(start[t], start[t + 1]):
             i = nodes[j]
-            for q in range(leaf_start[i], leaf_start[i] + leaf_count[i]):
-                out[w] = leaves[q]
+            c = cluster_leaf[i]
+            if c < 0:
+                for q in range(leaf_start[i], leaf_start[i] + leaf_count[i]):
+                    out[w] = leaves[q]
+                    w += 1
+            elif c != last:
+                out[w] = c
                 w += 1
+                last = c
     return out_start, out
+
+
+@njit(cache=True)
+def _draw_ranges(start, nodes, cluster_leaf, first, count):
+    """Every region's leaves shown in part, and their triangle ranges.
+
+    A run of consecutive listed clusters of one leaf (clusters or groups of them: each stands
+    for the triangles ``[first, first + count)`` of the leaf's mesh) that does not cover all of
+    its triangles (a leaf whose clusters all are is drawn whole) gives the ranges of those
+    clusters, merged where they touch. Returns CSR arrays ``(part_start (m + 1,),
+    part_leaf (P,), range_start (P + 1,), ranges (R, 2))``: region ``t``'s partial leaves are
+    ``part_leaf[part_start[t]:part_start[t + 1]]``, leaf ``p``'s ranges (first triangle, count)
+    ``ranges[range_start[p]:range_start[p + 1]]``."""
+    m = start.shape[0] - 1
+    n = nodes.shape[0]
+    part_start = np.zeros(m + 1, np.int64)
+    part_leaf = np.empty(n, np.int64)
+    range_start = np.zeros(n + 1, np.int64)
+    ranges = np.empty((n, 2), np.int64)
+    p = 0
+    r = 0
+    for t in range(m):
+        j = start[t]
+        while j < start[t + 1]:
+            leaf = cluster_leaf[nodes[j]]
+            if leaf < 0:
+                j += 1
+                continue
+            k = j
+            shown = 0
+            while k < start[t + 1] and cluster_leaf[nodes[k]] == leaf:
+                shown += count[nodes[k]]
+                k += 1
+            if shown < count[leaf]:
+                part_leaf[p] = leaf
+                for q in range(j, k):
+                    i = nodes[q]
+                    if q > j and ranges[r - 1, 0] + ranges[r - 1, 1] == first[i]:
+                        ranges[r - 1, 1] += count[i]
+                    else:
+                        ranges[r, 0] = first[i]
+                        ranges[r, 1] = count[i]
+                        r += 1
+                p += 1
+                range_start[p] = r
+            j = k
+        part_start[t + 1] = p
+    return part_start, part_leaf[:p], range_start[:p + 1], ranges[:r]
 
 
 @njit(cache=True)
@@ -826,10 +890,29 @@ def _farthest(start, nodes, box, origin):
 
 
 @dataclass
+class DrawRanges:
+    """Per tile, the leaves it shows only in part and, for each, the ranges of its mesh's
+    triangles to draw (``(first, count)``, sorted, disjoint, not touching): CSR arrays as
+    :func:`_draw_ranges` returns them. Every other leaf of a tile's list is drawn whole."""
+
+    part_start: np.ndarray  # (m + 1,)
+    part_leaf: np.ndarray  # (P,) leaf ids, sorted within a tile
+    range_start: np.ndarray  # (P + 1,)
+    ranges: np.ndarray  # (R, 2) int64: first triangle, triangles
+
+    def tile(self, tile: int) -> list[tuple[int, np.ndarray]]:
+        """Tile ``tile``'s partial leaves as ``(leaf, ranges (k, 2))`` pairs."""
+        rs = self.range_start
+        return [(int(self.part_leaf[p]), self.ranges[rs[p]:rs[p + 1]])
+                for p in range(self.part_start[tile], self.part_start[tile + 1])]
+
+
+@dataclass
 class Visibility:
     """Per-tile lists of scene nodes, in CSR form: tile ``t`` sees ``nodes[start[t]:start[t+1]]``,
     in increasing id order. A listed internal node stands for its whole subtree (SPEC section
-    4); a tile's nodes are disjoint subtrees."""
+    4); a tile's nodes are disjoint subtrees. A listed cluster stands for part of its leaf:
+    :meth:`leaf_lists` names the leaf, :meth:`draw_ranges` says which triangles."""
 
     scene: Scene
     start: np.ndarray
@@ -853,11 +936,31 @@ class Visibility:
         computed once (compiled: the nodes' leaf runs, concatenated)."""
         cached = self.__dict__.get("_leaf_lists")
         if cached is None:
-            scene = self.scene
-            leaf_start, leaf_count = scene.leaf_range
-            cached = self.__dict__["_leaf_lists"] = _expand(self.start, self.nodes, leaf_start,
-                                                            leaf_count, scene.leaves)
+            cached = self.__dict__["_leaf_lists"] = leaf_lists(self.scene, self.start, self.nodes)
         return cached
+
+    def draw_ranges(self) -> DrawRanges:
+        """Every tile's partial leaves and their triangle ranges; computed once."""
+        cached = self.__dict__.get("_draw_ranges")
+        if cached is None:
+            scene = self.scene
+            cached = self.__dict__["_draw_ranges"] = DrawRanges(*_draw_ranges(
+                self.start, self.nodes, scene.cluster_leaf, *scene.cluster_faces))
+        return cached
+
+    def triangles(self) -> np.ndarray:
+        """``(m,)`` triangles each tile draws: its leaves', less what their ranges leave out."""
+        start, leaves = self.leaf_lists()
+        d = self.draw_ranges()
+        faces = self.scene.cluster_faces[1]
+        shown = _sums(d.range_start, d.ranges[:, 1])  # per partial leaf
+        return _sums(start, faces[leaves]) - _sums(d.part_start, faces[d.part_leaf] - shown)
+
+    def draw_calls(self) -> np.ndarray:
+        """``(m,)`` draw calls each tile makes: one per whole leaf, one per range."""
+        start, _ = self.leaf_lists()
+        d = self.draw_ranges()
+        return np.diff(start) + _sums(d.part_start, np.diff(d.range_start) - 1)
 
     def names(self, tile: int, leaves: bool = False) -> list[str]:
         """Node names for a tile; synthetic groups are replaced by the file nodes they hold."""
@@ -865,10 +968,19 @@ class Visibility:
         if leaves:
             return [names[i] for i in self.tile_leaves(tile)]
         nodes = self.tile_nodes(tile)
+        leaf = self.scene.cluster_leaf[nodes]
+        if (leaf >= 0).any():  # a cluster: its leaf, named once
+            nodes = np.unique(np.where(leaf >= 0, leaf, nodes))
         if self.scene.synthetic[nodes].any():
             cover = self.scene.real_cover
             nodes = np.concatenate([cover[i] for i in nodes])
         return [names[i] for i in np.sort(nodes)]
+
+
+def _sums(start: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Sums of CSR segments: ``values[start[k]:start[k + 1]]`` for each ``k``."""
+    total = np.r_[0, np.cumsum(values, dtype=np.int64)]
+    return total[start[1:]] - total[start[:-1]]
 
 
 class _Buffers:
@@ -973,8 +1085,7 @@ class Culler:
             self._near_bit = 0
             self._unknown_at_root = _UNKNOWN
         self._size = np.full(tiles, 6, np.int64)
-        leaf_start, leaf_count = scene.leaf_range
-        self._leaves = (scene.leaves, leaf_start, leaf_count)
+        self._units = (scene.units, *scene.unit_range)
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
         self._depth_bound = height * max(int(scene.child_count.max()), 2)
         self._everywhere = np.ones(len(self._fh), np.uint8)
@@ -1065,14 +1176,14 @@ class Culler:
         roots, masks = roots[:count], masks[:count]
         regions = None if wall.kind == "grid" else self._tile_planes
         if self.method == "naive":
-            nodes, tiles, tests = buf.run(_naive, roots, masks, *self._leaves, box, planes,
+            nodes, tiles, tests = buf.run(_naive, roots, masks, *self._units, box, planes,
                                           self._tile_planes, self._force, self._inherit)
         elif self.method == "oh":
             nodes, tiles, tests = buf.run(_oh, roots, masks, *self._tree, box, planes,
                                           self._tile_planes, self._size, self._force,
                                           self._inherit, stack_n, stack_m)
         elif self.method == "fh":
-            nodes, tiles, tests = buf.run(_fh, roots, masks, *self._leaves, box, planes, fh,
+            nodes, tiles, tests = buf.run(_fh, roots, masks, *self._units, box, planes, fh,
                                           self._near_bit, regions, stack_n)
         elif self.pseudo_groups:
             nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, fh,
@@ -1087,6 +1198,13 @@ class Culler:
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
             "tests": int(tests), "pairs": len(nodes)})
+
+
+def leaf_lists(scene: Scene, start: np.ndarray, nodes: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Per region, the sorted leaf ids its nodes (CSR ``start``, ``nodes``) stand for."""
+    leaf_start, leaf_count = scene.leaf_range
+    return _expand(start, nodes, leaf_start, leaf_count, scene.leaves, scene.cluster_leaf)
 
 
 def merge(lists: list[Visibility]) -> Visibility:
@@ -1223,8 +1341,7 @@ class Regions:
 
     def leaf_lists(self) -> tuple[np.ndarray, np.ndarray]:
         """Every region's sorted leaf ids, CSR."""
-        leaf_start, leaf_count = self.scene.leaf_range
-        return _expand(self.start, self.nodes, leaf_start, leaf_count, self.scene.leaves)
+        return leaf_lists(self.scene, self.start, self.nodes)
 
 
 def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarray,

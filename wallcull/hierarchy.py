@@ -10,7 +10,9 @@ SPEC section 4 and the README describe:
 2. subtrees without geometry are dropped: they can never be visible;
 3. (``hierarchy="auto"``) a parent with more than ``4 * branching`` children gets a spatial
    hierarchy of *synthetic* groups (:func:`spatial_groups`), named ``<parent>#g<k>``;
-4. the nodes are put in depth-first preorder, children in their file order.
+4. the nodes are put in depth-first preorder, children in their file order;
+5. (``clusters``) every leaf whose mesh template has clusters (:mod:`wallcull.clusters`) gets
+   their tree below it, named ``#c<k>``, in the template's preorder, right after it.
 
 Only reading a trimesh graph and the spatial grouping of wide parents loop in Python (per node
 and per group); everything else is a handful of numpy calls per tree level.
@@ -173,9 +175,11 @@ def preorder(parent: np.ndarray, rank: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- building
 
 
-def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branching: int = 8) -> dict:
+def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branching: int = 8,
+          clusters: int | None = None) -> dict:
     """The flat preorder arrays of a :class:`wallcull.scene.Scene` (its constructor's keyword
-    arguments but ``name`` and ``settings``) from a file's node tree."""
+    arguments but ``name`` and ``settings``) from a file's node tree, with leaves cut into
+    clusters of at most ``clusters`` triangles (None: whole)."""
     names = list(nodes.names)
     parent, local, mesh = nodes.parent, nodes.local, nodes.mesh
     n = len(names)
@@ -225,17 +229,60 @@ def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branchin
     new_id[order] = np.arange(len(order))
     parent = np.where(parent[order] >= 0, new_id[np.maximum(parent[order], 0)], -1)
     local, mesh, synthetic = local[order], mesh[order], synthetic[order]
-    child_count = np.bincount(parent[1:], minlength=len(order)).astype(np.int64)
-    child_start = np.zeros(len(order), dtype=np.int64)
-    np.cumsum(child_count[:-1], out=child_start[1:])
-    children = np.argsort(parent[1:], kind="stable").astype(np.int64) + 1  # preorder within
     world = world[order]
     used, mesh_of = np.unique(mesh, return_inverse=True)
     mesh_of = mesh_of.reshape(-1) - (used[0] < 0)  # -1 stays -1 when some node has no mesh
-    return dict(names=[names[i] for i in order], parent=parent, child_start=child_start,
-                child_count=child_count, children=children, is_leaf=mesh >= 0,
-                synthetic=synthetic, local=local, world=world,
-                mesh_of=mesh_of.astype(np.int64), meshes=meshes.subset(used[used >= 0]))
+    out = dict(names=[names[i] for i in order], parent=parent, is_leaf=mesh >= 0,
+               synthetic=synthetic, local=local, world=world, mesh_of=mesh_of.astype(np.int64),
+               meshes=meshes.subset(used[used >= 0]).clustered(clusters, branching))
+    # 5. clusters under their leaves
+    out = _with_clusters(**out) if out["meshes"].clusters else \
+        dict(out, cluster_of=np.full(len(parent), -1, dtype=np.int64))
+    return dict(out, **_children(out["parent"]))
+
+
+def _children(parent: np.ndarray) -> dict:
+    """Children in CSR form of a tree in preorder: ``child_start``, ``child_count``,
+    ``children``, each node's children in preorder."""
+    child_count = np.bincount(parent[1:], minlength=len(parent)).astype(np.int64)
+    child_start = np.zeros(len(parent), dtype=np.int64)
+    np.cumsum(child_count[:-1], out=child_start[1:])
+    children = np.argsort(parent[1:], kind="stable").astype(np.int64) + 1
+    return dict(child_start=child_start, child_count=child_count, children=children)
+
+
+def _with_clusters(names, parent, is_leaf, synthetic, local, world, mesh_of, meshes) -> dict:
+    """Step 5 of :func:`build`: each leaf's cluster tree inserted below it, in preorder right
+    after it (a leaf has no other children), so every subtree stays a contiguous range."""
+    n = len(parent)
+    per_mesh = np.diff(meshes.cluster_start)
+    count = np.where(is_leaf, per_mesh[np.maximum(mesh_of, 0)], 0)
+    position = np.arange(n) + np.cumsum(count) - count  # old node -> new id
+    total = n + int(count.sum())
+    leaf = np.repeat(np.arange(n), count)  # each cluster's leaf, old ids
+    k = np.arange(len(leaf)) - np.repeat(np.cumsum(count) - count, count)  # index in its leaf
+    at = position[leaf] + 1 + k  # each cluster's new id
+    new_parent = np.empty(total, dtype=np.int64)
+    new_parent[position] = np.where(parent >= 0, position[np.maximum(parent, 0)], -1)
+    up = np.asarray(meshes.cluster_parent, dtype=np.int64)[meshes.cluster_start[mesh_of[leaf]] + k]
+    new_parent[at] = np.where(up >= 0, position[leaf] + 1 + up, position[leaf])
+
+    def spread(old, fill):
+        a = np.empty((total, *old.shape[1:]), dtype=old.dtype)
+        a[position] = old
+        a[at] = fill
+        return a
+
+    labels = np.array([f"#c{j}" for j in range(int(count.max()))], dtype=object)
+    all_names = np.empty(total, dtype=object)
+    all_names[position] = names
+    all_names[at] = labels[k]
+    cluster_of = np.full(total, -1, dtype=np.int64)
+    cluster_of[at] = meshes.cluster_start[mesh_of[leaf]] + k
+    return dict(names=all_names.tolist(), parent=new_parent, is_leaf=spread(is_leaf, False),
+                synthetic=spread(synthetic, False), local=spread(local, np.eye(4)),
+                world=spread(world, world[leaf]), mesh_of=spread(mesh_of, -1), meshes=meshes,
+                cluster_of=cluster_of)
 
 
 def _group_wide_parents(names, parent, rank, mesh, world, meshes, by_level, branching,

@@ -49,6 +49,13 @@ class MeshTable(Mapping):
     ``faces[face_start[i]:face_start[i + 1]]`` its triangles, indexed from 0 within the template.
     The arrays may be memory-mapped and narrower than float64 / int64 (a prepared file keeps
     whatever holds them exactly); :meth:`mesh` always returns float64 and int64 copies.
+
+    A template cut into clusters (:meth:`clustered`, :mod:`wallcull.clusters`) has its faces
+    in cluster order, and a tree of clusters (groups over the clusters where there are many):
+    its tree's nodes are ``cluster_start[i]:cluster_start[i + 1]``, in preorder, node ``c``
+    the faces ``cluster_first[c]:cluster_first[c] + cluster_count[c]`` of the template (counted
+    from its first face), under node ``cluster_start[i] + cluster_parent[c]`` (-1: on top). A
+    template with no clusters is drawn whole.
     """
 
     keys_: list[str]
@@ -56,7 +63,17 @@ class MeshTable(Mapping):
     vertices: np.ndarray  # (V, 3) float
     face_start: np.ndarray  # (m + 1,) int64
     faces: np.ndarray  # (F, 3) int
+    cluster_start: np.ndarray = None  # (m + 1,) int64; None: no clusters anywhere
+    cluster_parent: np.ndarray = None  # (C,) int, a tree node's parent within its template's
+    cluster_first: np.ndarray = None  # (C,) int, its first face in its template
+    cluster_count: np.ndarray = None  # (C,) int, its faces
     _index: dict = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if self.cluster_start is None:
+            self.cluster_start = np.zeros(len(self.keys_) + 1, dtype=np.int64)
+            self.cluster_parent = self.cluster_first = self.cluster_count = \
+                np.zeros(0, dtype=np.int64)
 
     @classmethod
     def from_meshes(cls, meshes: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> "MeshTable":
@@ -70,10 +87,56 @@ class MeshTable(Mapping):
                    np.concatenate(fs) if fs else np.zeros((0, 3), dtype=np.int64))
 
     def subset(self, used: np.ndarray) -> "MeshTable":
-        """The templates ``used`` (indices, in that order) alone."""
-        if np.array_equal(used, np.arange(len(self))):
+        """The templates ``used`` (indices, in that order) alone, without clusters."""
+        if np.array_equal(used, np.arange(len(self))) and not self.clusters:
             return self
         return MeshTable.from_meshes({self.keys_[i]: self.mesh(i) for i in used})
+
+    def clustered(self, size: int | None, branching: int) -> "MeshTable":
+        """The same templates with those of more than ``size`` faces cut into clusters under
+        trees of ``branching`` (:func:`wallcull.clusters.cluster_faces`), their faces in
+        cluster order; ``size`` None: no clusters."""
+        from .clusters import cluster_faces
+
+        faces, trees = [], []
+        for i in range(len(self)):
+            v, f = self.mesh(i)
+            f, t = cluster_faces(v, f, size, branching)
+            faces.append(f)
+            trees.append(t)
+        if not faces:
+            return self
+        return MeshTable(self.keys_, self.vertex_start, self.vertices, self.face_start,
+                         np.concatenate(faces), _starts([len(t[0]) for t in trees]),
+                         *(np.concatenate([t[k] for t in trees]) for k in range(3)))
+
+    @property
+    def clusters(self) -> int:
+        """How many nodes the templates' cluster trees have in all."""
+        return int(self.cluster_start[-1])
+
+    @cached_property
+    def cluster_meshes(self) -> "MeshTable":
+        """Every node of the cluster trees as a template of its own: the vertices its faces use,
+        and those faces renumbered. What a cluster's bound is fitted to (:func:`leaf_bounds`)."""
+        c = self.clusters
+        template = np.repeat(np.arange(len(self)), np.diff(self.cluster_start))
+        start = self.face_start[template] + np.asarray(self.cluster_first, dtype=np.int64)
+        count = np.asarray(self.cluster_count, dtype=np.int64)
+        face_start = _starts(count)
+        owner = np.repeat(np.arange(c), count)  # cluster of each face
+        faces = np.asarray(self.faces[np.repeat(start - face_start[:-1], count)
+                                      + np.arange(face_start[-1])], dtype=np.int64)
+        faces += self.vertex_start[template][owner][:, None]  # into the table's vertices
+        # (cluster, vertex) pairs, each once, by cluster then vertex
+        span = max(len(self.vertices), 1)
+        keys = owner[:, None] * span + faces
+        unique = np.unique(keys)
+        vertex_start = np.searchsorted(unique // span, np.arange(c + 1))
+        local = np.searchsorted(unique, keys) - vertex_start[owner][:, None]
+        return MeshTable([f"{i}" for i in range(c)], vertex_start,
+                         np.asarray(self.vertices[unique % span], dtype=np.float64), face_start,
+                         local)
 
     @property
     def index(self) -> dict[str, int]:

@@ -178,6 +178,25 @@ def visible_leaves(scene, wall: dict, frame: dict, tol: float, world=None) -> li
     return out
 
 
+def visible_units(scene, wall: dict, frame: dict, tol: float, world=None) -> list[set[int]]:
+    """Per tile, the childless nodes (clusters, and leaves not cut into clusters) with a
+    triangle in the tile frustum (of either eye) shrunk by ``tol``: a cluster's triangles are
+    its run of its leaf's mesh (``scene.cluster_faces``)."""
+    tiles = tiles_of(wall)
+    frusta = [tile_frusta(wall, frame, t, tol) for t in range(tiles)]
+    first, count = scene.cluster_faces
+    out = [set() for _ in range(tiles)]
+    for leaf in scene.leaves:
+        tris = leaf_triangles_display(scene, frame, leaf, world)
+        below = np.arange(leaf, leaf + scene.size[leaf])
+        for unit in below[scene.child_count[below] == 0]:
+            part = tris[first[unit]:first[unit] + count[unit]] if unit != leaf else tris
+            for t in range(tiles):
+                if meets(part, frusta[t]):
+                    out[t].add(int(unit))
+    return out
+
+
 def false_positives(scene, wall: dict, frame: dict, reported: list, tol: float,
                     world=None) -> tuple[int, int]:
     """``(false, total)``: reported (leaf, tile) pairs whose leaf does not meet the tile frustum

@@ -81,14 +81,18 @@ class Session:
 
 def tile_records(result: FrameResult, leaves: bool = False) -> list[dict]:
     """SPEC section 6 ``tiles`` entries for one frame, with the fitted frusta when there are
-    some (their lists of leaf ids given as leaf names)."""
+    some (their lists of leaf ids given as leaf names). ``ranges`` maps each leaf the tile
+    shows only in part to the ranges of its mesh's triangles to draw, ``[first, count]``; the
+    tile draws every other leaf whole."""
     wall, vis = result.frusta.wall, result.visibility
     names = vis.scene.names
+    ranges = vis.draw_ranges()
     out = []
     grid = wall.kind == "grid" and not wall.given_as_screens  # screens have no row and col
     for t in range(wall.tiles):
         record = {"id": t, **({"row": t // wall.cols, "col": t % wall.cols} if grid else {}),
-                  "visible": vis.names(t, leaves=leaves)}
+                  "visible": vis.names(t, leaves=leaves),
+                  "ranges": {names[leaf]: r.tolist() for leaf, r in ranges.tile(t)}}
         if result.fits is not None:
             fits = dict(result.fits[t])
             for key, field_name in (("shadows", "casters"), ("mirrors", "visible")):

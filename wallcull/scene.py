@@ -11,7 +11,11 @@ frame. Three kinds of node exist besides the file's own:
 * a parent with too many children (a flat scene, as an OBJ of many groups loads) gets a spatial
   hierarchy of *synthetic* group nodes, ``branching`` children each (see :func:`spatial_groups`);
   synthetic nodes never appear in a list of names;
-* nodes that carry no geometry anywhere below them are dropped: they can never be visible.
+* nodes that carry no geometry anywhere below them are dropped: they can never be visible;
+* a leaf whose mesh has more triangles than a cluster holds gets its *clusters* as children
+  (:mod:`wallcull.clusters`): parts of its triangles, culled like any node. A leaf stays a leaf
+  (it is what lists name); a tile that sees only some of its clusters draws their triangle
+  ranges. Clusters never appear in a list of names either.
 
 The arrays are built by :mod:`wallcull.hierarchy`; leaves are instances of mesh templates
 (:mod:`wallcull.instances`). :func:`load` maps a *prepared* scene (:func:`prepare`, stored by
@@ -33,6 +37,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import bounds as bnd
+from . import clusters as clusters_mod
 from . import hierarchy as tree
 from . import prepared
 from . import bundled
@@ -44,6 +49,8 @@ log = logging.getLogger("wallcull")
 
 #: Default branching factor of the automatic spatial hierarchy.
 BRANCHING = 8
+#: Default cluster size: leaves of more triangles are cut into clusters of at most this many.
+CLUSTERS = clusters_mod.DEFAULT_SIZE
 
 
 @dataclass
@@ -68,8 +75,10 @@ class Scene:
     world: np.ndarray  # (n, 4, 4) rest transform to world
     mesh_of: np.ndarray  # (n,) int64: a leaf's template in ``meshes``, -1 elsewhere
     meshes: MeshTable  # the templates: key -> (vertices (v, 3), faces (f, 3)), local coordinates
+    cluster_of: np.ndarray  # (n,) int64: a cluster's index in ``meshes``' clusters, -1 elsewhere
     settings: dict = field(default_factory=dict)
     hierarchy: str = "file"  # "file" or "auto:<branching>"
+    cluster_size: int | None = None  # the most triangles a cluster holds; None: leaves whole
     prepared: Path | None = None  # the prepared file the arrays are mapped from, if any
 
     # ------------------------------------------------------------------ structure
@@ -98,9 +107,53 @@ class Scene:
     @cached_property
     def leaf_range(self) -> tuple[np.ndarray, np.ndarray]:
         """``(start, count)``: the leaves under node ``i`` are ``leaves[start[i]:start[i]+count[i]]``."""
-        rank = np.cumsum(self.is_leaf) - self.is_leaf  # leaves before each node
-        end = np.concatenate([rank, [len(self.leaves)]])[np.arange(len(self)) + self.size]
+        return self._range(self.is_leaf)
+
+    @cached_property
+    def units(self) -> np.ndarray:
+        """The nodes with no children, in preorder: what a traversal tests last (clusters, and
+        leaves without clusters)."""
+        return np.flatnonzero(self.child_count == 0)
+
+    @cached_property
+    def unit_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(start, count)`` of the :attr:`units` under each node, as :attr:`leaf_range`."""
+        return self._range(self.child_count == 0)
+
+    def _range(self, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rank = np.cumsum(mask) - mask  # marked nodes before each node
+        end = np.concatenate([rank, [int(mask.sum())]])[np.arange(len(self)) + self.size]
         return rank, end - rank
+
+    @cached_property
+    def clusters(self) -> np.ndarray:
+        """Cluster node ids in preorder: each leaf's, in its mesh's cluster order."""
+        return np.flatnonzero(self.cluster_of >= 0)
+
+    @cached_property
+    def cluster_leaf(self) -> np.ndarray:
+        """``(n,)``: a cluster's leaf (a group of clusters' too), -1 for every other node."""
+        out = np.full(len(self), -1, dtype=np.int64)
+        c = self.clusters
+        if len(c):
+            # a node of a leaf's cluster tree lies after its leaf, within the leaf's subtree
+            leaves = self.leaves
+            at = np.searchsorted(leaves, c) - 1
+            out[c] = leaves[at]
+        return out
+
+    @cached_property
+    def cluster_faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(first (n,), count (n,))``: per node, the triangles of its leaf's mesh it stands
+        for: a cluster's run, a leaf's whole mesh from 0, nothing elsewhere."""
+        m = self.meshes
+        first = np.zeros(len(self), dtype=np.int64)
+        count = np.zeros(len(self), dtype=np.int64)
+        count[self.leaves] = m.face_count[self.mesh_of[self.leaves]]
+        c = self.clusters
+        first[c] = m.cluster_first[self.cluster_of[c]]
+        count[c] = m.cluster_count[self.cluster_of[c]]
+        return first, count
 
     @cached_property
     def levels(self) -> list[np.ndarray]:
@@ -111,8 +164,9 @@ class Scene:
     def index(self) -> dict[str, int]:
         """Name -> node id. A node that is also its own geometry leaf maps to the internal node."""
         out: dict[str, int] = {}
-        for i, (name, synthetic) in enumerate(zip(self.names, self.synthetic.tolist())):
-            if not synthetic:
+        hidden = (self.synthetic | (self.cluster_of >= 0)).tolist()
+        for i, (name, skip) in enumerate(zip(self.names, hidden)):
+            if not skip:
                 out.setdefault(name, i)
         return out
 
@@ -136,13 +190,16 @@ class Scene:
 
     @cached_property
     def stats(self) -> dict:
-        internal = ~self.is_leaf
+        internal = ~self.is_leaf & (self.cluster_of < 0)
         internal[0] = False  # the base frame is not a node of the model
         kids = self.child_count[internal]
         tris = self.meshes.face_count[self.mesh_of[self.leaves]].sum()
+        clusters = len(self.clusters)
         return {
-            "nodes": len(self) - 1, "internal": int(internal.sum()), "leaves": len(self.leaves),
-            "synthetic": int(self.synthetic.sum()), "depth": int(self.depth.max()),
+            "nodes": len(self) - 1 - clusters, "internal": int(internal.sum()),
+            "leaves": len(self.leaves), "clusters": clusters,
+            "cluster_size": self.cluster_size, "synthetic": int(self.synthetic.sum()),
+            "depth": int(self.depth[self.cluster_of < 0].max()),
             "branching": float(kids.mean()) if len(kids) else 0.0, "triangles": int(tris),
             "hierarchy": self.hierarchy,
         }
@@ -195,24 +252,30 @@ class Scene:
 
     @classmethod
     def from_trimesh(cls, scene, name: str = "scene", hierarchy: str = "auto",
-                     branching: int = BRANCHING, settings: Mapping | None = None) -> "Scene":
+                     branching: int = BRANCHING, settings: Mapping | None = None,
+                     clusters: int | None = CLUSTERS) -> "Scene":
         """Build from a ``trimesh.Scene`` following its node tree (SPEC section 4).
 
         ``hierarchy="auto"`` adds a spatial hierarchy under any parent with more than
-        ``4 * branching`` children; ``"file"`` keeps the file's tree as it is.
+        ``4 * branching`` children; ``"file"`` keeps the file's tree as it is. Leaves with more
+        than ``clusters`` triangles are cut into clusters (None: never).
         """
         _check_hierarchy(hierarchy, branching)
-        return cls.from_nodes(*tree.read_trimesh(scene), name, hierarchy, branching, settings)
+        return cls.from_nodes(*tree.read_trimesh(scene), name, hierarchy, branching, settings,
+                              clusters)
 
     @classmethod
     def from_nodes(cls, nodes: tree.NodeTable, meshes: MeshTable, name: str = "scene",
                    hierarchy: str = "auto", branching: int = BRANCHING,
-                   settings: Mapping | None = None) -> "Scene":
+                   settings: Mapping | None = None, clusters: int | None = CLUSTERS
+                   ) -> "Scene":
         """Build from a file's node tree as arrays (:mod:`wallcull.hierarchy`)."""
         _check_hierarchy(hierarchy, branching)
+        _check_clusters(clusters)
         label = "file" if hierarchy == "file" else f"auto:{branching}"
         return cls(name=name, settings=dict(settings or {}), hierarchy=label,
-                   **tree.build(nodes, meshes, hierarchy, branching))
+                   cluster_size=clusters, **tree.build(nodes, meshes, hierarchy, branching,
+                                                       clusters))
 
 
 def _check_hierarchy(hierarchy: str, branching: int) -> None:
@@ -220,6 +283,19 @@ def _check_hierarchy(hierarchy: str, branching: int) -> None:
         raise InputError(f"hierarchy must be 'auto' or 'file', got {hierarchy!r}")
     if branching < 2:
         raise InputError(f"branching must be at least 2, got {branching}")
+
+
+def _check_clusters(clusters: int | None) -> None:
+    if clusters is not None:
+        parse_clusters(clusters)  # in range, or a one-line InputError
+
+
+def parse_clusters(value) -> int | None:
+    """A cluster size setting (``"off"``, None or a number of triangles), checked."""
+    try:
+        return clusters_mod.parse_size(value)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
 
 
 class _Cover(Sequence):
@@ -249,11 +325,22 @@ def compute_bounds(scene: Scene, kind: str) -> bnd.Bounds:
     their children."""
     if kind not in bnd.LEAF_FITTERS:
         raise InputError(f"unknown bound type {kind!r}; choose from {', '.join(bnd.KINDS)}")
-    leaves = scene.leaves
     out = bnd.Bounds.empty(kind, len(scene))
-    out.put(leaves, leaf_bounds(kind, scene.meshes, scene.mesh_of[leaves], scene.world[leaves]))
-    refit(scene, out, np.flatnonzero(~scene.is_leaf), bnd.enclosing_mode(kind))
+    fit_units(scene, out, scene.units, scene.world)
+    refit(scene, out, np.flatnonzero(scene.child_count > 0), bnd.enclosing_mode(kind))
     return out
+
+
+def fit_units(scene: Scene, bounds: bnd.Bounds, nodes: np.ndarray, world: np.ndarray) -> None:
+    """Fit the bounds of ``nodes``, childless leaves or clusters, to their triangles placed by
+    ``world`` (every node's), from their templates (:func:`leaf_bounds`). Every other node is
+    bounded by its children (:func:`refit`): a leaf cut into clusters too, so that bounds nest
+    and a node outside a plane has every node below it outside."""
+    for meshes, template in ((scene.meshes, scene.mesh_of),
+                             (scene.meshes.cluster_meshes, scene.cluster_of)):
+        these = nodes[template[nodes] >= 0]
+        if len(these):
+            bounds.put(these, leaf_bounds(bounds.kind, meshes, template[these], world[these]))
 
 
 def refit(scene: Scene, bounds: bnd.Bounds, nodes: np.ndarray, mode: str) -> None:
@@ -370,7 +457,7 @@ class SceneState:
         moving = sub[rigid]
         self.bounds.put(moving, bnd.transform(self.bounds.take(moving), rot[rigid],
                                               delta[rigid, :3, 3]))
-        leaves = scene.is_leaf[moving]
+        leaves = scene.is_leaf[moving] | (scene.cluster_of[moving] >= 0)  # and their clusters
         self.exact.put(moving[leaves], bnd.transform(self.exact.take(moving[leaves]),
                                                      rot[rigid][leaves], delta[rigid, :3, 3][leaves]))
         if not rigid.all():
@@ -396,11 +483,11 @@ class SceneState:
 
     def _refit_leaves(self, nodes: np.ndarray) -> None:
         scene = self.scene
-        leaves = nodes[scene.is_leaf[nodes]]
-        fitted = leaf_bounds(self.kind, scene.meshes, scene.mesh_of[leaves], self.world[leaves])
-        self.bounds.put(leaves, fitted)
-        self.exact.put(leaves, fitted)
-        refit(scene, self.bounds, nodes[~scene.is_leaf[nodes]], bnd.enclosing_mode(self.kind))
+        fit_units(scene, self.bounds, nodes[scene.child_count[nodes] == 0], self.world)
+        refit(scene, self.bounds, nodes[scene.child_count[nodes] > 0],
+              bnd.enclosing_mode(self.kind))
+        fitted = nodes[scene.is_leaf[nodes] | (scene.cluster_of[nodes] >= 0)]
+        self.exact.put(fitted, self.bounds.take(fitted))
 
 
 def node_matrix(value: Any, name: str = "node") -> np.ndarray:
@@ -502,12 +589,12 @@ class Source:
 
         return bundled.settings(self.spec) if self.path is None else cfg.sidecar(self.spec)
 
-    def identity(self, hierarchy: str, branching: int) -> str:
+    def identity(self, hierarchy: str, branching: int, clusters: int | None) -> str:
         """The source and build options, not the content: names its prepared file."""
         where = f"bundled:{self.spec}" if self.path is None else f"file:{self.path.resolve()}"
-        return f"{where}|{hierarchy}|{branching}"
+        return f"{where}|{hierarchy}|{branching}|{clusters}"
 
-    def key(self, hierarchy: str, branching: int) -> dict:
+    def key(self, hierarchy: str, branching: int, clusters: int | None) -> dict:
         """What a prepared file must have been built from to be current: the source's content
         (a file's SHA-256, or a generator's name, copies, seed and version), the options, and
         the code that builds it."""
@@ -518,9 +605,9 @@ class Source:
         else:
             source = {"sha256": _file_hash(self.path)}
         return {"source": source, "hierarchy": hierarchy, "branching": branching,
-                "format": PREPARED_FORMAT, "code": _code_version()}
+                "clusters": clusters, "format": PREPARED_FORMAT, "code": _code_version()}
 
-    def build(self, hierarchy: str, branching: int) -> Scene:
+    def build(self, hierarchy: str, branching: int, clusters: int | None) -> Scene:
         """The scene built from its source (``NAME*K``: one copy read, then tiled as arrays)."""
         if self.path is None:
             base, count = bundled.parse(self.spec)
@@ -529,10 +616,12 @@ class Source:
                 nodes = tree.replicate(nodes, *bundled.copies(base, count))
         else:
             nodes, meshes = tree.read_trimesh(load_trimesh(self.path))
-        return Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching)
+        return Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching, clusters=clusters)
 
-    def prepared_path(self, hierarchy: str, branching: int) -> Path:
-        return prepared.cache_path(self.name, self.identity(hierarchy, branching))
+    def prepared(self, hierarchy: str, branching: int, clusters: int | None) -> tuple[Path, dict]:
+        """Where the prepared file of these options lies, and the key it must hold."""
+        options = (hierarchy, branching, clusters)
+        return prepared.cache_path(self.name, self.identity(*options)), self.key(*options)
 
 
 #: How :func:`load` uses prepared files: ``read`` a current one, also ``write`` one when there
@@ -541,10 +630,12 @@ CACHE_MODES = ("read", "write", "off")
 
 
 def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
-         settings: Mapping[str, Any] | None = None, cache: str = "read") -> Scene:
+         settings: Mapping[str, Any] | None = None, cache: str = "read",
+         clusters: int | None = CLUSTERS) -> Scene:
     """A bundled scene by name (``wallcull scenes``; ``powerplant*K`` too) or a scene file by
-    path. Its settings (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled
-    scene's or the file's sidecar ``<file>.wallcull.json``.
+    path, its leaves cut into clusters of at most ``clusters`` triangles (None: whole). Its
+    settings (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled scene's or
+    the file's sidecar ``<file>.wallcull.json``.
 
     With ``cache="read"`` a current prepared file of the source (:func:`prepare`) is mapped
     instead of building the scene; ``"write"`` also writes one when there is none (the server
@@ -555,15 +646,16 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
     if cache not in CACHE_MODES:
         raise ValueError(f"cache must be one of {CACHE_MODES}, got {cache!r}")
     _check_hierarchy(hierarchy, branching)
+    _check_clusters(clusters)
     source = Source.of(spec)
     raw = source.settings() if settings is None else settings
     if cache == "off":
-        scene = source.build(hierarchy, branching)
+        scene = source.build(hierarchy, branching, clusters)
     else:
-        path, key = source.prepared_path(hierarchy, branching), source.key(hierarchy, branching)
+        path, key = source.prepared(hierarchy, branching, clusters)
         scene, problem = _map_current(path, key, source.name)
         if scene is None:
-            scene = source.build(hierarchy, branching)
+            scene = source.build(hierarchy, branching, clusters)
             if problem or cache == "write":
                 _write_prepared(scene, path, key)
     scene.settings = dict(raw or {})
@@ -572,16 +664,17 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
 
 
 def prepare(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
-            force: bool = False) -> tuple[Path, Scene | None]:
-    """Write the prepared file of a scene: its hierarchy, names, OBBs, box and meshes, in
-    :func:`wallcull.prepared.cache_dir`. Returns its path and the scene built, or None where a
+            force: bool = False, clusters: int | None = CLUSTERS) -> tuple[Path, Scene | None]:
+    """Write the prepared file of a scene: its hierarchy, clusters, names, OBBs, box and meshes,
+    in :func:`wallcull.prepared.cache_dir`. Returns its path and the scene built, or None where a
     current file was already there (and ``force`` is not set)."""
     _check_hierarchy(hierarchy, branching)
+    _check_clusters(clusters)
     source = Source.of(spec)
-    path, key = source.prepared_path(hierarchy, branching), source.key(hierarchy, branching)
+    path, key = source.prepared(hierarchy, branching, clusters)
     if not force and _map_current(path, key, source.name)[0] is not None:
         return path, None
-    scene = source.build(hierarchy, branching)
+    scene = source.build(hierarchy, branching, clusters)
     _write_prepared(scene, path, key, quiet=False)
     return path, scene
 
@@ -589,10 +682,11 @@ def prepare(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
 # --------------------------------------------------------------------------- prepared scenes
 
 #: Version of what a prepared scene holds: part of its key.
-PREPARED_FORMAT = 1
+PREPARED_FORMAT = 2
 
 #: Code whose changes make prepared scenes stale: it decides what they hold.
-_BUILDERS = ("bounds.py", "hierarchy.py", "instances.py", "prepared.py", "scene.py", "scenes")
+_BUILDERS = ("bounds.py", "clusters.py", "hierarchy.py", "instances.py", "prepared.py", "scene.py",
+             "bundled")
 
 
 @functools.lru_cache(maxsize=None)
@@ -661,6 +755,9 @@ def _write_prepared(scene: Scene, path: Path, key: dict, quiet: bool = True) -> 
         "child_start": scene.child_start, "child_count": scene.child_count,
         "children": scene.children, "is_leaf": scene.is_leaf, "synthetic": scene.synthetic,
         "local": scene.local, "world": scene.world, "mesh_of": scene.mesh_of,
+        "cluster_of": scene.cluster_of, "cluster_start": m.cluster_start,
+        "cluster_parent": m.cluster_parent, "cluster_first": m.cluster_first,
+        "cluster_count": m.cluster_count,
         "mesh_key_bytes": keys, "mesh_key_offsets": key_offsets,
         "vertex_start": m.vertex_start, "face_start": m.face_start,
         # the narrowest types that hold the meshes exactly
@@ -670,7 +767,8 @@ def _write_prepared(scene: Scene, path: Path, key: dict, quiet: bool = True) -> 
         "obb_center": b.center, "obb_axes": b.axes, "obb_half": b.half, "obb_radius": b.radius,
         "box": scene.box,
     }
-    meta = {"key": key, "hierarchy": scene.hierarchy, "nodes": len(scene)}
+    meta = {"key": key, "hierarchy": scene.hierarchy, "nodes": len(scene),
+            "cluster_size": scene.cluster_size}
     try:
         prepared.write(path, arrays, meta)
     except OSError as exc:
@@ -685,7 +783,10 @@ _LAYOUT = {
     "name_bytes": ("u", (None,)), "name_offsets": ("i", ("n+1",)), "parent": ("i", ("n",)),
     "child_start": ("i", ("n",)), "child_count": ("i", ("n",)), "children": ("i", ("n-1",)),
     "is_leaf": ("b", ("n",)), "synthetic": ("b", ("n",)), "local": ("f", ("n", 4, 4)),
-    "world": ("f", ("n", 4, 4)), "mesh_of": ("i", ("n",)), "mesh_key_bytes": ("u", (None,)),
+    "world": ("f", ("n", 4, 4)), "mesh_of": ("i", ("n",)), "cluster_of": ("i", ("n",)),
+    "cluster_start": ("i", ("m+1",)), "cluster_parent": ("i", ("c",)),
+    "cluster_first": ("i", ("c",)),
+    "cluster_count": ("i", ("c",)), "mesh_key_bytes": ("u", (None,)),
     "mesh_key_offsets": ("i", ("m+1",)), "vertex_start": ("i", ("m+1",)),
     "face_start": ("i", ("m+1",)), "vertices": ("f", (None, 3)), "faces": ("i", (None, 3)),
     "obb_center": ("f", ("n", 3)), "obb_axes": ("f", ("n", 3, 3)), "obb_half": ("f", ("n", 3)),
@@ -696,7 +797,8 @@ _LAYOUT = {
 def _scene_from_arrays(arrays: dict, meta: dict, name: str, path: Path) -> Scene:
     """A scene over a prepared file's arrays (nothing copied), once their layout is checked."""
     try:
-        sizes = {"n": len(arrays["parent"]), "m": len(arrays["vertex_start"]) - 1}
+        sizes = {"n": len(arrays["parent"]), "m": len(arrays["vertex_start"]) - 1,
+                 "c": len(arrays["cluster_first"])}
         sizes.update({"n+1": sizes["n"] + 1, "n-1": sizes["n"] - 1, "m+1": sizes["m"] + 1})
         for key, (kind, shape) in _LAYOUT.items():
             a = arrays[key]
@@ -708,12 +810,14 @@ def _scene_from_arrays(arrays: dict, meta: dict, name: str, path: Path) -> Scene
         names = prepared.StringTable(arrays["name_bytes"], arrays["name_offsets"])
         keys = list(prepared.StringTable(arrays["mesh_key_bytes"], arrays["mesh_key_offsets"]))
         meshes = MeshTable(keys, arrays["vertex_start"], arrays["vertices"], arrays["face_start"],
-                           arrays["faces"])
+                           arrays["faces"], arrays["cluster_start"], arrays["cluster_parent"],
+                           arrays["cluster_first"], arrays["cluster_count"])
         scene = Scene(name=name, names=names, parent=arrays["parent"],
                       child_start=arrays["child_start"], child_count=arrays["child_count"],
                       children=arrays["children"], is_leaf=arrays["is_leaf"],
                       synthetic=arrays["synthetic"], local=arrays["local"], world=arrays["world"],
-                      mesh_of=arrays["mesh_of"], meshes=meshes, hierarchy=str(meta["hierarchy"]),
+                      mesh_of=arrays["mesh_of"], meshes=meshes, cluster_of=arrays["cluster_of"],
+                      hierarchy=str(meta["hierarchy"]), cluster_size=meta.get("cluster_size"),
                       prepared=path)
     except (KeyError, TypeError, IndexError) as exc:
         raise prepared.Corrupt(f"unexpected layout ({type(exc).__name__}: {exc})") from None

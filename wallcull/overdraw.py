@@ -1,0 +1,192 @@
+"""What a render node draws: triangles per frame, summed over a wall's tiles, against the floor.
+
+``wallcull overdraw`` walks a camera path and, for every frame, counts the triangles the tiles
+draw four ways:
+
+* **none**: no culling, every tile draws the whole scene;
+* **leaves**: each tile draws every triangle of every leaf in its list (clusters off);
+* **clusters** (one count per cluster size): each tile draws its whole leaves and the triangle
+  ranges of its partial leaves (:mod:`wallcull.clusters`);
+* **floor**: the triangles not wholly outside the tile's frustum, clipped exactly: what any
+  frustum culling must draw at least.
+
+It also counts draw calls (a whole leaf is one, a partial leaf one per range) and times the
+cull. The floor is counted by one compiled kernel (:func:`_floor`) over the triangles the
+leaf-level lists draw, a superset of it because the culler is conservative (the tests hold
+it to the exact oracle of :mod:`wallcull.oracle`, and this kernel to the oracle's clipping).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from .cull import Visibility
+from .pipeline import Session
+from .scene import Scene
+from .wall import Frame, Frusta, Wall
+
+
+@dataclass
+class Counts:
+    """One cluster setting's numbers over a path: per frame, summed over the tiles."""
+
+    triangles: list[int] = field(default_factory=list)
+    calls: list[int] = field(default_factory=list)
+    cull_ms: list[float] = field(default_factory=list)
+
+    def add(self, vis: Visibility, cull_ms: float) -> None:
+        self.triangles.append(int(vis.triangles().sum()))
+        self.calls.append(int(vis.draw_calls().sum()))
+        self.cull_ms.append(cull_ms)
+
+
+@dataclass
+class Report:
+    """A path's overdraw: ``settings`` maps a cluster size (None: off, the leaf-level lists)
+    to its :class:`Counts`; ``floor`` and ``none`` are per frame."""
+
+    scene: str
+    triangles: int
+    tiles: int
+    frames: int
+    floor: list[int] = field(default_factory=list)
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def none(self) -> int:
+        return self.triangles * self.tiles
+
+    def summary(self) -> dict:
+        """Means per frame; ratios to the floor of sums over the path (a frame that sees
+        nothing weighs nothing)."""
+        floor = float(np.sum(self.floor))
+        over = (lambda total: total / floor) if floor else (lambda total: float("nan"))
+        out = {"scene": self.scene, "triangles": self.triangles, "tiles": self.tiles,
+               "frames": self.frames, "floor": floor / self.frames, "none": self.none,
+               "none_over_floor": over(self.none * self.frames), "settings": []}
+        for size, c in self.settings.items():
+            out["settings"].append({
+                "clusters": "off" if size is None else size,
+                "triangles": float(np.mean(c.triangles)), "over_floor": over(np.sum(c.triangles)),
+                "draw_calls": float(np.mean(c.calls)),
+                "cull_ms_median": float(np.median(c.cull_ms))})
+        return out
+
+
+def measure(scenes: dict, wall: Wall, frames: list[Frame], method: str = "adaptive",
+            bounds: str = "obb", progress=None) -> Report:
+    """Walk ``frames`` with each of ``scenes`` (cluster size -> the scene loaded with it; None
+    must be among them: the leaf-level lists, which the floor is counted over)."""
+    base: Scene = scenes[None]
+    tiles = wall.tiles
+    report = Report(base.name, int(base.stats["triangles"]), tiles, len(frames),
+                    settings={size: Counts() for size in scenes})
+    sessions = {size: Session(scene, wall, method, bounds) for size, scene in scenes.items()}
+    for s in sessions.values():
+        s.frame(frames[0])  # compiles the kernels before anything is timed
+    for frame in frames:
+        results = {size: session.frame(frame) for size, session in sessions.items()}
+        for size, result in results.items():
+            report.settings[size].add(result.visibility, result.timings["cull_ms"])
+        report.floor.append(int(floor(base, results[None].frusta,
+                                      results[None].visibility).sum()))
+        if progress is not None:
+            progress()
+    return report
+
+
+def floor(scene: Scene, frusta: Frusta, vis: Visibility) -> np.ndarray:
+    """``(tiles,)`` triangles of the leaves ``vis`` lists that are not wholly outside each
+    tile's frustum (whole leaves: the candidates must include every triangle that is in)."""
+    start, leaves = vis.leaf_lists()
+    m = scene.meshes
+    return _floor(frusta.tile_rows, frusta.planes, start, leaves, scene.mesh_of, scene.world,
+                  m.vertex_start, m.vertices, m.face_start, m.faces)
+
+
+@njit(cache=True)
+def _floor(tile_rows, planes, start, leaves, mesh_of, world, vertex_start, vertices, face_start,
+           faces):
+    tiles = tile_rows.shape[0]
+    out = np.zeros(tiles, np.int64)
+    p = np.empty((6, 4))
+    tri = np.empty((3, 3))
+    for t in range(tiles):
+        for k in range(6):
+            p[k] = planes[tile_rows[t, k]]
+        for j in range(start[t], start[t + 1]):
+            leaf = leaves[j]
+            m = mesh_of[leaf]
+            w = world[leaf]
+            v0 = vertex_start[m]
+            for f in range(face_start[m], face_start[m + 1]):
+                for c in range(3):
+                    v = vertices[v0 + faces[f, c]]
+                    for r in range(3):
+                        tri[c, r] = w[r, 0] * v[0] + w[r, 1] * v[1] + w[r, 2] * v[2] + w[r, 3]
+                if triangle_meets(tri, p):
+                    out[t] += 1
+    return out
+
+
+@njit(cache=True)
+def triangle_meets(tri, planes) -> bool:
+    """Whether triangle ``(3, 3)`` meets the convex region ``planes (k, 4)`` (``n . x + d >=
+    0`` inside), exactly up to rounding: a vertex inside every plane says yes, all three outside
+    one plane says no, and what is left is clipped (Sutherland-Hodgman)."""
+    k = planes.shape[0]
+    d = np.empty((3, k))
+    for c in range(3):
+        inside = True
+        for q in range(k):
+            d[c, q] = (planes[q, 0] * tri[c, 0] + planes[q, 1] * tri[c, 1]
+                       + planes[q, 2] * tri[c, 2] + planes[q, 3])
+            inside = inside and d[c, q] >= 0
+        if inside:
+            return True
+    for q in range(k):
+        if d[0, q] < 0 and d[1, q] < 0 and d[2, q] < 0:
+            return False
+    cap = 3 + k
+    poly = np.empty((cap, 3))
+    nxt = np.empty((cap, 3))
+    poly[:3] = tri
+    n = 3
+    for q in range(k):
+        a, b, c, e = planes[q, 0], planes[q, 1], planes[q, 2], planes[q, 3]
+        m = 0
+        for i in range(n):
+            j = (i + 1) % n
+            di = a * poly[i, 0] + b * poly[i, 1] + c * poly[i, 2] + e
+            dj = a * poly[j, 0] + b * poly[j, 1] + c * poly[j, 2] + e
+            if di >= 0:
+                nxt[m] = poly[i]
+                m += 1
+            if (di >= 0) != (dj >= 0) and m < cap:
+                s = di / (di - dj)
+                for r in range(3):
+                    nxt[m, r] = poly[i, r] + s * (poly[j, r] - poly[i, r])
+                m += 1
+        n = min(m, cap)
+        if n == 0:
+            return False
+        poly[:n] = nxt[:n]
+    return True
+
+
+def run(spec: str, wall: Wall, path: str = "orbit", frames: int = 60,
+        sizes=(None,), method: str = "adaptive", bounds: str = "obb",
+        hierarchy: str = "auto", branching: int = 8, progress=None) -> Report:
+    """``wallcull overdraw``: the scene ``spec`` loaded with each cluster size of ``sizes``
+    (None, clusters off, always among them), walked along ``path``."""
+    from .paths import scene_path
+    from .scene import load
+
+    scenes = {size: load(spec, hierarchy, branching, clusters=size)
+              for size in dict.fromkeys((None, *sizes))}
+    return measure(scenes, wall, scene_path(scenes[None], wall, path, frames), method, bounds,
+                   progress)
