@@ -11,6 +11,8 @@ from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
 from wallcull.wall import Frame, Wall
 
+from .drawing import Draws, partial_leaves
+
 render = pytest.importorskip("wallcull_clients.render")
 try:
     render.TileRenderer(8, 8)
@@ -20,39 +22,34 @@ except Exception as exc:  # noqa: BLE001
 
 def draws_for(scene: Scene, leaves, renderer):
     """Upload the leaves' meshes once; draw ids are leaf id + 1."""
-    out = []
-    for leaf in leaves:
-        key = scene.geometry[leaf]
-        if key not in renderer._uploaded:
-            renderer.upload(key, *scene.meshes[key])
-            renderer._uploaded.add(key)
-        out.append((key, scene.world[leaf], int(leaf) + 1))
-    return out
+    return renderer.draws.leaves(leaves)
 
 
-def renderer_for(w, h):
+def renderer_for(w, h, scene=None):
     r = render.TileRenderer(w, h)
-    r._uploaded = set()
+    r.draws = Draws(scene, r)
     return r
 
 
-def test_culled_list_renders_exactly_like_the_whole_scene():
-    """Every tile of a 2 x 2 wall over fatehpur: drawing only the tile's culled list gives the
-    same pixels as drawing every leaf, and the tight depth range clips nothing the wall's
-    range would show."""
-    scene = load("fatehpur")
+@pytest.mark.parametrize("clusters", [256, 48])
+def test_culled_list_renders_exactly_like_the_whole_scene(clusters):
+    """Every tile of a 2 x 2 wall over fatehpur: drawing only the tile's culled list, the
+    leaves it shows in part by their clusters' draw ranges, gives the same pixels as drawing
+    every leaf, and the tight depth range clips nothing the wall's range would show."""
+    scene = load("fatehpur", clusters=clusters)
     wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "gap": [0.02, 0.02],
                            "distance": 1.0, "resolution": [160, 90]})
     frame = Frame.from_dict({"position": [60, 45, 160], "eye": [0.1, 0.05, 0.2],
                              "orientation": [0.9848078, -0.1736482, 0, 0]}, wall)
     result = Session(scene, wall, fit=FitOptions()).frame(frame)
-    r = renderer_for(*wall.resolution)
-    everything = draws_for(scene, scene.leaves, r)
+    assert partial_leaves(result.visibility) > 20
+    r = renderer_for(*wall.resolution, scene=scene)
+    everything = r.draws.everything()
     wide = tile_projections(wall, frame, np.full(4, wall.near), np.full(4, wall.far))
     drawn = 0
     for t in range(wall.tiles):
         view, proj = np.asarray(result.fits[t]["view"]), np.asarray(result.fits[t]["projection"])
-        culled = draws_for(scene, result.visibility.tile_leaves(t), r)
+        culled = r.draws.tile(result.visibility, t)
         full_img = r.render(everything, view, proj)
         culled_img = r.render(culled, view, proj)
         np.testing.assert_array_equal(culled_img.ids, full_img.ids)
@@ -61,6 +58,32 @@ def test_culled_list_renders_exactly_like_the_whole_scene():
         np.testing.assert_array_equal(culled_img.ids > 0, wall_img.ids > 0)
         drawn += int((full_img.ids > 0).sum())
     assert drawn > 1000  # the view is not empty
+
+
+def test_stereo_eyes_render_exactly_like_the_whole_scene():
+    """A stereo frame on a 2 x 2 wall, eyes far apart: each eye's image of each tile, drawn
+    from the tile's one list (what either eye sees) and its ranges, equals that eye's image of
+    the whole scene."""
+    scene = load("fatehpur", clusters=48)
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "gap": [0.0, 0.0],
+                           "distance": 1.0, "resolution": [120, 68]})
+    frame = Frame.from_dict({"position": [40, 20, 60], "eye": [0.0, 0.05, 0.3],
+                             "orientation": [0.9848078, -0.1736482, 0, 0],
+                             "stereo": {"ipd": 0.3}}, wall)
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    assert partial_leaves(result.visibility) > 10
+    r = renderer_for(*wall.resolution, scene=scene)
+    everything = r.draws.everything()
+    drawn = 0
+    for t in range(wall.tiles):
+        culled = r.draws.tile(result.visibility, t)
+        for eye in ("left", "right"):
+            view = np.asarray(result.fits[t][eye]["view"])
+            proj = np.asarray(result.fits[t][eye]["projection"])
+            full_img = r.render(everything, view, proj)
+            np.testing.assert_array_equal(r.render(culled, view, proj).ids, full_img.ids)
+            drawn += int((full_img.ids > 0).sum())
+    assert drawn > 1000
 
 
 def test_seamless_tiles_stitch_into_the_whole_wall():
@@ -75,15 +98,15 @@ def test_seamless_tiles_stitch_into_the_whole_wall():
     frame = Frame.from_dict({"position": [0, 30, 90], "orientation": [0.9914449, -0.1305262, 0, 0]},
                             wall)
     result = Session(scene, wall, fit=FitOptions(depth="wall")).frame(frame)
-    r = renderer_for(w_px, h_px)
+    r = renderer_for(w_px, h_px, scene)
     stitched = np.zeros((rows * h_px, cols * w_px), dtype=np.uint32)
     for t in range(wall.tiles):
         row, col = divmod(t, cols)
-        img = r.render(draws_for(scene, result.visibility.tile_leaves(t), r),
+        img = r.render(r.draws.tile(result.visibility, t),
                        np.asarray(result.fits[t]["view"]), np.asarray(result.fits[t]["projection"]))
         stitched[row * h_px:(row + 1) * h_px, col * w_px:(col + 1) * w_px] = img.ids
     whole = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": list(wall.size), "distance": 1.0})
-    big = renderer_for(cols * w_px, rows * h_px)
+    big = renderer_for(cols * w_px, rows * h_px, scene)
     proj = tile_projections(whole, Frame.from_dict(
         {"position": [0, 30, 90], "orientation": [0.9914449, -0.1305262, 0, 0]}, whole),
         np.array([wall.near]), np.array([wall.far]))[0]
@@ -115,7 +138,7 @@ def test_mirror_view_clips_what_lies_behind_the_mirror():
                             wall)
     result = Session(scene, wall, fit=FitOptions(depth="wall")).frame(frame)
     (entry,) = result.fits[0]["mirrors"]
-    r = renderer_for(200, 120)
+    r = renderer_for(200, 120, scene)
     draws = draws_for(scene, scene.leaves, r)
     view, proj = np.asarray(entry["view"]), np.asarray(entry["projection"])
     img = r.render(draws, view, proj, front_face_cw=True)

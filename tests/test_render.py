@@ -211,6 +211,26 @@ def test_model_matrix_is_honoured(renderer):
         assert np.allclose([cols.mean() + 0.5, rows.mean() + 0.5], centre, atol=0.5)
 
 
+def test_draw_ranges_draw_exactly_their_triangles(renderer):
+    """A mesh drawn by ranges of its triangles (a leaf shown in part) gives the pixels of a mesh
+    made of those triangles alone; ranges outside the mesh are refused."""
+    v, f = cube()
+    model = translation(0.1, 0.2, -4) @ rotation([1, 2, 0.5], 0.7)
+    for ranges in ([[0, 12]], [[0, 2], [6, 4]], [[3, 1]], [[11, 1], [0, 0]], []):
+        keep = np.concatenate([np.arange(a, a + b) for a, b in ranges] or [np.zeros(0, int)])
+        if len(keep):
+            renderer.upload("part", v, f[keep])
+        want = renderer.render([("part", model, 2)] if len(keep) else [], np.eye(4), PROJ)
+        got = renderer.render([("cube", model, 2, ranges)], np.eye(4), PROJ)
+        np.testing.assert_array_equal(got.ids, want.ids)
+        np.testing.assert_array_equal(got.color, want.color)
+    assert (want.ids == 0).all() and (renderer.render([("cube", model, 2, [[3, 1]])], np.eye(4),
+                                                      PROJ).ids == 2).any()
+    renderer.evict("part")
+    with pytest.raises(ValueError):
+        renderer.render([("cube", model, 2, [[10, 3]])], np.eye(4), PROJ)
+
+
 @pytest.mark.parametrize("plane", [(-1.0, 0.0, 0.0, 0.3), (0.6, -0.8, 0.0, 0.17)])
 def test_clip_plane_removes_exactly_one_side(renderer, plane):
     model = translation(0, 0, -2) @ np.diag([2.0, 2.0, 1.0, 1.0])  # quad x, y in [-1, 1] at z = -2

@@ -378,6 +378,10 @@ def test_screens_in_cull_json_have_no_row_or_col(tmp_path):
 
 
 def test_a_cave_screen_renders_exactly_like_the_whole_scene():
+    """Each CAVE screen drawn from its list, leaves shown in part by their draw ranges, gives
+    the pixels of the whole scene drawn through the screen's frustum."""
+    from .drawing import Draws, partial_leaves
+
     render = pytest.importorskip("wallcull_clients.render")
     try:
         r = render.TileRenderer(96, 96)
@@ -385,30 +389,20 @@ def test_a_cave_screen_renders_exactly_like_the_whole_scene():
         pytest.skip(f"no headless OpenGL: {exc}")
     from wallcull.scene import load
 
-    scene = load("fatehpur")
+    scene = load("fatehpur", clusters=48)
     wall = Wall.from_dict(example("cave"))
     frame = Frame.from_dict({"position": [40.0, 8.0, -40.0], "orientation": [1, 0, 0, 0],
                              "eye": [0.2, 0.1, -0.1]}, wall)
     result = Session(scene, wall, fit=FitOptions()).frame(frame)
-    uploaded = set()
-
-    def draws(leaves):
-        out = []
-        for leaf in leaves:
-            key = scene.geometry[leaf]
-            if key not in uploaded:
-                r.upload(key, *scene.meshes[key])
-                uploaded.add(key)
-            out.append((key, scene.world[leaf], int(leaf) + 1))
-        return out
-
-    everything = draws(scene.leaves)
+    assert partial_leaves(result.visibility) > 10  # screens that show leaves in part
+    draws = Draws(scene, r)
+    everything = draws.everything()
     drawn = 0
     for t in range(wall.tiles):
         view = np.asarray(result.fits[t]["view"])
         proj = np.asarray(result.fits[t]["projection"])
         full = r.render(everything, view, proj)
-        culled = r.render(draws(result.visibility.tile_leaves(t)), view, proj)
+        culled = r.render(draws.tile(result.visibility, t), view, proj)
         np.testing.assert_array_equal(culled.ids, full.ids)
         drawn += int((full.ids > 0).sum())
     assert drawn > 1000

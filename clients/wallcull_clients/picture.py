@@ -36,12 +36,13 @@ def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str =
     uploaded = set()
     for t in range(wall.tiles):
         draws = []
+        ranges = dict(result.visibility.draw_ranges().tile(t))  # leaves shown in part
         for leaf in result.visibility.tile_leaves(t):
             key = scene.geometry[leaf]
             if key not in uploaded:
                 renderer.upload(key, *scene.leaf_mesh(leaf))
                 uploaded.add(key)
-            draws.append((key, scene.world[leaf], int(leaf) + 1))
+            draws.append((key, scene.world[leaf], int(leaf) + 1, ranges.get(int(leaf))))
         fit = result.fits[t]
         image = renderer.render(draws, np.asarray(fit["view"]), np.asarray(fit["projection"]))
         r, c = divmod(t, wall.cols)

@@ -156,6 +156,17 @@ class _Mesh:
     vbo: object
     ibo: object
     center: np.ndarray  # float64 local origin subtracted before the float32 conversion
+    triangles: int
+
+
+def _ranges(rest: list) -> np.ndarray | None:
+    """A draw's optional fourth item: ``(k, 2)`` int ranges, or None for the whole mesh."""
+    if not rest or rest[0] is None:
+        return None
+    ranges = np.asarray(rest[0], dtype=np.int64).reshape(-1, 2)
+    if (ranges[:, 1] < 0).any():
+        raise ValueError("a draw range has a negative count")
+    return ranges
 
 
 class TileRenderer:
@@ -219,7 +230,7 @@ class TileRenderer:
             ibo = ctx.buffer(faces.astype(np.uint32).tobytes())
             vao = ctx.vertex_array(self._program, [(vbo, "3f", "in_pos")],
                                    index_buffer=ibo, index_element_size=4)
-        self._meshes[key] = _Mesh(vao, vbo, ibo, center)
+        self._meshes[key] = _Mesh(vao, vbo, ibo, center, len(faces))
 
     def evict(self, key: Hashable) -> None:
         """Free the mesh cached under ``key`` (no-op if none)."""
@@ -229,10 +240,12 @@ class TileRenderer:
                 for obj in (mesh.vao, mesh.vbo, mesh.ibo):
                     obj.release()
 
-    def render(self, draws: Iterable[tuple[Hashable, np.ndarray, int]], view: np.ndarray,
+    def render(self, draws: Iterable[tuple], view: np.ndarray,
                projection: np.ndarray, *, clip_plane=None, reversed_z: bool = False,
                front_face_cw: bool = False, camera_relative: bool = False) -> Image:
-        """Draw ``(key, model (4, 4), draw_id >= 1)`` triples and read the frame back.
+        """Draw ``(key, model (4, 4), draw_id >= 1)`` triples and read the frame back. A fourth
+        item, ``ranges (k, 2)`` of ``(first triangle, triangles)``, draws only those triangles
+        of the mesh (a leaf a tile shows in part: its clusters' draw ranges); None draws all.
 
         Each draw uploads ``projection @ view @ model`` multiplied in float64 and converted to
         float32 once: with world offsets of 1e7 (float32 ulp = 1) separate float32 matrices
@@ -253,12 +266,17 @@ class TileRenderer:
         """
         view = _matrix(view, "view")
         projection = _matrix(projection, "projection")
-        draws = [(key, _matrix(model, "model"), int(draw_id)) for key, model, draw_id in draws]
-        for key, _, draw_id in draws:
+        draws = [(key, _matrix(model, "model"), int(draw_id), _ranges(rest))
+                 for key, model, draw_id, *rest in draws]
+        for key, _, draw_id, ranges in draws:
             if key not in self._meshes:
                 raise KeyError(f"no mesh uploaded under {key!r}")
             if not 1 <= draw_id < 2**32:
                 raise ValueError(f"draw_id must be in [1, 2**32), got {draw_id}")
+            if ranges is not None and len(ranges) and (
+                    ranges.min() < 0 or (ranges.sum(axis=1) > self._meshes[key].triangles).any()):
+                raise ValueError(f"ranges outside the {self._meshes[key].triangles} triangles "
+                                 f"of {key!r}")
         shared = _shared()
         if reversed_z and shared.clip_control is None:
             raise NotImplementedError("reversed_z needs glClipControl (GL 4.5 or ARB_clip_control), "
@@ -289,7 +307,7 @@ class TileRenderer:
             self._clear_color.clear(*BACKGROUND)
             self._draw_fbo.use()
             program["plane"].value = tuple(plane)
-            for key, model, draw_id in draws:
+            for key, model, draw_id, ranges in draws:
                 mesh = self._meshes[key]
                 world = to_world @ model @ _translation(mesh.center)
                 modelview = view @ world
@@ -298,7 +316,11 @@ class TileRenderer:
                 program["world"].write(_gl(world))
                 program["color"].value = draw_color(draw_id)
                 program["draw_id"].value = draw_id
-                mesh.vao.render(moderngl.TRIANGLES)
+                if ranges is None:
+                    mesh.vao.render(moderngl.TRIANGLES)
+                else:  # one draw call per range, counted in indices
+                    for first, count in ranges.tolist():
+                        mesh.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
             if self.samples:
                 ctx.copy_framebuffer(self._fbo, self._draw_fbo)
             h, w = self.height, self.width
