@@ -190,6 +190,22 @@ def test_walls(out):
     assert cave2["adaptive"]["tests_per_frame"] < cave2["oh"]["tests_per_frame"]
 
 
+def test_clusters(out):
+    result = E.run("clusters", out, quick=True, progress=False)
+    r = check_output(out, "clusters", result)
+    assert {"powerplant", "fatehpur", "sportsCar", "FM1_satellite"} <= set(r["scenes"])
+    for paths in r["scenes"].values():
+        for s in paths.values():
+            by = {e["clusters"]: e for e in s["settings"]}
+            assert set(by) == {"off", *r["sizes"]}
+            # nothing below the floor (the culler is conservative), nothing above no culling
+            assert all(s["none"] >= e["triangles"] >= s["floor"] for e in by.values())
+    sats = {e["clusters"]: e for e in r["scenes"]["FM1_satellite"]["fly"]["settings"]}
+    assert sats[min(r["sizes"])]["triangles"] < sats["off"]["triangles"] / 3  # they bite
+    md = (out / "clusters.md").read_text()
+    assert "<= 1.5" in md and "wallcull overdraw" in md
+
+
 def test_oracle_bookkeeping_matches_bench_accuracy():
     """The experiments' memoized oracle counts what ``wallcull.bench.accuracy`` counts."""
     scene = C.Pristine("fatehpur").fresh()

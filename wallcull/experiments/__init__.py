@@ -42,6 +42,7 @@ REGISTRY: dict[str, Experiment] = {
     "frusta": _module("frusta"),
     "frame": _module("frame"),
     "walls": _module("walls"),
+    "clusters": _module("clusters"),
     "scale": _module("scale"),
 }
 
