@@ -63,6 +63,7 @@ from . import workers
 from .bounds import Bounds
 from .errors import InputError
 from .scene import Scene, SceneState
+from .separate import SMALL, drop_separated
 from .wall import Frusta
 
 METHODS = ("naive", "oh", "fh", "adaptive")
@@ -1085,6 +1086,8 @@ class Culler:
             self._near_bit = 0
             self._unknown_at_root = _UNKNOWN
         self._size = np.full(tiles, 6, np.int64)
+        self._corners = np.empty((tiles, 8, 3))  # scratch of drop_separated
+        self._known = np.zeros(tiles, np.uint8)
         self._units = (scene.units, *scene.unit_range)
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
         self._depth_bound = height * max(int(scene.child_count.max()), 2)
@@ -1155,12 +1158,14 @@ class Culler:
             depth = wall.distance + frusta.eye[2]
             (w, h), (gx, gy) = wall.tile_size, wall.gap
             pitch = ((w + gx) / depth, (h + gy) / depth)
+            tile_angle = min(w, h) / depth
         else:
             primary = frusta.primary_rows.astype(np.int64)
             fh = fh.copy()  # a split that does not hold from this eye culls nothing
             fh[(fh[:, _MODE] == _SHARED) & ~frusta.valid, _MODE] = _PASS
             view = np.array([0.0, 0.0, 0.0, 0.0, *eye])  # all around the eye: distance
             pitch = wall.pitch
+            tile_angle = min(pitch)
         if extra is not None and len(extra):
             primary = np.concatenate([primary, len(planes) + np.arange(len(extra))])
             planes = np.concatenate([planes, extra])
@@ -1194,10 +1199,15 @@ class Culler:
                  view, pitch[0], pitch[1], self._near_bit, self._unknown_at_root, regions),
                 stack)
         self._last_tests = tests
-        start, ordered = _by_region(nodes, tiles, wall.tiles)
+        listed = len(nodes)
+        self._known[:] = 0
+        kept = drop_separated(nodes, tiles, listed, box, planes, self._tile_planes,
+                              self._tree[1], eye, SMALL * tile_angle, self._corners,
+                              self._known)
+        start, ordered = _by_region(nodes[:kept], tiles[:kept], wall.tiles)
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
-            "tests": int(tests), "pairs": len(nodes)})
+            "tests": int(tests), "pairs": kept, "separated": listed - kept})
 
 
 def leaf_lists(scene: Scene, start: np.ndarray, nodes: np.ndarray
@@ -1215,7 +1225,7 @@ def merge(lists: list[Visibility]) -> Visibility:
     for other in lists[1:]:
         start, nodes = _merge_lists(start, nodes, other.start, other.nodes, first.scene.size)
     stats = {key: sum(v.stats[key] for v in lists) for key in ("roots", "primary_tests",
-                                                               "tests")}
+                                                               "tests", "separated")}
     return Visibility(first.scene, start, nodes, {"method": first.stats["method"], **stats,
                                                   "pairs": len(nodes), "eyes": len(lists)})
 

@@ -1,0 +1,93 @@
+"""Separating axes (wallcull.separate): a box found apart from a tile's frustum never meets it,
+checked exactly (its faces clipped against the frustum, the frustum's corners against the box),
+and the test finds separations the plane test misses."""
+
+import numpy as np
+from hypothesis import given, settings, strategies as st
+from scipy.spatial.transform import Rotation
+
+from wallcull import oracle
+from wallcull.cull import RECORD
+from wallcull.separate import _corners, _separated
+
+from .randscene import random_wall
+
+#: the oracle's planes (bottom, right, top, left, near, far) as the culler orders them
+LRTB = [3, 1, 2, 0, 4, 5]
+_SIGNS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+_FACES = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+
+
+def record(center, axes, half):
+    """A packed bound (wallcull.cull.pack's layout) of an oriented box."""
+    r = np.zeros((1, RECORD))
+    r[0, :3] = center
+    r[0, 4:13] = (axes * half[:, None]).reshape(9)
+    r[0, 13] = np.linalg.norm(half)
+    return r
+
+
+def box_meets(center, axes, half, planes, corners) -> bool:
+    """Exactly: a face of the box meets the frustum, or the frustum lies inside the box."""
+    pts = center + (_SIGNS * half) @ axes
+    tris = np.array([[pts[a], pts[b], pts[c]] for f in _FACES for a, b, c in
+                     ((f[0], f[1], f[2]), (f[0], f[2], f[3]))])
+    if oracle.triangles_meet(tris, planes):
+        return True
+    local = (corners - center) @ axes.T
+    return bool((np.abs(local) <= half).all(axis=1).any())
+
+
+def near_corner_case(seed):
+    """A tile frustum and a box near its edges: around a corner or an edge point, of any size
+    and turn."""
+    rng = np.random.default_rng(seed)
+    wall = random_wall(rng)
+    tile = int(rng.integers(oracle.tiles_of(wall)))
+    planes = oracle.tile_planes_display(wall, rng.normal(size=3) * 0.05, tile)[LRTB]
+    corners = np.empty((8, 3))
+    assert _corners(planes, np.arange(6), corners)
+    # a box near the frustum's edges: around a corner or an edge point, of any size and turn
+    k = rng.integers(8)
+    anchor = corners[k] * rng.uniform(0.05, 1.0) if k % 2 else corners[k]
+    center = anchor + rng.normal(size=3) * rng.uniform(0.01, 3.0)
+    axes = Rotation.random(random_state=int(rng.integers(2**31))).as_matrix()
+    half = rng.uniform(0.01, 2.0, 3)
+    return planes, corners, center, axes, half
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_a_separated_box_never_meets_the_frustum(seed):
+    planes, corners, center, axes, half = near_corner_case(seed)
+    if _separated(record(center, axes, half), 0, corners):
+        assert not box_meets(center, axes, half, planes, corners)
+
+
+def test_the_cases_above_are_not_vacuous():
+    """Among such boxes, many meet the frustum and many are found apart from it."""
+    found = meet = 0
+    for seed in range(300):
+        planes, corners, center, axes, half = near_corner_case(seed)
+        found += _separated(record(center, axes, half), 0, corners)
+        meet += box_meets(center, axes, half, planes, corners)
+    assert found > 30 and meet > 30
+
+
+def test_it_finds_what_the_plane_test_misses():
+    """A long box past a frustum's corner: outside no single plane, yet apart from the frustum."""
+    wall = {"cols": 1, "rows": 1, "tile_size": [1.0, 1.0], "distance": 1.0, "near": 0.1,
+            "far": 10.0}
+    planes = oracle.tile_planes_display(wall, [0, 0, 0], 0)[LRTB]
+    corners = np.empty((8, 3))
+    assert _corners(planes, np.arange(6), corners)
+    # a thin rod across the frustum's top-right edge, beyond it
+    axes = Rotation.from_euler("z", 45, degrees=True).as_matrix().T
+    center = np.array([2.2, 2.2, -3.0])
+    half = np.array([0.05, 3.0, 0.05])
+    box = record(center, axes, half)
+    pts = center + (_SIGNS * half) @ axes
+    dist = pts @ planes[:, :3].T + planes[:, 3]
+    assert not (dist < 0).all(axis=0).any()  # no plane has it wholly outside
+    assert not box_meets(center, axes, half, planes, corners)
+    assert _separated(box, 0, corners)
