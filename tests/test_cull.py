@@ -6,7 +6,7 @@ import pytest
 import trimesh
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from wallcull.cull import METHODS, Culler, cull
+from wallcull.cull import FINE, METHODS, Culler, cull
 from wallcull.scene import Scene, SceneState
 from wallcull.wall import Frame, Frusta, Wall
 
@@ -54,9 +54,11 @@ def check_against_oracle(scene: Scene, wall_spec: dict, frame_spec: dict):
     for kind in BOUNDS:
         state = SceneState(scene, kind)
         got = {}
-        for method in [*METHODS, "pseudo"]:
-            vis = cull(state, frusta, "adaptive" if method == "pseudo" else method,
-                       pseudo_groups=method == "pseudo")
+        for method in [*METHODS, "pseudo", "coarse"]:
+            # "coarse": adaptive as the product runs it, listing small clusters whole; the
+            # others unfold clusters to the finest, where their lists relate as documented
+            vis = cull(state, frusta, "adaptive" if method in ("pseudo", "coarse") else method,
+                       pseudo_groups=method == "pseudo", fine=FINE if method == "coarse" else 0)
             got[method] = leaf_sets(vis)
             for t in range(wall.tiles):
                 missed = truth[t] - got[method][t]

@@ -46,14 +46,15 @@ def check_times(summary: dict) -> None:
 
 
 def check_accuracy(by_method: dict) -> None:
-    """Same bounds: naive and oh report the same leaves, and so do fh and adaptive, and the
-    second pair's leaves are among the first's."""
+    """Same bounds: naive and oh report the same leaves; fh reports among them, adaptive at
+    least fh's (it lists a leaf's small clusters whole: wallcull.cull.FINE)."""
     acc = {m: r["accuracy"] for m, r in by_method.items()}
-    for a, b in (("naive", "oh"), ("fh", "adaptive")):
-        for key in ("false_positives", "reported", "geometry_bytes_per_frame"):
-            assert acc[a][key] == acc[b][key], (a, b, key)
+    for key in ("false_positives", "reported", "geometry_bytes_per_frame"):
+        assert acc["naive"][key] == acc["oh"][key], key
     assert acc["fh"]["reported"] <= acc["naive"]["reported"]
     assert acc["fh"]["false_positives"] <= acc["naive"]["false_positives"]
+    assert acc["fh"]["reported"] <= acc["adaptive"]["reported"]
+    assert acc["fh"]["false_positives"] <= acc["adaptive"]["false_positives"]
     for a in acc.values():
         assert 0 <= a["false_positives"] <= a["reported"] and 0 <= a["rate"] <= 1
         assert a["packet_bytes_per_frame"] == a["false_positives"] * C.ID_BYTES / a["frames"]

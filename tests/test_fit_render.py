@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from wallcull.cull import FINE
 from wallcull.fit import FitOptions, tile_projections
 from wallcull.projection import view_matrix
 from wallcull.lowilie import fit_frustum
@@ -31,18 +32,19 @@ def renderer_for(w, h, scene=None):
     return r
 
 
-@pytest.mark.parametrize("clusters", [256, 48])
-def test_culled_list_renders_exactly_like_the_whole_scene(clusters):
+@pytest.mark.parametrize("clusters,fine", [(256, FINE), (48, FINE), (48, 0.0)])
+def test_culled_list_renders_exactly_like_the_whole_scene(clusters, fine):
     """Every tile of a 2 x 2 wall over fatehpur: drawing only the tile's culled list, the
     leaves it shows in part by their clusters' draw ranges, gives the same pixels as drawing
-    every leaf, and the tight depth range clips nothing the wall's range would show."""
+    every leaf, and the tight depth range clips nothing the wall's range would show. Clusters
+    of two sizes, small ones listed whole as the product does (``fine``) or not."""
     scene = load("fatehpur", clusters=clusters)
     wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "gap": [0.02, 0.02],
                            "distance": 1.0, "resolution": [160, 90]})
     frame = Frame.from_dict({"position": [60, 45, 160], "eye": [0.1, 0.05, 0.2],
                              "orientation": [0.9848078, -0.1736482, 0, 0]}, wall)
-    result = Session(scene, wall, fit=FitOptions()).frame(frame)
-    assert partial_leaves(result.visibility) > 20
+    result = Session(scene, wall, fit=FitOptions(), fine=fine).frame(frame)
+    assert partial_leaves(result.visibility) > (20 if fine == 0 else 5)
     r = renderer_for(*wall.resolution, scene=scene)
     everything = r.draws.everything()
     wide = tile_projections(wall, frame, np.full(4, wall.near), np.full(4, wall.far))
@@ -70,7 +72,7 @@ def test_stereo_eyes_render_exactly_like_the_whole_scene():
     frame = Frame.from_dict({"position": [40, 20, 60], "eye": [0.0, 0.05, 0.3],
                              "orientation": [0.9848078, -0.1736482, 0, 0],
                              "stereo": {"ipd": 0.3}}, wall)
-    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    result = Session(scene, wall, fit=FitOptions(), fine=0.0).frame(frame)
     assert partial_leaves(result.visibility) > 10
     r = renderer_for(*wall.resolution, scene=scene)
     everything = r.draws.everything()

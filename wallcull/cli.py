@@ -324,7 +324,7 @@ def parser() -> argparse.ArgumentParser:
     from .bounds import KINDS
     from .cull import METHODS
     from .lowilie import EFFORTS
-    from .clusters import MAX_SIZE, MIN_SIZE
+    from .clusters import AUTO_SIZE, MAX_SIZE, MIN_SIZE
     from .paths import PATHS
     from .scene import BRANCHING, CLUSTERS
 
@@ -338,9 +338,12 @@ def parser() -> argparse.ArgumentParser:
         q.add_argument("--branching", type=int, default=BRANCHING,
                        help="branching factor of the automatic hierarchy (and of cluster trees)")
         if clusters:
-            q.add_argument("--clusters", type=_cluster_size, default=CLUSTERS, metavar="off|K",
+            q.add_argument("--clusters", type=_cluster_size, default=CLUSTERS,
+                           metavar="auto|off|K",
                            help=f"cut leaves of more than K triangles into clusters of at most "
-                                f"K ({MIN_SIZE}-{MAX_SIZE}; default {CLUSTERS}), or 'off'")
+                                f"K ({MIN_SIZE}-{MAX_SIZE}), or not at all (off); auto, the "
+                                f"default: {AUTO_SIZE}, coarser in scenes that would get more "
+                                f"cluster nodes than twice their own")
 
     def scene_args(q):
         build_args(q)
@@ -413,7 +416,8 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--path", choices=PATHS, default="orbit")
     q.add_argument("--frames", type=int, default=60)
     q.add_argument("--sizes", default=f"{CLUSTERS}", metavar="K[,K...]",
-                   help=f"cluster sizes to compare with the leaf lists (default {CLUSTERS})")
+                   help=f"cluster sizes (or auto) to compare with the leaf lists (default "
+                        f"{CLUSTERS})")
     q.add_argument("--method", choices=METHODS, default="adaptive")
     q.add_argument("--bounds", choices=KINDS, default="obb")
     q.add_argument("--json", action="store_true")

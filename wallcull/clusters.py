@@ -27,27 +27,66 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Triangles per cluster by default: the knee of the measured trade (docs/clusters.md).
-DEFAULT_SIZE = 256
 #: The sizes a scene may ask for; ``off`` (None) keeps leaves whole.
 MIN_SIZE, MAX_SIZE = 32, 4096
+#: ``auto``, the default: clusters of :data:`AUTO_SIZE` triangles, coarser (the size doubled)
+#: while the scene would get more cluster nodes than :func:`budget` allows.
+AUTO = "auto"
+#: Triangles per cluster with ``auto``: the smallest size that holds the measured targets on
+#: every scene (docs/clusters.md); the traversal lists small clusters whole (wallcull.cull.FINE)
+AUTO_SIZE = 32
+#: ... and at most this many cluster nodes, or twice the scene's own nodes if more: a scene of
+#: many instances of mid-sized meshes (a million-node plant) gets coarser clusters, not a
+#: hierarchy (and prepared file) many times its size.
+BUDGET = 1 << 16
 
 
-def parse_size(value) -> int | None:
-    """A cluster size setting: ``"off"`` (or None) or a number of triangles in
+def budget(nodes: int) -> int:
+    """The most cluster nodes ``auto`` gives a scene of ``nodes`` nodes."""
+    return max(BUDGET, 2 * nodes)
+
+
+def tree_nodes(faces: np.ndarray, size: int, branching: int) -> np.ndarray:
+    """How many nodes each mesh's cluster tree has (:func:`tree`), from its faces (exact)."""
+    count = np.where(faces > size, -(-faces // size), 0)
+    total = count.copy()
+    level = count
+    while (level > branching).any():
+        level = np.where(level > branching, -(-level // branching), 0)
+        total += level
+    return total
+
+
+def resolve(size, faces: np.ndarray, instances: np.ndarray, nodes: int, branching: int
+            ) -> int | None:
+    """The cluster size a scene gets for the setting ``size`` (None, a number, or ``auto``),
+    its meshes having ``faces`` triangles and ``instances`` leaves each."""
+    if size != AUTO:
+        return size
+    size = AUTO_SIZE
+    while size < MAX_SIZE and (instances * tree_nodes(faces, size, branching)).sum() \
+            > budget(nodes):
+        size *= 2
+    return size
+
+
+def parse_size(value) -> int | str | None:
+    """A cluster size setting: ``"off"`` (or None), ``"auto"``, or a number of triangles in
     ``[MIN_SIZE, MAX_SIZE]``. Raises :class:`ValueError` with a one-line reason."""
     if value is None or (isinstance(value, str) and value.strip().lower() == "off"):
         return None
+    if isinstance(value, str) and value.strip().lower() == AUTO:
+        return AUTO
     try:
         size = int(value)
         if isinstance(value, float) and value != size:
             raise ValueError
     except (TypeError, ValueError):
-        raise ValueError(f"cluster size must be 'off' or a whole number of triangles, "
+        raise ValueError(f"cluster size must be 'off', 'auto' or a whole number of triangles, "
                          f"got {value!r}") from None
     if not MIN_SIZE <= size <= MAX_SIZE:
-        raise ValueError(f"cluster size must be 'off' or between {MIN_SIZE} and {MAX_SIZE} "
-                         f"triangles, got {size}")
+        raise ValueError(f"cluster size must be 'off', 'auto' or between {MIN_SIZE} and "
+                         f"{MAX_SIZE} triangles, got {size}")
     return size
 
 

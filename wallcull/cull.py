@@ -30,7 +30,8 @@ test would have rejected. For the same bounds:
 * ``fh`` (and ``adaptive`` with pseudo-groups) report the leaves outside none of the primary
   planes and the split planes on the tile's path down the FH; ``adaptive`` reports leaves
   between the two (a leaf reached through an object unfolded at a tile is tested against the
-  tile's own planes);
+  tile's own planes) when it unfolds clusters to the finest (``fine=0``); by default it lists
+  a leaf's small clusters whole (:data:`FINE`), and then may report a few leaves more;
 * ``fh``'s set is contained in ``naive``'s. The split planes above a tile are planes through
   the eye whose half-spaces contain the tile frustum, so they are valid culling planes; in
   front of the eye they add nothing to the tile's own planes, but a bound that straddles the
@@ -89,6 +90,14 @@ SCREENS_UNFOLD_TILES = 8
 #: on CAVE2, 4 takes 6% fewer tests than 1 (``UNFOLD_RATIO``), 12% less time; 0.25 to 8 all
 #: stay within 10% of each other.
 SCREENS_UNFOLD_RATIO = 4.0
+
+#: ``adaptive`` stops unfolding a leaf's clusters (:mod:`wallcull.clusters`) at those whose
+#: sphere spans less than this share of a tile's angular size: they are listed whole, their
+#: triangles one range. Finer clusters than that save few triangles and cost tests and list
+#: entries: on the power plant's orbit with clusters of 32, 0.25 lists 35% fewer entries with
+#: 23% fewer tests for 1.24x the floor instead of 1.11x; the sports car's fly path and the
+#: satellite's, seen up close, do not change (``docs/clusters.md``). 0: always the finest.
+FINE = 0.25
 
 #: ``adaptive`` runs in threads, over parts of the frustum hierarchy, after a frame that took at
 #: least this many box-plane tests (about a millisecond; below it a thread costs more than it
@@ -370,8 +379,8 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
 
 @njit(cache=True, nogil=True)
 def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh, fh_unfold,
-              tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, regions, allowed,
-              so, sf, sm, ts, tm, out_n, out_t):
+              tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, regions, parts,
+              fine, allowed, so, sf, sm, ts, tm, out_n, out_t):
     """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring).
 
     A stack entry is (object ``so``, frustum node ``sf``, mask ``sm``). At an internal frustum
@@ -435,15 +444,10 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
             if cb >= 0:
                 mb = (m & _BEHIND) | (cb << _CUT)
             if (sa == _CUTS or sb == _CUTS) and child_count[o] > 0:
-                if regions is not None:  # screens all around: distance
-                    depth = math.sqrt((box[o, 0] - view[4]) ** 2 + (box[o, 1] - view[5]) ** 2
-                                      + (box[o, 2] - view[6]) ** 2)
-                else:
-                    depth = (view[0] * box[o, 0] + view[1] * box[o, 1] + view[2] * box[o, 2]
-                             + view[3])
-                angle = box[o, _R_SPHERE] / depth if depth > 0 else np.inf
+                angle = _angle(box, o, view, regions)
                 reach = (2 * angle / pitch_x + 1) * (2 * angle / pitch_y + 1)
-                if reach > fh_unfold[f]:  # large for this frustum node: unfold here
+                if reach > fh_unfold[f] and not (parts[o] and angle < fine):
+                    # large for this frustum node: unfold here
                     cm = (m & _UNKNOWN) | ((m >> _CUT) & _UNKNOWN)
                     for c in range(child_start[o] + child_count[o] - 1, child_start[o] - 1,
                                    -1):
@@ -490,7 +494,8 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                         cut |= 1 << p
             if outside:
                 continue
-        if cut == 0 or child_count[o] == 0:
+        if cut == 0 or child_count[o] == 0 or (parts[o] and _angle(box, o, view, regions)
+                                                < fine):
             if k == cap:
                 return -1, tests
             out_n[k] = o
@@ -518,7 +523,8 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                         mm &= ~(1 << p)
             if outside:
                 continue
-            if mm == 0 or child_count[i] == 0:
+            if mm == 0 or child_count[i] == 0 or (parts[i] and _angle(box, i, view, regions)
+                                                  < fine):
                 if k == cap:
                     return -1, tests
                 out_n[k] = i
@@ -530,6 +536,18 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                 tm[tp] = mm
                 tp += 1
     return k, tests
+
+
+@njit(cache=True, inline="always")
+def _angle(box, o, view, regions):
+    """The angle bound ``o``'s sphere spans from the eye (radians, about), its depth along
+    ``view`` (grids) or its distance from the eye (screens, ``regions`` given)."""
+    if regions is not None:  # screens all around: distance
+        depth = math.sqrt((box[o, 0] - view[4]) ** 2 + (box[o, 1] - view[5]) ** 2
+                          + (box[o, 2] - view[6]) ** 2)
+    else:
+        depth = view[0] * box[o, 0] + view[1] * box[o, 1] + view[2] * box[o, 2] + view[3]
+    return box[o, _R_SPHERE] / depth if depth > 0 else np.inf
 
 
 @njit(cache=True, inline="always")
@@ -1046,11 +1064,13 @@ class Culler:
     share the kernels: a screens tile has six planes of its own (near and far included), and
     the splits of its frustum hierarchy are checked each frame. A stereo frame is culled once
     against planes that hold both eyes' frusta on a grid (:mod:`wallcull.stereo`), and eye by
-    eye, merged, on screens.
+    eye, merged, on screens. ``fine``: ``adaptive`` lists a leaf's clusters whole once they
+    span less than this share of a tile's angular size (:data:`FINE`; 0: the finest clusters,
+    where the methods' lists relate as the module docstring says).
     """
 
     def __init__(self, state: SceneState, wall, method: str = "adaptive",
-                 pseudo_groups: bool = False):
+                 pseudo_groups: bool = False, fine: float = FINE):
         if method not in METHODS:
             raise InputError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
         if pseudo_groups and wall.kind != "grid":
@@ -1059,6 +1079,7 @@ class Culler:
         self.wall = wall
         self.method = method
         self.pseudo_groups = pseudo_groups
+        self.fine = fine
         scene = state.scene
         self._tree = (scene.child_start, scene.child_count, scene.children)
         tiles = wall.tiles
@@ -1086,6 +1107,9 @@ class Culler:
             self._near_bit = 0
             self._unknown_at_root = _UNKNOWN
         self._size = np.full(tiles, 6, np.int64)
+        # the nodes that stand for part of one leaf's triangles: its clusters, and the leaf
+        self._parts_of_leaves = ((scene.cluster_of >= 0)
+                                 | (scene.is_leaf & (scene.child_count > 0))).astype(np.uint8)
         self._corners = np.empty((tiles, 8, 3))  # scratch of drop_separated
         self._known = np.zeros(tiles, np.uint8)
         self._units = (scene.units, *scene.unit_range)
@@ -1196,7 +1220,8 @@ class Culler:
         else:
             nodes, tiles, tests = self._run_adaptive(
                 (roots, masks, *self._tree, box, planes, fh, self._unfold, self._tile_sides,
-                 view, pitch[0], pitch[1], self._near_bit, self._unknown_at_root, regions),
+                 view, pitch[0], pitch[1], self._near_bit, self._unknown_at_root, regions,
+                 self._parts_of_leaves, self.fine * tile_angle),
                 stack)
         self._last_tests = tests
         listed = len(nodes)
@@ -1424,6 +1449,6 @@ def farthest(state: SceneState, start: np.ndarray, nodes: np.ndarray,
 
 
 def cull(state: SceneState, frusta: Frusta, method: str = "adaptive",
-         pseudo_groups: bool = False) -> Visibility:
+         pseudo_groups: bool = False, fine: float = FINE) -> Visibility:
     """One-shot cull; build a :class:`Culler` to cull many frames."""
-    return Culler(state, frusta.wall, method, pseudo_groups).cull(frusta)
+    return Culler(state, frusta.wall, method, pseudo_groups, fine).cull(frusta)

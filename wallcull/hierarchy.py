@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .clusters import resolve as resolve_clusters
 from .instances import MeshTable, instance_extremes
 
 # trimesh names the extra primitives of a multi-primitive glTF mesh "<node>_<6 random hex>";
@@ -176,10 +177,11 @@ def preorder(parent: np.ndarray, rank: np.ndarray) -> np.ndarray:
 
 
 def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branching: int = 8,
-          clusters: int | None = None) -> dict:
+          clusters: int | str | None = None) -> dict:
     """The flat preorder arrays of a :class:`wallcull.scene.Scene` (its constructor's keyword
     arguments but ``name`` and ``settings``) from a file's node tree, with leaves cut into
-    clusters of at most ``clusters`` triangles (None: whole)."""
+    clusters of at most ``clusters`` triangles (None: whole; ``"auto"``: see
+    :func:`wallcull.clusters.resolve`)."""
     names = list(nodes.names)
     parent, local, mesh = nodes.parent, nodes.local, nodes.mesh
     n = len(names)
@@ -232,13 +234,17 @@ def build(nodes: NodeTable, meshes: MeshTable, hierarchy: str = "auto", branchin
     world = world[order]
     used, mesh_of = np.unique(mesh, return_inverse=True)
     mesh_of = mesh_of.reshape(-1) - (used[0] < 0)  # -1 stays -1 when some node has no mesh
+    meshes = meshes.subset(used[used >= 0])
+    size = resolve_clusters(clusters, meshes.face_count,
+                            np.bincount(mesh_of[mesh_of >= 0], minlength=len(meshes)),
+                            len(parent), branching)
     out = dict(names=[names[i] for i in order], parent=parent, is_leaf=mesh >= 0,
                synthetic=synthetic, local=local, world=world, mesh_of=mesh_of.astype(np.int64),
-               meshes=meshes.subset(used[used >= 0]).clustered(clusters, branching))
+               meshes=meshes.clustered(size, branching))
     # 5. clusters under their leaves
     out = _with_clusters(**out) if out["meshes"].clusters else \
         dict(out, cluster_of=np.full(len(parent), -1, dtype=np.int64))
-    return dict(out, **_children(out["parent"]))
+    return dict(out, **_children(out["parent"]), cluster_size=size)
 
 
 def _children(parent: np.ndarray) -> dict:

@@ -16,7 +16,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from . import settings as cfg
-from .cull import Culler, Visibility
+from .cull import FINE, Culler, Visibility
 from .fit import FitOptions, Fits, fit_frame
 from .scene import Scene, SceneState
 from .wall import Frame, Frusta, Wall
@@ -42,11 +42,11 @@ class Session:
 
     def __init__(self, scene: Scene, wall: Wall, method: str = "adaptive", bounds: str = "obb",
                  pseudo_groups: bool = False, fit: FitOptions | None = None,
-                 settings: Mapping[str, Any] | None = None):
+                 settings: Mapping[str, Any] | None = None, fine: float = FINE):
         self.scene = scene
         self.wall = wall
         self.state = SceneState(scene, bounds)
-        self.culler = Culler(self.state, wall, method, pseudo_groups)
+        self.culler = Culler(self.state, wall, method, pseudo_groups, fine)
         # what the scene asks for (lights, mirrors): its own, or ``settings`` for this wall
         self.raw_settings = dict(scene.settings if settings is None else settings)
         self.settings = cfg.parse(self.raw_settings)

@@ -50,7 +50,7 @@ log = logging.getLogger("wallcull")
 #: Default branching factor of the automatic spatial hierarchy.
 BRANCHING = 8
 #: Default cluster size: leaves of more triangles are cut into clusters of at most this many.
-CLUSTERS = clusters_mod.DEFAULT_SIZE
+CLUSTERS = clusters_mod.AUTO
 
 
 @dataclass
@@ -253,12 +253,13 @@ class Scene:
     @classmethod
     def from_trimesh(cls, scene, name: str = "scene", hierarchy: str = "auto",
                      branching: int = BRANCHING, settings: Mapping | None = None,
-                     clusters: int | None = CLUSTERS) -> "Scene":
+                     clusters: int | str | None = CLUSTERS) -> "Scene":
         """Build from a ``trimesh.Scene`` following its node tree (SPEC section 4).
 
         ``hierarchy="auto"`` adds a spatial hierarchy under any parent with more than
         ``4 * branching`` children; ``"file"`` keeps the file's tree as it is. Leaves with more
-        than ``clusters`` triangles are cut into clusters (None: never).
+        than ``clusters`` triangles are cut into clusters (None: never; ``"auto"``:
+        :func:`wallcull.clusters.resolve`).
         """
         _check_hierarchy(hierarchy, branching)
         return cls.from_nodes(*tree.read_trimesh(scene), name, hierarchy, branching, settings,
@@ -267,15 +268,14 @@ class Scene:
     @classmethod
     def from_nodes(cls, nodes: tree.NodeTable, meshes: MeshTable, name: str = "scene",
                    hierarchy: str = "auto", branching: int = BRANCHING,
-                   settings: Mapping | None = None, clusters: int | None = CLUSTERS
+                   settings: Mapping | None = None, clusters: int | str | None = CLUSTERS
                    ) -> "Scene":
         """Build from a file's node tree as arrays (:mod:`wallcull.hierarchy`)."""
         _check_hierarchy(hierarchy, branching)
         _check_clusters(clusters)
         label = "file" if hierarchy == "file" else f"auto:{branching}"
         return cls(name=name, settings=dict(settings or {}), hierarchy=label,
-                   cluster_size=clusters, **tree.build(nodes, meshes, hierarchy, branching,
-                                                       clusters))
+                   **tree.build(nodes, meshes, hierarchy, branching, clusters))
 
 
 def _check_hierarchy(hierarchy: str, branching: int) -> None:
@@ -285,13 +285,14 @@ def _check_hierarchy(hierarchy: str, branching: int) -> None:
         raise InputError(f"branching must be at least 2, got {branching}")
 
 
-def _check_clusters(clusters: int | None) -> None:
+def _check_clusters(clusters: int | str | None) -> None:
     if clusters is not None:
         parse_clusters(clusters)  # in range, or a one-line InputError
 
 
-def parse_clusters(value) -> int | None:
-    """A cluster size setting (``"off"``, None or a number of triangles), checked."""
+def parse_clusters(value) -> int | str | None:
+    """A cluster size setting (``"off"``, None, ``"auto"`` or a number of triangles),
+    checked."""
     try:
         return clusters_mod.parse_size(value)
     except ValueError as exc:
@@ -589,12 +590,12 @@ class Source:
 
         return bundled.settings(self.spec) if self.path is None else cfg.sidecar(self.spec)
 
-    def identity(self, hierarchy: str, branching: int, clusters: int | None) -> str:
+    def identity(self, hierarchy: str, branching: int, clusters: int | str | None) -> str:
         """The source and build options, not the content: names its prepared file."""
         where = f"bundled:{self.spec}" if self.path is None else f"file:{self.path.resolve()}"
         return f"{where}|{hierarchy}|{branching}|{clusters}"
 
-    def key(self, hierarchy: str, branching: int, clusters: int | None) -> dict:
+    def key(self, hierarchy: str, branching: int, clusters: int | str | None) -> dict:
         """What a prepared file must have been built from to be current: the source's content
         (a file's SHA-256, or a generator's name, copies, seed and version), the options, and
         the code that builds it."""
@@ -607,7 +608,7 @@ class Source:
         return {"source": source, "hierarchy": hierarchy, "branching": branching,
                 "clusters": clusters, "format": PREPARED_FORMAT, "code": _code_version()}
 
-    def build(self, hierarchy: str, branching: int, clusters: int | None) -> Scene:
+    def build(self, hierarchy: str, branching: int, clusters: int | str | None) -> Scene:
         """The scene built from its source (``NAME*K``: one copy read, then tiled as arrays)."""
         if self.path is None:
             base, count = bundled.parse(self.spec)
@@ -618,7 +619,8 @@ class Source:
             nodes, meshes = tree.read_trimesh(load_trimesh(self.path))
         return Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching, clusters=clusters)
 
-    def prepared(self, hierarchy: str, branching: int, clusters: int | None) -> tuple[Path, dict]:
+    def prepared(self, hierarchy: str, branching: int, clusters: int | str | None
+                 ) -> tuple[Path, dict]:
         """Where the prepared file of these options lies, and the key it must hold."""
         options = (hierarchy, branching, clusters)
         return prepared.cache_path(self.name, self.identity(*options)), self.key(*options)
@@ -631,9 +633,10 @@ CACHE_MODES = ("read", "write", "off")
 
 def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
          settings: Mapping[str, Any] | None = None, cache: str = "read",
-         clusters: int | None = CLUSTERS) -> Scene:
+         clusters: int | str | None = CLUSTERS) -> Scene:
     """A bundled scene by name (``wallcull scenes``; ``powerplant*K`` too) or a scene file by
-    path, its leaves cut into clusters of at most ``clusters`` triangles (None: whole). Its
+    path, its leaves cut into clusters of at most ``clusters`` triangles (None: whole;
+    ``"auto"``, the default: :func:`wallcull.clusters.resolve`). Its
     settings (:mod:`wallcull.settings`) are ``settings`` if given, else the bundled scene's or
     the file's sidecar ``<file>.wallcull.json``.
 
@@ -664,7 +667,8 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
 
 
 def prepare(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
-            force: bool = False, clusters: int | None = CLUSTERS) -> tuple[Path, Scene | None]:
+            force: bool = False, clusters: int | str | None = CLUSTERS
+            ) -> tuple[Path, Scene | None]:
     """Write the prepared file of a scene: its hierarchy, clusters, names, OBBs, box and meshes,
     in :func:`wallcull.prepared.cache_dir`. Returns its path and the scene built, or None where a
     current file was already there (and ``force`` is not set)."""

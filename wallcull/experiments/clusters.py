@@ -17,7 +17,7 @@ import json
 import numpy as np
 
 from .. import overdraw
-from ..clusters import DEFAULT_SIZE
+from ..clusters import AUTO_SIZE
 from ..scene import load
 from ..wall import Wall
 from . import common as C
@@ -36,7 +36,7 @@ def _wall() -> Wall:
 def run(ctx: Context) -> tuple[dict, str]:
     specs = ["powerplant", "fatehpur",
              *(str(ctx.scenes_dir / f) for f in FILES if (ctx.scenes_dir / f).is_file())]
-    sizes = ctx.size(SIZES, (64, DEFAULT_SIZE))
+    sizes = ctx.size(SIZES, (AUTO_SIZE, 256))
     frames = ctx.size(60, 3)
     wall = _wall()
     task = ctx.task("clusters", len(specs) * len(PATHS) * frames)
@@ -51,7 +51,7 @@ def run(ctx: Context) -> tuple[dict, str]:
             out[name][path] = report.summary()
     task.done()
     data = {"wall": "examples/wall-8x8.json", "method": "adaptive", "bounds": "obb",
-            "frames": frames, "sizes": list(sizes), "default": DEFAULT_SIZE, "scenes": out}
+            "frames": frames, "sizes": list(sizes), "default": AUTO_SIZE, "scenes": out}
     return data, report_md(ctx, data)
 
 
