@@ -494,7 +494,8 @@ def node_matrix(value: Any, name: str = "node") -> np.ndarray:
     """A validated local transform: an invertible affine 4x4 matrix, or glTF-style
     ``{"position": [x, y, z], "orientation": [w, x, y, z], "scale": [sx, sy, sz]}`` (scale
     optional), composed as translation x rotation x scale."""
-    from .wall import QUATERNION_TOLERANCE, quaternion_matrix
+    from .validate import QUATERNION_TOLERANCE
+    from .wall import quaternion_matrix
 
     if isinstance(value, Mapping):
         try:
