@@ -98,7 +98,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
         if folder is not None:
             folder.close()
 
-    app = App(title="wallcull", version="0.1.0", lifespan=lifespan,
+    app = App(title="wallcull", version="0.1.0", lifespan=lifespan, docs_url=None,
+              redoc_url=None,  # Swagger UI from the package, not a CDN (:mod:`.pages`)
               description="Culling server for tiled display walls. Bodies are JSON or "
                           "msgpack (Content-Type / Accept: application/msgpack).")
     app.state.server = server
@@ -120,6 +121,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     @app.exception_handler(RequestValidationError)
     async def invalid(request, exc: RequestValidationError):
         metrics.errors.labels("422").inc()
+        if pages.is_page(request):
+            return pages.error_page(request, 422, refusal_detail(exc))
         return JSONResponse({"detail": refusal_detail(exc)}, 422)
 
     @app.get("/health", tags=["service"], operation_id="health")
