@@ -546,6 +546,9 @@ def load_trimesh(path: str | os.PathLike):
     kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
     try:
         loaded = trimesh.load(str(path), **kwargs)
+    except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
+        raise InputError(f"cannot read scene {path.name}: trimesh's reader needs {exc.name}, "
+                         "which this install lacks: pip install 'wallcull[formats]'") from None
     except Exception as exc:  # noqa: BLE001 - any parser failure is bad input
         raise InputError(f"cannot read scene {path.name}: {exc}") from None
     if not isinstance(loaded, trimesh.Scene):

@@ -32,7 +32,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ..errors import InputError
+from ..errors import InputError, optional
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from ..service import Conflict, Gone, NotFound, SceneStore, Walls, settled
@@ -80,6 +80,7 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     server = ServerState(store, walls_, Metrics(), token, limits, tuple(origins))
     metrics = server.metrics
     if nats:
+        optional("nats", "nats", "--nats")  # refused now, not when the server starts
         server.bridge = NatsBridge(nats, walls_, metrics, nats_prefix)
 
     @asynccontextmanager
