@@ -232,18 +232,18 @@ async def swagger_ui(request: Request):
 
 @router.get("/docs/assets/{name}", include_in_schema=False)
 async def docs_asset(name: Annotated[str, Path(pattern=r"^[a-z][a-z.-]{0,40}\.(js|css)$")]):
-    path = DOCS_ASSETS / name
-    if not path.is_file():
-        raise NotFound(f"no file {name!r}")
-    return FileResponse(path, headers={"Cache-Control": "public, max-age=86400"})
+    return _file(DOCS_ASSETS / name, "public, max-age=86400")  # a release's, unchanging
 
 
 @router.get("/static/{name}", include_in_schema=False)
 async def static(name: Annotated[str, Path(pattern=r"^[a-z][a-z0-9_-]{0,40}\.(js|css)$")]):
-    path = STATIC / name
+    return _file(STATIC / name, "no-cache")
+
+
+def _file(path: FilePath, cache: str) -> FileResponse:
     if not path.is_file():
-        raise NotFound(f"no file {name!r}")
-    return FileResponse(path, headers={"Cache-Control": "no-cache"})
+        raise NotFound(f"no file {path.name!r}")
+    return FileResponse(path, headers={"Cache-Control": cache})
 
 
 @router.websocket("/walls/{wid}/console/stream")
