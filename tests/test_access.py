@@ -223,5 +223,5 @@ def test_the_schema_declares_security_links_and_bodies(client):
     body = paths["/walls/{wid}/frames"]["post"]["requestBody"]["content"]["application/json"]
     assert body["schema"]["$ref"] == "#/components/schemas/FramePost"
     spec = doc["components"]["schemas"]["WallSpec"]["properties"]
-    assert spec["tile_size"]["prefixItems"][0]["minimum"] > 0
+    assert spec["tile_size"]["items"]["minimum"] > 0 and spec["tile_size"]["minItems"] == 2
     assert doc["components"]["schemas"]["WallCreate"]["properties"]["scene"]["pattern"]

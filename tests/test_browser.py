@@ -12,7 +12,11 @@ on loopback with a token:
   (SwiftShader's float depth and coarser sub-pixel grid against llvmpipe's), 0.01 to 0.25 %
   of pixels at 640 x 360 (up to 1.2 % at 320 x 180); it is checked too, at 99 %;
 * the operator console (``/walls/{wid}/console``) draws one element per tile and its numbers
-  follow the frames and the acknowledgements.
+  follow the frames and the acknowledgements; its legend shows the plan's colours, and each
+  tile leads to its view page;
+* the index (``/``) leads to every wall's console and view pages; a page refused (an unknown
+  wall, a bad query) is a page with the status; Swagger UI renders with every request that is
+  not to the server refused.
 
 ``WALLCULL_SCREENSHOT=1`` also saves the console of a 4 x 4 wall with every tile drawn by the
 client as ``docs/console.png`` (the README's picture).
@@ -416,12 +420,102 @@ def test_console_follows_frames_and_acks(server, http, browser):
         assert status["count"] != counts  # the second frame's lists
         assert "acked" in console.locator("#tile-5").get_attribute("class")
         assert console.locator("#row-5 td").nth(2).text_content() == str(second)
+        # the legend names every state the tiles can be in, in the plan's own colours
+        legend = console.locator("#legend li")
+        assert legend.count() == 5
+        for state in ("offline", "waiting", "drawing", "acked", "lagging"):
+            swatch = console.locator(f"#legend .{state} .swatch")
+            colour = swatch.evaluate("e => getComputedStyle(e).backgroundColor")
+            assert state in console.locator(f"#legend .{state}").text_content()
+            plan = console.evaluate(f"""() => {{ const p = document.querySelector(
+                '#plan .tile polygon'); const g = p.parentNode; const old = g.getAttribute(
+                'class'); g.setAttribute('class', 'tile {state}'); const c = getComputedStyle(
+                p).fill; g.setAttribute('class', old); return c; }}""")
+            assert colour == plan, (state, colour, plan)
+        # each tile, on the plan and in the table, leads to its view page
+        for link in (console.locator("#plan a").filter(has=console.locator("#tile-5")),
+                     console.locator("#row-5 a")):
+            assert link.get_attribute("href").endswith(f"/walls/{wid}/view?tiles=5")
+        with console.expect_navigation():
+            console.locator("#row-6 a").click()
+        assert console.url.endswith(f"/walls/{wid}/view?tiles=6")
         assert console.wallcull_errors == [] and view.wallcull_errors == []
     finally:
         console.close()
         if view is not None:
             view.close()
         http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_the_index_leads_to_every_wall(server, http, browser):
+    info = create_wall(http, GRID, nodes=[[0, 1, 4, 5]])
+    wid = info["id"]
+    page = open_page(browser, f"{server}/")
+    try:
+        row = page.locator(f"#wall-{wid}")
+        assert row.count() == 1 and "powerplant" in row.text_content()
+        views = [a.get_attribute("href") for a in row.locator("a.view, a:has-text('tiles')")
+                 .all()]
+        assert f"/walls/{wid}/view" in views and f"/walls/{wid}/view?tiles=0-1,4-5" in views
+        with page.expect_navigation():
+            row.locator("a.console").click()
+        page.wait_for_function("window.wallcull && window.wallcull.updates > 0",
+                               timeout=30_000)
+        assert page.locator("#plan .tile").count() == 16
+        with page.expect_navigation():
+            page.locator("header a").click()  # back to all walls
+        assert page.locator(f"#wall-{wid}").count() == 1
+        assert page.wallcull_errors == []
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+@pytest.mark.parametrize("path, status, text", [
+    ("/walls/0123456789ab/console", 404, "no wall '0123456789ab'"),
+    ("/walls/0123456789ab/view", 404, "no wall '0123456789ab'"),
+    ("/walls/not-a-wall/console", 422, "wid"),
+    ("/walls/{wid}/view?tiles=0-99", 404, "not tiles of this wall"),
+    ("/walls/{wid}/view?size=huge", 422, "size"),
+])
+def test_a_page_refused_is_a_page(server, http, browser, path, status, text):
+    wid = create_wall(http, GRID)["id"]
+    page = browser.new_page()
+    try:
+        response = page.goto(f"{server}{path.format(wid=wid)}")
+        assert response.status == status
+        assert response.headers["content-type"].startswith("text/html")
+        assert page.locator("h1").text_content().startswith(str(status))
+        assert text in page.locator(".detail").text_content()
+        with page.expect_navigation():
+            page.locator("main a").click()
+        assert page.url == f"{server}/" and page.locator(f"#wall-{wid}").count() == 1
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_the_api_docs_need_no_network(server, http, browser):
+    """Swagger UI comes from the server (the package's copy): with every request to anywhere
+    else refused, it renders every operation of the API."""
+    page = browser.new_page()
+    elsewhere = []
+
+    def only_the_server(route):
+        if route.request.url.startswith((server, "data:", "blob:")):
+            return route.continue_()
+        elsewhere.append(route.request.url)
+        return route.abort()
+
+    page.route("**/*", only_the_server)
+    try:
+        page.goto(f"{server}/docs")
+        page.wait_for_selector("#operations-walls-createWall", timeout=60_000)
+        paths = http.get("/openapi.json").json()["paths"]
+        assert page.locator(".opblock").count() == sum(len(ops) for ops in paths.values())
+        assert elsewhere == []
+    finally:
+        page.close()
 
 
 @pytest.mark.parametrize("name, tiles", [("cave", 5), ("angled", 3)])

@@ -93,13 +93,30 @@ ENV = {"WALLCULL_TOKEN": TOKEN}
 
 def test_services_and_start_order():
     assert set(SERVICES) == {"server", "clients", "driver"}
-    assert "build" in SERVICES["server"] and (ROOT / SERVICES["server"]["build"] / "Dockerfile").is_file()
     images = {s["image"] for s in SERVICES.values()}
     assert len(images) == 1, "one image for all three"
+    for name, service in SERVICES.items():
+        # a fresh host has no wallcull image and no registry holds one: each service builds
+        # it from this folder, and compose never tries to pull it
+        assert (ROOT / service["build"] / "Dockerfile").is_file(), name
+        assert service["pull_policy"] == "build", name
     for name in ("clients", "driver"):
         assert SERVICES[name]["depends_on"]["server"] == {"condition": "service_healthy"}
     assert SERVICES["driver"]["depends_on"]["clients"]["condition"] == "service_started"
     assert SERVICES["server"]["ports"] and interpolate(SERVICES["server"]["ports"][0], {}) == "8000:8000"
+
+
+def test_state_stays_on_its_volume():
+    """The server's state folder is the named volume's mount point, whatever the environment
+    says, and the image declares the same folder a volume."""
+    volumes = [v.split(":") for v in SERVICES["server"]["volumes"]]
+    (volume, target), = [(name, target) for name, target in volumes if name in COMPOSE["volumes"]]
+    for env in (ENV, {**ENV, "WALLCULL_STATE": "/tmp/elsewhere",
+                      "WALLCULL_STATE_DIR": "/tmp/elsewhere"}):
+        assert environment("server", env)["WALLCULL_STATE"] == target == "/var/lib/wallcull"
+    assert f'VOLUME ["{target}"]' in (ROOT / "Dockerfile").read_text()
+    assert not any("STATE" in k for s in ("clients", "driver")
+                   for k in SERVICES[s].get("environment", {}))
 
 
 def test_health_check_is_on_health():
@@ -202,9 +219,13 @@ def test_compose_commands_run_on_loopback(tmp_path):
     """server (until healthy, by its own health check), then nodes, then the driver: 60 frames
     of the default 4 x 4 wall with the barrier, every frame acknowledged by every tile."""
     port = free_port()
-    env = {**ENV, "WALLCULL_FRAMES": "60", "WALLCULL_IDLE_TIMEOUT": "3",
-           "WALLCULL_STATE_DIR": str(tmp_path / "state")}
-    proc_env = lambda service: {**os.environ, **environment(service, env)}  # noqa: E731
+    env = {**ENV, "WALLCULL_FRAMES": "60", "WALLCULL_IDLE_TIMEOUT": "3"}
+
+    def proc_env(service):  # the server's volume, mapped to a folder here as its network is
+        out = {**os.environ, **environment(service, env)}
+        if "WALLCULL_STATE" in out:
+            out["WALLCULL_STATE"] = str(tmp_path / "state")
+        return out
     health = SERVICES["server"]["healthcheck"]["test"][1:]
     health = run_python(on_loopback([a.replace(":8000/", f":{port}/") for a in health], port))
 

@@ -749,8 +749,10 @@ def test_scene_names_stay_inside_the_folder(client, name, folder):
     for path in (f"/scenes/{name}", f"/scenes/{name}?nodes=true", f"/scenes/{name}/meshes/left",
                  f"/scenes/{name}/nodes/1/mesh"):
         r = client.get(path)
-        assert r.status_code in (404, 422), (path, r.status_code, r.text)
         assert b"secret" not in r.content.replace(b"secret.glb", b"").lower()
+        if r.request.url.path == "/":  # the client resolved "/scenes/.." itself: the index
+            continue
+        assert r.status_code in (404, 422), (path, r.status_code, r.text)
     plain = name.replace("%2f", "/").replace("%2F", "/").replace("%2e", ".")
     for scene in (plain, "../outside/secret.glb", str(folder.outside / "secret.glb"),
                   str(folder.scenes / "two.glb")):

@@ -221,6 +221,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     for m in methods:
         if m not in METHODS:
             raise InputError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    if accuracy_frames:
+        oracle.rotations()  # refused before any work when this install has no oracle
     t0 = time.perf_counter()
     scene = scene_mod.load(scene_spec, hierarchy=hierarchy, settings=settings,
                            clusters=clusters)

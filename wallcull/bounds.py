@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import optional
+
 #: Bound types the culler accepts, fastest-to-compute first (see ``docs`` for the measured trade).
 KINDS = ("obb", "aabb", "sphere", "obb-hull", "obb-min")
 
@@ -190,7 +192,8 @@ def spheres(points: np.ndarray, starts: np.ndarray) -> Bounds:
 def hull_pca_boxes(points: np.ndarray, starts: np.ndarray) -> Bounds:
     """Eigenvector OBB of the convex hull's vertices of each segment (less biased by dense
     tessellation than the raw points' eigenvectors)."""
-    from scipy.spatial import ConvexHull, QhullError
+    spatial = optional("scipy.spatial", "hull", "--bounds obb-hull")
+    ConvexHull, QhullError = spatial.ConvexHull, spatial.QhullError  # noqa: N806
 
     kept, new_starts = [], [0]
     for a, b in zip(starts[:-1], starts[1:]):
@@ -211,6 +214,8 @@ def hull_pca_boxes(points: np.ndarray, starts: np.ndarray) -> Bounds:
 def min_volume_boxes(points: np.ndarray, starts: np.ndarray) -> Bounds:
     """trimesh's minimum-volume OBB of each segment (slow: the accuracy reference)."""
     import trimesh
+
+    optional("scipy.spatial", "hull", "--bounds obb-min")  # trimesh's hulls: Qhull
 
     axes = np.empty((len(starts) - 1, 3, 3))
     for k, (a, b) in enumerate(zip(starts[:-1], starts[1:])):

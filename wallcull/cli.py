@@ -441,7 +441,7 @@ def parser() -> argparse.ArgumentParser:
                         "$WALLCULL_CORS_ORIGINS)")
     q.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
                    help="change a limit, e.g. upload=16M or streams_per_tile=2 (repeatable; "
-                        "see README; default: $WALLCULL_LIMITS)")
+                        "see docs/deployment.md; default: $WALLCULL_LIMITS)")
     q.add_argument("--nats", metavar="URL",
                    help="also publish node messages on this NATS broker, e.g. "
                         "nats://127.0.0.1:4222, and take acknowledgements from it (default: "

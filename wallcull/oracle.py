@@ -15,7 +15,20 @@ clipped.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from .errors import optional
+
+
+def rotations():
+    """scipy's rotations, the oracle's own (independent of wallcull's quaternion code); an
+    install without them refuses the oracle in one line."""
+    return optional("scipy.spatial.transform", "experiments", "the exact oracle").Rotation
+
+
+def _rotation(q):
+    """The rotation of a unit quaternion ``(w, x, y, z)`` (scipy is scalar-last)."""
+    w, x, y, z = q
+    return rotations().from_quat([x, y, z, w])
 
 
 def tile_planes_display(wall: dict, eye, tile: int) -> np.ndarray:
@@ -81,15 +94,13 @@ def eyes_of(frame: dict) -> list:
     stereo = frame.get("stereo")
     if not stereo:
         return [eye]
-    w, x, y, z = stereo.get("head", (1, 0, 0, 0))
-    across = Rotation.from_quat([x, y, z, w]).apply([1.0, 0, 0]) * stereo["ipd"] / 2
+    across = _rotation(stereo.get("head", (1, 0, 0, 0))).apply([1.0, 0, 0]) * stereo["ipd"] / 2
     return [eye - across, eye + across]
 
 
 def to_display(frame: dict, points: np.ndarray) -> np.ndarray:
     """World points to display space: ``p_d = R^T (p_w - t)``."""
-    w, x, y, z = frame["orientation"]
-    rot = Rotation.from_quat([x, y, z, w])  # scipy is scalar-last
+    rot = _rotation(frame["orientation"])
     return rot.inv().apply(np.asarray(points, dtype=float) - np.asarray(frame["position"]))
 
 

@@ -495,7 +495,8 @@ def node_matrix(value: Any, name: str = "node") -> np.ndarray:
     """A validated local transform: an invertible affine 4x4 matrix, or glTF-style
     ``{"position": [x, y, z], "orientation": [w, x, y, z], "scale": [sx, sy, sz]}`` (scale
     optional), composed as translation x rotation x scale."""
-    from .wall import QUATERNION_TOLERANCE, quaternion_matrix
+    from .validate import QUATERNION_TOLERANCE
+    from .wall import quaternion_matrix
 
     if isinstance(value, Mapping):
         try:
@@ -546,6 +547,9 @@ def load_trimesh(path: str | os.PathLike):
     kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
     try:
         loaded = trimesh.load(str(path), **kwargs)
+    except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
+        raise InputError(f"cannot read scene {path.name}: trimesh's reader needs {exc.name}, "
+                         "which this install lacks: pip install 'wallcull[formats]'") from None
     except Exception as exc:  # noqa: BLE001 - any parser failure is bad input
         raise InputError(f"cannot read scene {path.name}: {exc}") from None
     if not isinstance(loaded, trimesh.Scene):

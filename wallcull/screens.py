@@ -30,21 +30,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Mapping
 
 import numpy as np
 from numba import njit
 
+from .documents import ScreensSpec, parse
 from .errors import InputError
-from .validate import MAX_LENGTH, MAX_TILES, WALL_DEFAULTS, as_count, as_number, as_vector
-
-#: Relative tolerance for the screens' edges to be perpendicular (SPEC 2b).
-RIGHT_ANGLE = 1e-6
 
 #: Most planes of the cone bounding all screens (the primary bound keeps at most 63 planes).
 MAX_CONE = 48
-
-SCREEN_KEYS = {"bottom_left", "bottom_right", "top_left", "resolution"}
 
 # Modes of a node of the frustum hierarchy (columns of the table, see wallcull.cull).
 SPLIT, BOUNDS, PASS = 0, 3, 4
@@ -60,10 +54,6 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def _vec3(value: Any, what: str) -> np.ndarray:
-    return np.array(as_vector(value, 3, what))
-
-
 @dataclass(frozen=True, eq=False)
 class ScreensWall:
     """A wall given as a list of screens (SPEC section 2b). Build it with
@@ -76,53 +66,17 @@ class ScreensWall:
     kind: str = field(default="screens", init=False)
 
     @classmethod
-    def from_dict(cls, spec: Mapping[str, Any]) -> "ScreensWall":
-        unknown = set(spec) - {"screens", "near", "far"}
-        if unknown:
-            raise InputError(f"unknown wall key(s): {', '.join(sorted(map(str, unknown)))}")
-        screens = spec["screens"]
-        if not isinstance(screens, (list, tuple)) or not screens:
-            raise InputError("wall screens must be a non-empty list of screens")
-        if len(screens) > MAX_TILES:
-            raise InputError(f"wall has {len(screens)} screens; at most {MAX_TILES} are supported")
-        near = as_number(spec.get("near", WALL_DEFAULTS["near"]), "wall near")
-        far = as_number(spec.get("far", WALL_DEFAULTS["far"]), "wall far")
-        if not 0 < near < far:
-            raise InputError(f"wall needs 0 < near < far, got near={near}, far={far}")
-        corners, resolutions = [], []
-        for k, screen in enumerate(screens):
-            what = f"wall screen {k}"
-            if not isinstance(screen, Mapping):
-                raise InputError(f"{what} must be an object with bottom_left, bottom_right "
-                                 "and top_left")
-            unknown = set(screen) - SCREEN_KEYS
-            if unknown:
-                raise InputError(f"unknown key(s) of {what}: "
-                                 f"{', '.join(sorted(map(str, unknown)))}")
-            for key in ("bottom_left", "bottom_right", "top_left"):
-                if key not in screen:
-                    raise InputError(f"{what} is missing {key!r}")
-            bl, br, tl = (_vec3(screen[key], f"{what} {key}")
-                          for key in ("bottom_left", "bottom_right", "top_left"))
-            if max(np.abs(bl).max(), np.abs(br).max(), np.abs(tl).max()) > MAX_LENGTH:
-                raise InputError(f"{what} lies farther than {MAX_LENGTH:g} m from the origin")
-            u, v = br - bl, tl - bl
-            width, height = np.linalg.norm(u), np.linalg.norm(v)
-            scale = max(width, height, np.abs(bl).max())
-            if not (width > 1e-9 * max(scale, 1e-300) and height > 1e-9 * max(scale, 1e-300)):
-                raise InputError(f"{what} is degenerate: its edges need positive lengths, got "
-                                 f"{width:g} x {height:g} m")
-            if abs(u @ v) > RIGHT_ANGLE * width * height:
-                raise InputError(f"{what} is not a rectangle: its bottom and left edges meet "
-                                 f"at {math.degrees(math.acos(u @ v / width / height)):.6g} "
-                                 "degrees, not 90")
-            res = screen.get("resolution", WALL_DEFAULTS["resolution"])
-            if not isinstance(res, (list, tuple)) or len(res) != 2:
-                raise InputError(f"{what} resolution must be [width, height] in pixels")
-            resolutions.append((as_count(res[0], f"{what} resolution[0]"),
-                                as_count(res[1], f"{what} resolution[1]")))
-            corners.append((bl, br, tl))
-        return cls(np.array(corners), np.array(resolutions, np.int64), near, far)
+    def from_spec(cls, spec: ScreensSpec) -> "ScreensWall":
+        """The wall of a validated document (its screens are rectangles)."""
+        corners = [(s.bottom_left, s.bottom_right, s.top_left) for s in spec.screens]
+        return cls(np.array(corners, np.float64),
+                   np.array([s.resolution for s in spec.screens], np.int64), spec.near, spec.far)
+
+    @classmethod
+    def from_dict(cls, spec) -> "ScreensWall":
+        """A screens wall as given, even one whose screens are a grid's tiles (which
+        :meth:`wallcull.wall.Wall.from_dict` makes that grid)."""
+        return cls.from_spec(parse(ScreensSpec, spec, "wall"))
 
     def to_dict(self) -> dict:
         return {"screens": [{"bottom_left": c[0].tolist(), "bottom_right": c[1].tolist(),

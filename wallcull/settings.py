@@ -21,7 +21,8 @@ none gets neither: no computation, no bytes. The format (JSON)::
 ``shadows`` defaults to true and ``resolution`` (the shadow map's pixels) to 2048 x 2048. A
 mirror reflects on the side its normal points to; ``polygon`` (optional, convex, in the plane)
 bounds it, and culls what it cannot show. Settings come from a file beside the scene
-(``<scene file>.wallcull.json``), from ``--settings FILE``, or from the bundled scene.
+(``<scene file>.wallcull.json``), from ``--settings FILE``, or from the bundled scene. The
+document is :class:`wallcull.documents.SettingsSpec` (docs/settings.md describes it for users).
 """
 
 from __future__ import annotations
@@ -35,8 +36,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from . import documents
+from .documents import SettingsSpec
 from .errors import InputError
-from .validate import as_vector
 
 
 @dataclass(frozen=True)
@@ -76,65 +78,28 @@ class Settings:
         return not self.lights and not self.mirrors
 
 
-def _vec(value: Any, what: str, n: int = 3) -> np.ndarray:
-    return np.array(as_vector(value, n, what))  # the wall's check: n finite numbers
-
-
-def _unit(value: Any, what: str) -> np.ndarray:
-    v = _vec(value, what)
-    norm = np.linalg.norm(v)
-    if norm == 0:
-        raise InputError(f"{what} must not be zero")
-    return v / norm
-
-
-def parse(raw: Mapping[str, Any] | None) -> Settings:
-    """Validate a settings document (see the module docstring)."""
-    raw = dict(raw or {})
-    unknown = set(raw) - {"up", "lights", "mirrors"}
-    if unknown:
-        raise InputError(f"unknown scene setting(s): {', '.join(sorted(unknown))}")
-    up = _unit(raw.get("up", (0, 1, 0)), "settings up")
-    lights = []
-    for k, item in enumerate(raw.get("lights", [])):
-        if not isinstance(item, Mapping):
-            raise InputError(f"light {k} must be an object")
-        name = str(item.get("name", f"light{k}"))
-        kind = item.get("type", "point")
-        if kind not in ("point", "spot"):
-            raise InputError(f"light {name!r}: type must be 'point' or 'spot'")
-        if not item.get("shadows", True):
-            continue  # a light that casts no shadows needs no frustum
-        res = item.get("resolution", (2048, 2048))
-        if (not isinstance(res, (list, tuple)) or len(res) != 2
-                or not all(isinstance(r, int) and 0 < r <= 1 << 15 for r in res)):
-            raise InputError(f"light {name!r}: resolution must be two positive integers")
-        direction, angle = None, 180.0
-        if kind == "spot":
-            direction = _unit(item.get("direction"), f"light {name!r} direction")
-            angle = float(item.get("angle", 45.0))
-            if not 0 < angle < 90:
-                raise InputError(f"light {name!r}: spot angle must be in (0, 90) degrees")
-        lights.append(Light(name, _vec(item.get("position"), f"light {name!r} position"), kind,
-                            direction, angle, (res[0], res[1])))
+def parse(raw: Mapping[str, Any] | SettingsSpec | None) -> Settings:
+    """Validate a settings document (:class:`~wallcull.documents.SettingsSpec`; see the module
+    docstring): refused in one line when it is not one."""
+    doc = documents.parse(SettingsSpec, raw or {}, "settings")
+    lights = tuple(
+        Light(item.name or f"light{k}", np.array(item.position), item.type,
+              None if item.type != "spot" else _unit(item.direction),
+              item.angle if item.type == "spot" else 180.0, item.resolution)
+        for k, item in enumerate(doc.lights)
+        if item.shadows)  # a light that casts no shadows needs no frustum
     mirrors = []
-    for k, item in enumerate(raw.get("mirrors", [])):
-        if not isinstance(item, Mapping):
-            raise InputError(f"mirror {k} must be an object")
-        name = str(item.get("name", f"mirror{k}"))
-        normal = _unit(item.get("normal"), f"mirror {name!r} normal")
-        point = _vec(item.get("point"), f"mirror {name!r} point")
-        polygon = None
-        if item.get("polygon") is not None:
-            polygon = np.asarray(item["polygon"], dtype=np.float64)
-            if polygon.ndim != 2 or polygon.shape[1] != 3 or len(polygon) < 3:
-                raise InputError(f"mirror {name!r}: polygon must be three or more points")
-            size = np.ptp(polygon, axis=0).max()
-            if not np.isfinite(polygon).all() or \
-                    np.abs((polygon - point) @ normal).max() > 1e-6 * max(size, 1.0):
-                raise InputError(f"mirror {name!r}: polygon must lie in the mirror's plane")
-        mirrors.append(Mirror(name, np.append(normal, -normal @ point), polygon))
-    return Settings(up, tuple(lights), tuple(mirrors))
+    for k, item in enumerate(doc.mirrors):
+        normal, point = _unit(item.normal), np.array(item.point)
+        polygon = None if item.polygon is None else np.array(item.polygon)
+        mirrors.append(Mirror(item.name or f"mirror{k}", np.append(normal, -normal @ point),
+                              polygon))
+    return Settings(_unit(doc.up or (0.0, 1.0, 0.0)), lights, tuple(mirrors))
+
+
+def _unit(v) -> np.ndarray:
+    v = np.array(v, dtype=np.float64)
+    return v / np.linalg.norm(v)  # not zero: the document's validators see to it
 
 
 def read(path: str | Path) -> dict:

@@ -1,10 +1,7 @@
-"""Checks of the numbers in what users send (walls, screens, frames, settings): one-line
-errors that name the value, and the ranges float64 geometry stays meaningful in."""
+"""The ranges float64 geometry stays meaningful in, which the documents users send are held to
+(:mod:`wallcull.documents`), and tile lists in their short form (``0-3,8``)."""
 
 from __future__ import annotations
-
-import math
-from typing import Any
 
 from .errors import InputError
 
@@ -19,35 +16,6 @@ QUATERNION_TOLERANCE = 1e-6
 #: would overflow or lose every digit): lengths of the wall, m; and world coordinates.
 MIN_LENGTH, MAX_LENGTH = 1e-9, 1e9
 MAX_COORDINATE = 1e15
-
-WALL_DEFAULTS = {"gap": (0.0, 0.0), "near": 0.1, "far": 1000.0, "resolution": (1920, 1080)}
-WALL_KEYS = {"cols", "rows", "tile_size", "gap", "distance", "near", "far", "resolution"}
-
-
-def as_number(value: Any, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"{what} must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise InputError(f"{what} must be finite, got {value!r}")
-    return value
-
-
-def as_vector(value: Any, n: int, what: str) -> tuple[float, ...]:
-    if not isinstance(value, (list, tuple)) or len(value) != n:
-        raise InputError(f"{what} must be a list of {n} numbers, got {value!r}")
-    return tuple(as_number(v, f"{what}[{i}]") for i, v in enumerate(value))
-
-
-def as_count(value: Any, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        else:
-            raise InputError(f"{what} must be a whole number, got {value!r}")
-    if value < 1:
-        raise InputError(f"{what} must be at least 1, got {value}")
-    return value
 
 
 def parse_tiles(spec: str, count: int | None = None) -> list[int]:

@@ -26,10 +26,9 @@ from typing import Any, Mapping
 import numpy as np
 from numba import njit
 
+from . import documents
 from .errors import InputError
-from .validate import (MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH,
-                       QUATERNION_TOLERANCE, WALL_DEFAULTS, WALL_KEYS, as_count, as_number,
-                       as_vector)
+from .validate import MAX_TILES
 
 @dataclass(frozen=True)
 class Wall:
@@ -50,55 +49,22 @@ class Wall:
     kind = "grid"
 
     @classmethod
-    def from_dict(cls, spec: Mapping[str, Any]) -> "Wall | ScreensWall":
-        """Validate a wall spec (SPEC section 2); missing optional keys take ``WALL_DEFAULTS``.
+    def from_dict(cls, spec: Any) -> "Wall | ScreensWall":
+        """A wall from its document (SPEC section 2; a dict, or a validated
+        :class:`~wallcull.documents.WallSpec`): refused in one line when it is not one.
 
         A spec with ``screens`` (SPEC 2b) gives a :class:`~wallcull.screens.ScreensWall`,
         unless its screens are exactly the tiles of a grid wall, listed in tile order: then
         it is that grid (``given_as_screens``), culled and fitted as the grid is, so both forms
         give identical lists and matrices."""
-        if not isinstance(spec, Mapping):
-            raise InputError(f"a wall must be a JSON object, got {type(spec).__name__}")
-        if "screens" in spec:
+        doc = documents.parse(documents.Wall, spec, "wall")
+        if isinstance(doc, documents.ScreensSpec):
             from .screens import ScreensWall
 
-            screens = ScreensWall.from_dict(spec)
+            screens = ScreensWall.from_spec(doc)
             return cls.from_screens(screens) or screens
-        unknown = set(spec) - WALL_KEYS
-        if unknown:
-            raise InputError(f"unknown wall key(s): {', '.join(sorted(map(str, unknown)))}")
-        for key in ("cols", "rows", "tile_size", "distance"):
-            if key not in spec:
-                raise InputError(f"wall is missing {key!r}")
-        spec = {**WALL_DEFAULTS, **spec}
-        cols, rows = as_count(spec["cols"], "wall cols"), as_count(spec["rows"], "wall rows")
-        if cols * rows > MAX_TILES:
-            raise InputError(f"wall has {cols * rows} tiles; at most {MAX_TILES} are supported")
-        w, h = as_vector(spec["tile_size"], 2, "wall tile_size")
-        if w <= 0 or h <= 0:
-            raise InputError(f"wall tile_size must be positive, got {[w, h]}")
-        gx, gy = as_vector(spec["gap"], 2, "wall gap")
-        if gx <= -w or gy <= -h:
-            raise InputError(f"wall gap {[gx, gy]} overlaps a whole tile; it must exceed -tile_size")
-        distance = as_number(spec["distance"], "wall distance")
-        near = as_number(spec["near"], "wall near")
-        far = as_number(spec["far"], "wall far")
-        if distance <= 0:
-            raise InputError(f"wall distance must be positive, got {distance}")
-        if not 0 < near < far:
-            raise InputError(f"wall needs 0 < near < far, got near={near}, far={far}")
-        for what, value in (("tile_size", w), ("tile_size", h), ("distance", distance)):
-            if not MIN_LENGTH <= value <= MAX_LENGTH:
-                raise InputError(f"wall {what} must be between {MIN_LENGTH:g} and "
-                                 f"{MAX_LENGTH:g} m, got {value:g}")
-        if max(abs(gx), abs(gy)) > MAX_LENGTH or far > MAX_COORDINATE:
-            raise InputError(f"wall gap must be within {MAX_LENGTH:g} m and far within "
-                             f"{MAX_COORDINATE:g} m")
-        res = spec["resolution"]
-        if not isinstance(res, (list, tuple)) or len(res) != 2:
-            raise InputError(f"wall resolution must be [width, height] in pixels, got {res!r}")
-        resolution = (as_count(res[0], "wall resolution[0]"), as_count(res[1], "wall resolution[1]"))
-        wall = cls(cols, rows, (w, h), (gx, gy), distance, near, far, resolution)
+        wall = cls(doc.cols, doc.rows, doc.tile_size, doc.gap, doc.distance, doc.near, doc.far,
+                   doc.resolution)
         for name, edges in (("columns", wall.col_edges), ("rows", wall.row_edges)):
             # every tile must keep a width in float64 however far from the centre it lies
             if not (edges[:, 1] > edges[:, 0]).all():
@@ -266,10 +232,6 @@ def matrix_quaternion(m: np.ndarray) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
-#: Largest interocular distance accepted, meters (a head is not a meter wide).
-MAX_IPD = 1.0
-
-
 @dataclass(frozen=True)
 class Frame:
     """Where display space sits in the world for one frame, and the tracked eye (SPEC section 3),
@@ -282,61 +244,26 @@ class Frame:
     stereo: tuple | None = None  # (ipd, head quaternion (4,)) of a stereo frame
 
     @classmethod
-    def from_dict(cls, spec: Mapping[str, Any], wall) -> "Frame":
-        """Validate a frame against its wall: unit quaternions, every eye in front of the wall
-        (of every screen)."""
-        if not isinstance(spec, Mapping):
-            raise InputError(f"a frame must be a JSON object, got {type(spec).__name__}")
-        unknown = set(spec) - {"position", "orientation", "eye", "stereo"}
-        if unknown:
-            raise InputError(f"unknown frame key(s): {', '.join(sorted(map(str, unknown)))}")
-        for key in ("position", "orientation"):
-            if key not in spec:
-                raise InputError(f"frame is missing {key!r}")
-        position = np.array(as_vector(spec["position"], 3, "frame position"))
-        q = np.array(as_vector(spec["orientation"], 4, "frame orientation"))
-        eye = np.array(as_vector(spec.get("eye", (0.0, 0.0, 0.0)), 3, "frame eye"))
-        stereo = spec.get("stereo")
-        if stereo is not None:
-            if not isinstance(stereo, Mapping):
-                raise InputError("frame stereo must be an object: {\"ipd\": meters, \"head\": "
-                                 "[w, x, y, z]}")
-            unknown = set(stereo) - {"ipd", "head"}
-            if unknown:
-                raise InputError(f"unknown frame stereo key(s): "
-                                 f"{', '.join(sorted(map(str, unknown)))}")
-            if "ipd" not in stereo:
-                raise InputError("frame stereo is missing 'ipd'")
-            stereo = (as_number(stereo["ipd"], "frame stereo ipd"),
-                      np.array(as_vector(stereo.get("head", (1.0, 0.0, 0.0, 0.0)), 4,
-                                       "frame stereo head")))
-        return cls.make(position, q, eye, wall, stereo)
+    def from_dict(cls, spec: Any, wall) -> "Frame":
+        """A frame from its document (SPEC section 3; a dict, or a validated
+        :class:`~wallcull.documents.FrameSpec`) on ``wall``: refused in one line when it is
+        not one, or when an eye is not in front of the wall (of every screen)."""
+        doc = documents.parse(documents.FrameSpec, spec, "frame")
+        stereo = None if doc.stereo is None else (doc.stereo.ipd, doc.stereo.head)
+        return cls.make(doc.position, doc.orientation, doc.eye, wall, stereo)
 
     @classmethod
     def make(cls, position, orientation, eye, wall, stereo=None) -> "Frame":
+        """A frame of valid numbers (a document's, or a camera path's): the quaternions
+        normalized, every eye checked against the wall."""
         position = np.asarray(position, dtype=np.float64).reshape(3)
         q = np.asarray(orientation, dtype=np.float64).reshape(4)
+        q = q / np.linalg.norm(q)
         eye = np.asarray(eye, dtype=np.float64).reshape(3)
-        if not (np.isfinite(position).all() and np.isfinite(q).all() and np.isfinite(eye).all()):
-            raise InputError("frame position, orientation and eye must be finite")
-        if np.abs(position).max() > MAX_COORDINATE:
-            raise InputError(f"frame position must be within {MAX_COORDINATE:g} of the origin")
-        if np.abs(eye).max() > MAX_LENGTH:
-            raise InputError(f"frame eye must be within {MAX_LENGTH:g} m of the display origin")
-        norm = float(np.linalg.norm(q))
-        if abs(norm - 1.0) > QUATERNION_TOLERANCE:
-            raise InputError(
-                f"frame orientation {q.tolist()} is not a unit quaternion (norm {norm:.9g})")
         if stereo is not None:
-            ipd, head = float(stereo[0]), np.asarray(stereo[1], np.float64).reshape(4)
-            if not 0 < ipd <= MAX_IPD:
-                raise InputError(f"frame stereo ipd must be in (0, {MAX_IPD:g}] m, got {ipd:g}")
-            head_norm = float(np.linalg.norm(head))
-            if abs(head_norm - 1.0) > QUATERNION_TOLERANCE:
-                raise InputError(f"frame stereo head {head.tolist()} is not a unit quaternion "
-                                 f"(norm {head_norm:.9g})")
-            stereo = (ipd, head / head_norm)
-        frame = cls(position, q / norm, eye, quaternion_matrix(q / norm), stereo)
+            head = np.asarray(stereo[1], np.float64).reshape(4)
+            stereo = (float(stereo[0]), head / np.linalg.norm(head))
+        frame = cls(position, q, eye, quaternion_matrix(q), stereo)
         if stereo is None:
             wall.check_eye(eye)
         else:

@@ -19,6 +19,7 @@ import time
 from contextlib import nullcontext
 from pathlib import Path
 
+from ..errors import optional
 from .context import ROOT, Context, Experiment, loadavg, machine, progress_bar, write_json
 
 
@@ -99,6 +100,8 @@ def register(subparsers) -> None:
 
 
 def cmd_experiment(args) -> int:
+    for module in ("matplotlib", "scipy", "psutil"):  # refused before any work, not midway
+        optional(module, "experiments", "wallcull experiment")
     out = Path(args.out) if args.out else ROOT / DEFAULT_OUT
     scenes = Path(args.scenes) if args.scenes else None
     if args.name == "all":

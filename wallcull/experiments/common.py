@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import oracle
 from ..bench import WARMUP_FRAMES, Motion
-from ..errors import InputError
+from ..errors import optional
 from ..paths import scene_path as path_frames  # noqa: F401 - the experiments call it C.path_frames
 from ..pipeline import Session
 from ..scene import Scene, load
@@ -293,12 +293,7 @@ def nbytes(x: float) -> str:
 
 def pyplot():
     """matplotlib's pyplot on the Agg backend (files only, no display)."""
-    try:
-        import matplotlib
-    except ImportError:
-        raise InputError("the experiments draw with matplotlib: python3 -m pip install "
-                         "matplotlib") from None
-
+    matplotlib = optional("matplotlib", "experiments", "wallcull experiment")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -32,7 +32,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from ..errors import InputError
+from ..errors import InputError, optional
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from ..service import Conflict, Gone, NotFound, SceneStore, Walls, settled
@@ -80,6 +80,7 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     server = ServerState(store, walls_, Metrics(), token, limits, tuple(origins))
     metrics = server.metrics
     if nats:
+        optional("nats", "nats", "--nats")  # refused now, not when the server starts
         server.bridge = NatsBridge(nats, walls_, metrics, nats_prefix)
 
     @asynccontextmanager
@@ -98,7 +99,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
         if folder is not None:
             folder.close()
 
-    app = App(title="wallcull", version="0.1.0", lifespan=lifespan,
+    app = App(title="wallcull", version="0.1.0", lifespan=lifespan, docs_url=None,
+              redoc_url=None,  # Swagger UI from the package, not a CDN (:mod:`.pages`)
               description="Culling server for tiled display walls. Bodies are JSON or "
                           "msgpack (Content-Type / Accept: application/msgpack).")
     app.state.server = server
@@ -120,6 +122,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     @app.exception_handler(RequestValidationError)
     async def invalid(request, exc: RequestValidationError):
         metrics.errors.labels("422").inc()
+        if pages.is_page(request):
+            return pages.error_page(request, 422, refusal_detail(exc))
         return JSONResponse({"detail": refusal_detail(exc)}, 422)
 
     @app.get("/health", tags=["service"], operation_id="health")

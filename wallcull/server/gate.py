@@ -24,11 +24,13 @@ import json
 import time
 from urllib.parse import parse_qs, parse_qsl, urlsplit
 
+from starlette.requests import Request
 from starlette.routing import Match
 
 from .access import bearer, check, leaf_routes, query_names, role_of
 from .deps import ServerState
 from .http import Refused
+from .pages import error_page
 
 BODY_METHODS = ("POST", "PUT", "PATCH", "DELETE")
 
@@ -44,6 +46,12 @@ class Gate:
             admitted = self._admit(scope, receive)
         except Refused as exc:
             self.state.metrics.errors.labels(str(exc.status)).inc()
+            route = _route(scope)[0]
+            if scope["type"] == "http" and route is not None and \
+                    getattr(route.endpoint, "wallcull_page", False):  # a page's refusal: a page
+                page = error_page(Request(scope), exc.status, exc.detail)
+                page.headers.update(exc.headers or {})
+                return await page(scope, receive, send)
             return await refuse(scope, receive, send, exc)
         if isinstance(admitted, set):  # OPTIONS, answered here with the path's methods
             await send({"type": "http.response.start", "status": 204,

@@ -1,9 +1,10 @@
 """The typed bodies of the HTTP API: validation happens here, at the boundary, and nowhere else.
 
-The schema says what the server accepts, as far as JSON Schema can: ranges, lengths, patterns,
-and strict scalars (``true`` is not a number, ``"7"`` is not a number, ``7.5`` is not an
-integer). What it cannot say is checked by the core and answered 422 with a detail: that an
-orientation is a *unit* quaternion, that ``near < far`` and ``gap > -tile_size``, that
+The wall, the frame and the settings are the documents of :mod:`wallcull.documents`, the models
+the command line reads them with. The schema says what the server accepts, as far as JSON
+Schema can: ranges, lengths, patterns, and strict scalars (``true`` is not a number, ``"7"`` is
+not a number, ``7.5`` is not an integer). What it cannot say is answered 422 with a detail:
+that an orientation is a *unit* quaternion, that ``near < far`` and ``gap > -tile_size``, that
 ``cols x rows`` is at most 65,536 and ``history x tiles`` at most 2^20, that the eye is in front
 of the wall, that a node name exists, that an update's matrix is invertible, that a spot
 light has a direction and a mirror a non-zero normal and an outline in its plane.
@@ -13,37 +14,17 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Optional, Union
 
-from pydantic import (AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict,
-                      StringConstraints, TypeAdapter, ValidationError)
+from pydantic import (BaseModel, ConfigDict, Field, Strict, StringConstraints, TypeAdapter,
+                      ValidationError)
 
 from ..bounds import KINDS
 from ..cull import METHODS
+from ..documents import (Bool, Document, FrameSpec, Int, Length, NodeName, Num, SettingsSpec,
+                         Quaternion, Vec3, Wall)
 from ..errors import InputError
 from ..lowilie import EFFORTS
-from ..validate import MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH
+from ..validate import MAX_TILES
 
-def _whole(value):
-    """JSON Schema's integers: ``7`` and ``7.0`` (a number with no fraction), never ``true``."""
-    if isinstance(value, float) and value.is_integer() and abs(value) < 2.0 ** 63:
-        return int(value)
-    return value
-
-
-def Int(**bounds) -> Any:
-    """An integer within ``bounds`` (``ge``, ``le``, ``lt``); never a bool or a string. (The
-    bounds go inside, next to the type, so that the schema states them as minimum/maximum.)"""
-    return Annotated[int, Strict(), Field(**bounds), BeforeValidator(_whole)]
-
-
-#: A number: an integer or a float, finite; never a bool or a string.
-Num = Annotated[float, Strict(), AllowInfNan(False)]
-Bool = Annotated[bool, Strict()]
-Coordinate = Annotated[Num, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
-Length = Annotated[Num, Field(ge=MIN_LENGTH, le=MAX_LENGTH)]
-Offset = Annotated[Num, Field(ge=-MAX_LENGTH, le=MAX_LENGTH)]
-Unit = Annotated[Num, Field(ge=-1.0, le=1.0)]
-Vec3 = tuple[Coordinate, Coordinate, Coordinate]
-Quaternion = tuple[Unit, Unit, Unit, Unit]
 Tile = Int(ge=0, lt=MAX_TILES)
 FrameNumber = Int(ge=0, le=2**53)
 #: Scene names: plain file names, ASCII (what the scene folder can hold).
@@ -51,69 +32,12 @@ SCENE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
 SceneName = Annotated[str, Strict(), StringConstraints(pattern=SCENE_NAME)]
 #: Wall ids, as the server makes them.
 WALL_ID = r"^[0-9a-f]{12}$"
-NodeName = Annotated[str, Strict(), StringConstraints(min_length=1, max_length=1024)]
-Pixels = Int(ge=1, le=1 << 16)
-#: Each of cols and rows; their product is at most 65,536 (checked by the core).
-Count = Int(ge=1, le=256)
 
 Row = tuple[Num, Num, Num, Num]
 Zero, One = Annotated[Num, Field(ge=0, le=0)], Annotated[Num, Field(ge=1, le=1)]
 
-
-class Body(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class WallSpec(Body):
-    """A wall (SPEC section 2)."""
-
-    cols: Count
-    rows: Count
-    tile_size: tuple[Length, Length]
-    gap: tuple[Offset, Offset] = (0.0, 0.0)
-    distance: Length
-    #: at most 10^6 m: the eye must be farther than ``near - distance`` in front of the wall,
-    #: and an eye is at most 10^9 m from the display's origin
-    near: Annotated[Num, Field(gt=0, le=1e6)] = 0.1
-    far: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 1000.0
-    resolution: tuple[Pixels, Pixels] = (1920, 1080)
-
-
-class ScreenSpec(Body):
-    """One screen of a wall given screen by screen (SPEC section 2b): three corners in display
-    space (the edges perpendicular, within 1e-6 relative), seen from the side its normal
-    ``(bottom_right - bottom_left) x (top_left - bottom_left)`` points to."""
-
-    bottom_left: tuple[Offset, Offset, Offset]
-    bottom_right: tuple[Offset, Offset, Offset]
-    top_left: tuple[Offset, Offset, Offset]
-    resolution: tuple[Pixels, Pixels] = (1920, 1080)
-
-
-class ScreensSpec(Body):
-    """A wall given screen by screen (SPEC section 2b): CAVEs, cylinders, angled walls. Tile
-    ids are indices in ``screens``."""
-
-    screens: list[ScreenSpec] = Field(min_length=1, max_length=MAX_TILES)
-    near: Annotated[Num, Field(gt=0, le=1e6)] = 0.1
-    far: Annotated[Num, Field(gt=0, le=MAX_COORDINATE)] = 1000.0
-
-
-class StereoSpec(Body):
-    """Two eyes ``ipd`` apart across the tracked head (SPEC section 3)."""
-
-    ipd: Annotated[Num, Field(gt=0, le=1.0)]
-    head: Quaternion = (1.0, 0.0, 0.0, 0.0)
-
-
-class FrameSpec(Body):
-    """A frame (SPEC section 3). ``orientation`` must be a unit quaternion, and the eye in
-    front of the wall (``eye[2] > near - distance``; of every screen, every eye)."""
-
-    position: Vec3
-    orientation: Quaternion
-    eye: tuple[Offset, Offset, Offset] = (0.0, 0.0, 0.0)
-    stereo: Optional[StereoSpec] = None
+#: A request body: no key it does not list.
+Body = Document
 
 
 class NodeUpdate(Body):
@@ -142,38 +66,8 @@ class NodeUpdate(Body):
 MAX_UPDATES = 10_000
 
 
-class LightSpec(Body):
-    """A light casting shadows (a spot light needs a ``direction``)."""
-
-    name: Optional[NodeName] = None
-    type: Literal["point", "spot"] = "point"
-    position: Vec3
-    direction: Optional[Vec3] = None
-    angle: Annotated[Num, Field(gt=0, lt=90)] = 45.0
-    resolution: tuple[Int(ge=1, le=1 << 15), Int(ge=1, le=1 << 15)] = (2048, 2048)
-    shadows: Bool = True
-
-
-class MirrorSpec(Body):
-    """A planar mirror: a point on it, its normal (toward the reflective side, not zero) and
-    an optional convex outline in its plane."""
-
-    name: Optional[NodeName] = None
-    point: Vec3
-    normal: Vec3
-    polygon: Optional[list[Vec3]] = Field(default=None, min_length=3, max_length=1024)
-
-
-class SettingsSpec(Body):
-    """Scene settings (see the README): what the wall asks for beyond the geometry."""
-
-    up: Optional[Vec3] = None
-    lights: list[LightSpec] = Field(default_factory=list, max_length=64)
-    mirrors: list[MirrorSpec] = Field(default_factory=list, max_length=64)
-
-
 class WallCreate(Body):
-    wall: Union[WallSpec, ScreensSpec]
+    wall: Wall
     scene: SceneName
     method: Literal[METHODS] = "adaptive"  # type: ignore[valid-type]
     bounds: Literal[KINDS] = "obb"  # type: ignore[valid-type]
@@ -267,28 +161,6 @@ class WallCreated(WallInfo):
 
 class WallList(BaseModel):
     walls: list[WallInfo]
-
-
-class FrameAnswer(BaseModel):
-    frame: int
-    timings: dict[str, float]
-    packets: Optional[list[dict]] = None
-
-
-class Packet(BaseModel):
-    """See :mod:`wallcull.protocol`."""
-
-    model_config = ConfigDict(extra="allow")
-    frame: int
-    tile: int
-    time: float
-    base: Optional[int]
-    count: int
-    visible: Optional[list[int]] = None
-    added: Optional[list[int]] = None
-    removed: Optional[list[int]] = None
-    view: list[list[float]]
-    projection: list[list[float]]
 
 
 class Barrier(BaseModel):

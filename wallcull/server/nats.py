@@ -29,7 +29,7 @@ import logging
 import msgpack
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, optional
 from ..service import Gone, NotFound, WallSession, Walls
 from .metrics import Metrics
 
@@ -50,8 +50,7 @@ class NatsBridge:
     async def start(self, timeout: float = 10.0) -> None:
         """Connect (failing after ``timeout`` seconds: a broker named but unreachable is a
         configuration error), subscribe, and publish every wall already held."""
-        import nats
-
+        nats = optional("nats", "nats", "--nats")
         try:
             self.nc = await nats.connect(self.url, name="wallcull", connect_timeout=timeout,
                                          max_reconnect_attempts=-1, reconnect_time_wait=0.5,

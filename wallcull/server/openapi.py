@@ -6,6 +6,8 @@ acknowledgements and barrier, so that a client (or a stateful fuzzer) can follow
 
 from __future__ import annotations
 
+import re
+
 from fastapi.openapi.utils import get_openapi
 from fastapi.routing import APIRoute
 from pydantic.json_schema import models_json_schema
@@ -15,24 +17,27 @@ from .access import OPEN, leaf_routes, role_of
 REF = "#/components/schemas/{model}"
 
 #: Links of a created wall (201 of ``POST /walls``): its id feeds every route of the wall.
+#: (Constants are strings, as the OpenAPI schema asks of a link's parameters: ``"0"`` is
+#: tile 0 in a path.)
 WALL_LINKS = {
     "GetWall": {"operationId": "getWall", "parameters": {"wid": "$response.body#/id"}},
     "PostFrame": {"operationId": "postFrame", "parameters": {"wid": "$response.body#/id"}},
     "GetLatestPacket": {"operationId": "getPacket",
-                        "parameters": {"wid": "$response.body#/id", "tile": 0,
+                        "parameters": {"wid": "$response.body#/id", "tile": "0",
                                        "frame": "latest"}},
     "Acknowledge": {"operationId": "acknowledge",
-                    "parameters": {"wid": "$response.body#/id", "tile": 0}},
-    "Barrier": {"operationId": "barrier", "parameters": {"wid": "$response.body#/id", "frame": 0}},
+                    "parameters": {"wid": "$response.body#/id", "tile": "0"}},
+    "Barrier": {"operationId": "barrier",
+                "parameters": {"wid": "$response.body#/id", "frame": "0"}},
     "DeleteWall": {"operationId": "deleteWall", "parameters": {"wid": "$response.body#/id"}},
 }
 #: Links of a posted frame (200 of ``POST /walls/{wid}/frames``): its number.
 FRAME_LINKS = {
     "GetPacket": {"operationId": "getPacket",
-                  "parameters": {"wid": "$request.path.wid", "tile": 0,
+                  "parameters": {"wid": "$request.path.wid", "tile": "0",
                                  "frame": "$response.body#/frame"}},
     "Acknowledge": {"operationId": "acknowledge",
-                    "parameters": {"wid": "$request.path.wid", "tile": 0},
+                    "parameters": {"wid": "$request.path.wid", "tile": "0"},
                     "requestBody": {"frame": "$response.body#/frame"}},
     "Barrier": {"operationId": "barrier",
                 "parameters": {"wid": "$request.path.wid", "frame": "$response.body#/frame"}},
@@ -68,4 +73,21 @@ def document(app, secured: bool) -> dict:
             "type": "http", "scheme": "bearer",
             "description": "The operator's token, or a credential issued with a wall "
                            "(its driver's, or a node's)"}}
+    return markdown(doc)
+
+
+_ROLE = re.compile(r":[a-z]+:`~?\.*([^`]+)`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def markdown(doc):
+    """Every ``description`` of a document in Markdown, as OpenAPI and AsyncAPI read them: the
+    docstrings' reStructuredText roles and literals (``:mod:`x``` and double backquotes)
+    become code spans."""
+    if isinstance(doc, dict):
+        return {k: _LITERAL.sub(r"`\1`", _ROLE.sub(r"`\1`", v))
+                if k == "description" and isinstance(v, str) else markdown(v)
+                for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [markdown(v) for v in doc]
     return doc

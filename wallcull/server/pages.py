@@ -1,5 +1,8 @@
-"""The browser pages: a render node's tile client and the operator console.
+"""The browser pages: the walls' index, a render node's tile client, the operator console, and
+the API's own interactive documents.
 
+* ``GET /``: the walls the server holds, each with links to its console and view pages (and
+  the node credentials' tiles), and links to the API's documents.
 * ``GET /walls/{wid}/view?tiles=3,4``: the page a render PC opens full-screen, one browser
   window per output. It draws its tiles side by side in one WebGL2 canvas (``static/view.js``):
   the node stream in JSON, lists and matrices rebuilt as :mod:`wallcull_clients.node` does,
@@ -8,9 +11,12 @@
   of screens around the viewer), each tile's list size, latency and state, live
   (``static/console.js``), from ``WS /walls/{wid}/console/stream``.
 * ``GET /static/{name}``: the pages' scripts and style (package data, no build step).
+* ``GET /docs``: Swagger UI on the OpenAPI document, its script and style served from the
+  installed package ``fastapi-offline`` (no CDN: it works on a lab network with no way out).
 
 The pages are open (like ``GET /walls/{wid}``); what they open is not: with a server token,
-the view page needs a node credential (``?token=``), which it passes on to its stream.
+the view page needs a node credential (``?token=``), which it passes on to its stream. A page's
+refusal is a page too (an unknown wall, a bad query), with the same status.
 """
 
 from __future__ import annotations
@@ -22,12 +28,14 @@ import time
 from pathlib import Path as FilePath
 from typing import Annotated
 
+import fastapi_offline
 from fastapi import APIRouter, Path, Query, Request, WebSocket
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ..errors import InputError
-from ..service import NotFound
+from ..service import LAG, LAG_FRAMES, LIVE, NotFound
 from ..validate import parse_tiles, tiles_text
 from .deps import ServerState, State
 from .models import WALL_ID, refusals
@@ -36,6 +44,8 @@ from .streams import GONE
 router = APIRouter(tags=["pages"])
 
 STATIC = FilePath(__file__).resolve().parent / "static"
+#: Swagger UI's script and style, as the package fastapi-offline ships them.
+DOCS_ASSETS = FilePath(fastapi_offline.__file__).resolve().parent / "static"
 #: Seconds between two looks at a wall's state, for the console streams; a status unchanged
 #: is sent again only after ``CONSOLE_QUIET`` seconds.
 CONSOLE_PERIOD, CONSOLE_QUIET = 0.25, 2.0
@@ -48,30 +58,57 @@ WallId = Annotated[str, Path(pattern=WALL_ID)]
 
 
 def _html_or_refusals(*codes: int) -> dict:
-    """OpenAPI ``responses`` of a page: HTML, or a refusal in JSON (said so: a route whose
-    response class is HTML would otherwise document its refusals as HTML)."""
+    """OpenAPI ``responses`` of a page: an HTML page, its refusals too."""
     out = {200: {"description": "An HTML page", "content": {"text/html": {
         "schema": {"type": "string"}}}}}
     for code, response in refusals(*codes).items():
         response.pop("model", None)
-        out[code] = {**response, "content": {"application/json": {
-            "schema": {"$ref": "#/components/schemas/Detail"}}}}
+        out[code] = {**response, "content": {"text/html": {"schema": {"type": "string"}}}}
     return out
 
 
-def _page(title: str, script: str, config: dict, body: str) -> HTMLResponse:
-    # JSON inside <script>: "<", ">" and "&" escaped, so no value can close the element
-    data = json.dumps(config).replace("<", "\\u003c").replace(">", "\\u003e") \
-        .replace("&", "\\u0026")
+def page(endpoint):
+    """Marks a route as a page: its refusals are pages (:func:`is_page`)."""
+    endpoint.wallcull_page = True
+    return endpoint
+
+
+def is_page(request: Request) -> bool:
+    """Whether ``request`` reached a page (whose refusals are pages, not JSON; the gate's
+    refusals look at the route's endpoint the same way)."""
+    return getattr(request.scope.get("endpoint"), "wallcull_page", False)
+
+
+def _page(title: str, body: str, root: str, script: str | None = None,
+          config: dict | None = None, status: int = 200, kind: str = "index") -> HTMLResponse:
+    head = ""
+    if script is not None:
+        # JSON inside <script>: "<", ">" and "&" escaped, so no value can close the element
+        data = json.dumps(config).replace("<", "\\u003c").replace(">", "\\u003e") \
+            .replace("&", "\\u0026")
+        head = (f'<script type="application/json" id="wallcull-config">{data}</script>\n'
+                f'<script type="module" src="{root}/static/{script}"></script>\n')
+        kind = script.split(".")[0]
     return HTMLResponse(f"""<!doctype html>
 <html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1"><link rel="icon" href="data:,">
 <title>{html.escape(title)}</title>
-<link rel="stylesheet" href="{config['root']}/static/pages.css">
-<script type="application/json" id="wallcull-config">{data}</script>
-<script type="module" src="{config['root']}/static/{script}"></script>
-</head><body class="{script.split('.')[0]}">{body}</body></html>
-""", headers={"Cache-Control": "no-store"})
+<link rel="stylesheet" href="{root}/static/pages.css">
+{head}</head><body class="{kind}">{body}</body></html>
+""", status, headers={"Cache-Control": "no-store"})
+
+
+def error_page(request: Request, status: int, detail: str) -> HTMLResponse:
+    """A refusal, as a page: the status, what is wrong, and the way back to the walls."""
+    root = _root(request)
+    reason = html.escape(_REASONS.get(status, "Refused"))
+    return _page(f"{status} {reason}: wallcull", f'<main><h1>{status} {reason}</h1>'
+                 f'<p class="detail">{html.escape(detail)}</p>'
+                 f'<p><a href="{root}/">the walls of this server</a></p></main>', root,
+                 status=status, kind="index error")
+
+
+_REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests"}
 
 
 def _root(request: Request) -> str:
@@ -79,8 +116,47 @@ def _root(request: Request) -> str:
     return html.escape(request.scope.get("root_path", "").rstrip("/"))
 
 
+@router.get("/", response_class=HTMLResponse, operation_id="indexPage",
+            responses=_html_or_refusals())
+@page
+async def index_page(request: Request, state: State):
+    """The walls this server holds, each with links to its console and to its view pages (all
+    tiles, and each node credential's tiles), and links to the API's documents."""
+    root = _root(request)
+    rows = []
+    for wid, session in state.walls.sessions.items():
+        wall = session.wall
+        shape = f"{wall.cols} x {wall.rows}" if wall.kind == "grid" else f"{wall.tiles} screens"
+        views = " ".join(f'<a href="{root}/walls/{wid}/view?tiles={tiles_text(tiles)}">'
+                         f"tiles {tiles_text(tiles)}</a>" for tiles in session.nodes)
+        rows.append(f'<tr id="wall-{wid}"><td><code>{wid}</code></td>'
+                    f"<td>{html.escape(session.scene.name)}</td><td>{shape}</td>"
+                    f"<td>{session.session.method}</td><td>{session.newest}</td>"
+                    f'<td><a class="console" href="{root}/walls/{wid}/console">console</a></td>'
+                    f'<td><a class="view" href="{root}/walls/{wid}/view">all tiles</a> '
+                    f"{views}</td></tr>")
+    walls = ('<table id="walls"><thead><tr><th>wall</th><th>scene</th><th>tiles</th>'
+             "<th>method</th><th>frame</th><th>console</th><th>view (a render node's page)"
+             f"</th></tr></thead><tbody>{''.join(rows)}</tbody></table>" if rows else
+             '<p id="walls">No walls yet. A driver creates one (<code>POST /walls</code>, '
+             f'see <a href="{root}/docs">the API</a>).</p>')
+    token = ("<p>This server has a token: a view page needs its node's credential, "
+             "<code>?token=...</code>, issued when the wall was created.</p>"
+             if not state.open else "")
+    return _page("wallcull", f"""<main><h1>wallcull</h1>
+<p>A culling server for tiled display walls: {len(rows)} wall(s).</p>{walls}{token}
+<h2>The API</h2><ul>
+<li><a href="{root}/docs">/docs</a>: the HTTP API, interactive (Swagger UI), from
+<a href="{root}/openapi.json">/openapi.json</a></li>
+<li><a href="{root}/asyncapi.json">/asyncapi.json</a>: the streams (WebSocket and NATS)</li>
+<li><a href="{root}/scenes">/scenes</a>, <a href="{root}/walls">/walls</a>,
+<a href="{root}/health">/health</a>, <a href="{root}/metrics">/metrics</a></li></ul></main>""",
+                 root)
+
+
 @router.get("/walls/{wid}/view", response_class=HTMLResponse, operation_id="viewPage",
             responses=_html_or_refusals(404))
+@page
 async def view_page(request: Request, state: State, wid: WallId,
                     tiles: Annotated[str | None, Query(pattern=TILES, max_length=4000)] = None,
                     token: Annotated[str | None, Query(max_length=512)] = None,
@@ -93,46 +169,81 @@ async def view_page(request: Request, state: State, wid: WallId,
     a stereo frame's eyes side by side in each tile (half width each). ``ids=true`` also
     draws every leaf's draw id (leaf id + 1, 0 for background) into an integer target that
     ``window.wallcull.readIds(tile)`` reads back."""
-    session = state.walls.get(wid)
-    count = session.wall.tiles
-    if tiles is not None:
-        try:
-            chosen = parse_tiles(tiles, count)
-        except InputError as exc:
-            raise NotFound(str(exc)) from None
-    else:
+    try:
+        session = state.walls.get(wid)
+        count = session.wall.tiles
+        chosen = None if tiles is None else parse_tiles(tiles, count)
+    except (NotFound, InputError) as exc:
+        return error_page(request, 404, str(exc))
+    if chosen is None:
         grant = state.walls.grant(token) if token else None
         chosen = sorted(grant.tiles) if grant is not None and grant.wall == wid else \
             list(range(count))
-    config = {"root": _root(request), "wall": wid, "tiles": chosen, "spec": tiles_text(chosen),
+    root = _root(request)
+    config = {"root": root, "wall": wid, "tiles": chosen, "spec": tiles_text(chosen),
               "token": token, "ids": ids,
               "size": [int(v) for v in size.split("x")] if size else None}
-    return _page(f"wallcull {wid}: tiles {tiles or 'all'}", "view.js", config,
-                 '<canvas id="wall"></canvas><div id="status">connecting</div>')
+    return _page(f"wallcull {wid}: tiles {tiles or 'all'}",
+                 '<canvas id="wall"></canvas><div id="status">connecting</div>', root,
+                 "view.js", config)
 
 
 @router.get("/walls/{wid}/console", response_class=HTMLResponse, operation_id="consolePage",
             responses=_html_or_refusals(404))
+@page
 async def console_page(request: Request, state: State, wid: WallId):
     """The operator's console: the wall to scale as it stands in the room, each tile's list
-    size, frame latency and state, updated a few times a second
-    (``WS /walls/{wid}/console/stream``)."""
-    state.walls.get(wid)
-    config = {"root": _root(request), "wall": wid}
-    return _page(f"wallcull console {wid}", "console.js", config,
-                 '<header><h1>wall <code></code></h1><p id="summary">connecting</p></header>'
+    size, frame latency and state (a legend says which colour is which), updated a few times
+    a second (``WS /walls/{wid}/console/stream``); each tile links to its view page."""
+    try:
+        state.walls.get(wid)
+    except NotFound as exc:
+        return error_page(request, 404, str(exc))
+    root = _root(request)
+    legend = "".join(f'<li class="{name}"><span class="swatch"></span>{name}: {text}</li>'
+                     for name, text in LEGEND)
+    return _page(f"wallcull console {wid}",
+                 '<header><h1>wall <code></code></h1><p id="summary">connecting</p>'
+                 f'<a href="{root}/">all walls</a></header>'
                  '<main><svg id="plan" xmlns="http://www.w3.org/2000/svg"></svg>'
+                 f'<div id="side"><ul id="legend">{legend}</ul>'
                  '<table id="tiles"><thead><tr><th>tile</th><th>list</th><th>acked</th>'
                  '<th>latency</th><th>streams</th><th>state</th></tr></thead>'
-                 '<tbody></tbody></table></main>')
+                 '<tbody></tbody></table></div></main>', root, "console.js",
+                 {"root": root, "wall": wid})
+
+
+#: The console's tile states (``WallSession.status``), and what each means.
+LEGEND = (("offline", f"no stream, no acknowledgement for {LIVE:g} s"),
+          ("waiting", "no frame posted yet"),
+          ("drawing", "the newest frame is not yet acknowledged"),
+          ("acked", "has drawn the newest frame"),
+          ("lagging", f"more than {LAG_FRAMES} frames or {LAG:g} s behind"))
+
+
+@router.get("/docs", include_in_schema=False)
+async def swagger_ui(request: Request):
+    root = _root(request)
+    return get_swagger_ui_html(openapi_url=f"{root}/openapi.json", title="wallcull: the API",
+                               swagger_js_url=f"{root}/docs/assets/swagger-ui-bundle.js",
+                               swagger_css_url=f"{root}/docs/assets/swagger-ui.css",
+                               swagger_favicon_url="data:,")
+
+
+@router.get("/docs/assets/{name}", include_in_schema=False)
+async def docs_asset(name: Annotated[str, Path(pattern=r"^[a-z][a-z.-]{0,40}\.(js|css)$")]):
+    return _file(DOCS_ASSETS / name, "public, max-age=86400")  # a release's, unchanging
 
 
 @router.get("/static/{name}", include_in_schema=False)
 async def static(name: Annotated[str, Path(pattern=r"^[a-z][a-z0-9_-]{0,40}\.(js|css)$")]):
-    path = STATIC / name
+    return _file(STATIC / name, "no-cache")
+
+
+def _file(path: FilePath, cache: str) -> FileResponse:
     if not path.is_file():
-        raise NotFound(f"no file {name!r}")
-    return FileResponse(path, headers={"Cache-Control": "no-cache"})
+        raise NotFound(f"no file {path.name!r}")
+    return FileResponse(path, headers={"Cache-Control": cache})
 
 
 @router.websocket("/walls/{wid}/console/stream")

@@ -16,8 +16,9 @@ from ..wall import Wall
 from .access import needs
 from .deps import State
 from .http import body_of, reply
-from .models import (WALL_ID, Ack, Barrier, FrameAnswer, FramePost, Packet, WallCreate,
-                     WallCreated, WallInfo, WallList, refusals)
+from .messages import FrameAnswer, Packet
+from .models import (WALL_ID, Ack, Barrier, FramePost, WallCreate, WallCreated, WallInfo,
+                     WallList, refusals)
 from .openapi import FRAME_LINKS, WALL_LINKS
 
 #: Seconds a request may wait for a frame or the barrier.
@@ -41,7 +42,7 @@ async def create_wall(request: Request, state: State,
     """A wall culling a scene. The answer carries the wall's credentials, shown this once:
     the driver's (posting frames) and one per node (its tiles' packets, streams and
     acknowledgements)."""
-    wall = Wall.from_dict(body.wall.model_dump())  # a grid, or screens (SPEC 2b)
+    wall = Wall.from_dict(body.wall)  # a grid, or screens (SPEC 2b)
     settings = None if body.settings is None else body.settings.model_dump(exclude_unset=True, exclude_none=True)
     if settings is not None:
         cfg.parse(settings)  # refused here, with its reason, not at the first frame

@@ -1,6 +1,8 @@
 // wallcull's operator console (GET /walls/{wid}/console): the wall drawn to scale as it stands
 // in the room, each tile coloured by its state and labelled with its list size and latency,
-// updated from WS /walls/{wid}/console/stream (a status whenever it changes).
+// updated from WS /walls/{wid}/console/stream (a status whenever it changes). Each tile, on the
+// plan and in the table, links to its view page (the render node's page for that tile alone);
+// the legend beside the table says what each colour means.
 //
 // A flat wall (a grid, or screens that all face +z) is drawn from the front: x right, y up.
 // Screens around the viewer (a CAVE, angled walls) are drawn from above, their corners
@@ -57,7 +59,9 @@ function drawPlan(wall) {
   const order = flat.map((q, t) => t).sort((a, b) => area(flat[b]) - area(flat[a]));  // floors first
   const groups = [];
   for (const t of order) {
-    const q = flat[t], g = el("g", { class: "tile offline", id: `tile-${t}`, "data-tile": t }, plan);
+    const link = el("a", { href: viewOf(t) }, plan);
+    const q = flat[t], g = el("g", { class: "tile offline", id: `tile-${t}`, "data-tile": t }, link);
+    el("title", {}, g).textContent = `tile ${t}: open its view`;
     const thin = area(q) < 1e-3 * extent * extent;
     el("polygon", { points: q.map((p) => p.join(",")).join(" "), class: thin ? "thin" : "",
                     "stroke-width": thin ? extent * 0.02 : extent * 0.002 }, g);
@@ -84,6 +88,10 @@ function drawPlan(wall) {
   return groups;
 }
 
+// A tile's view page: the tile client drawing that tile alone (with a server token, it needs
+// the tile's node credential: ?token=...).
+const viewOf = (t) => `${cfg.root}/walls/${cfg.wall}/view?tiles=${t}`;
+
 function fillTable(n) {
   body.replaceChildren();
   const rows = [];
@@ -91,7 +99,10 @@ function fillTable(n) {
     const tr = document.createElement("tr");
     tr.id = `row-${t}`;
     for (let k = 0; k < 6; k++) tr.appendChild(document.createElement("td"));
-    tr.cells[0].textContent = t;
+    const a = document.createElement("a");
+    a.href = viewOf(t);
+    a.textContent = t;
+    tr.cells[0].appendChild(a);
     body.appendChild(tr);
     rows.push(tr);
   }
