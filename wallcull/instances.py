@@ -110,6 +110,27 @@ class MeshTable(Mapping):
                          np.concatenate(faces), _starts([len(t[0]) for t in trees]),
                          *(np.concatenate([t[k] for t in trees]) for k in range(3)))
 
+    @cached_property
+    def face_neighbors(self) -> np.ndarray:
+        """``(F, 3)``: per face, the face across each of its edges (vertices ``k``, ``k + 1``),
+        as rows of ``faces``; -1 where the edge has no other face, or more than one."""
+        f = np.asarray(self.faces, dtype=np.int64)
+        template = np.repeat(np.arange(len(self)), np.diff(self.face_start))
+        v = f + self.vertex_start[template][:, None]  # vertices numbered over the table
+        a, b = v, np.roll(v, -1, axis=1)
+        key = (np.minimum(a, b) * (len(self.vertices) + 1) + np.maximum(a, b)).reshape(-1)
+        order = np.argsort(key, kind="stable")
+        k = key[order]
+        out = np.full(len(key), -1, dtype=np.int64)
+        pair = np.flatnonzero(k[1:] == k[:-1])
+        # an edge of exactly two faces: neither its left nor its right neighbour in the sort
+        # carries the same key again
+        lone = ((pair == 0) | (k[np.maximum(pair - 1, 0)] != k[pair])) & \
+            ((pair + 2 >= len(k)) | (k[np.minimum(pair + 2, len(k) - 1)] != k[pair]))
+        one, two = order[pair[lone]], order[pair[lone] + 1]
+        out[one], out[two] = two // 3, one // 3
+        return out.reshape(-1, 3)
+
     @property
     def clusters(self) -> int:
         """How many nodes the templates' cluster trees have in all."""

@@ -18,6 +18,7 @@ import numpy as np
 from . import settings as cfg
 from .cull import FINE, Culler, Visibility
 from .fit import FitOptions, Fits, fit_frame
+from .occlude import Occluder, OcclusionOptions
 from .scene import Scene, SceneState
 from .wall import Frame, Frusta, Wall
 
@@ -42,11 +43,13 @@ class Session:
 
     def __init__(self, scene: Scene, wall: Wall, method: str = "adaptive", bounds: str = "obb",
                  pseudo_groups: bool = False, fit: FitOptions | None = None,
-                 settings: Mapping[str, Any] | None = None, fine: float = FINE):
+                 settings: Mapping[str, Any] | None = None, fine: float = FINE,
+                 occlusion: OcclusionOptions | None = None):
         self.scene = scene
         self.wall = wall
         self.state = SceneState(scene, bounds)
         self.culler = Culler(self.state, wall, method, pseudo_groups, fine)
+        self.occluder = None if occlusion is None else Occluder(self.state, wall, occlusion)
         # what the scene asks for (lights, mirrors): its own, or ``settings`` for this wall
         self.raw_settings = dict(scene.settings if settings is None else settings)
         self.settings = cfg.parse(self.raw_settings)
@@ -64,9 +67,14 @@ class Session:
         frusta = Frusta.build(self.wall, frame)
         visibility = self.culler.cull(frusta)
         t1 = time.perf_counter()
+        timings = {"cull_ms": (t1 - t0) * 1e3}
+        if self.occluder is not None:
+            visibility = self.occluder.occlude(visibility, frame)
+            t1 = time.perf_counter()
+            timings["occlude_ms"] = visibility.stats["occlude_ms"]
         visibility.leaf_lists()  # compiled, next to the traversal; cached on the visibility
         t2 = time.perf_counter()
-        result = FrameResult(frame, frusta, visibility, {"cull_ms": (t1 - t0) * 1e3,
+        result = FrameResult(frame, frusta, visibility, {**timings,
                                                          "leaves_ms": (t2 - t1) * 1e3})
         if self.fit_options is not None:
             result.fits = fit_frame(self.wall, frame, visibility, self.state, self.settings,
