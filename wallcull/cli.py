@@ -47,6 +47,13 @@ def _load(args):
                 settings=settings, clusters=args.clusters)
 
 
+def _occlusion(args):
+    """``--occlusion off|on|auto`` as the pipeline's options (None: off)."""
+    from .occlude import OcclusionOptions
+
+    return OcclusionOptions.parse(args.occlusion)
+
+
 def _cluster_size(text: str):
     """``--clusters``: 'off' or a number of triangles (one-line error otherwise)."""
     from .clusters import parse_size
@@ -66,7 +73,7 @@ def cmd_cull(args) -> int:
     scene = _load(args)
     session = Session(scene, wall, args.method, args.bounds, args.pseudo_groups,
                       FitOptions(depth=args.depth, reversed_z=args.reversed_z,
-                                 shadow_fit=args.shadow_fit))
+                                 shadow_fit=args.shadow_fit), occlusion=_occlusion(args))
     session.frame(frame_spec)  # the first call compiles the kernels; time the second
     result = session.frame(frame_spec)
     tiles = tile_records(result, leaves=args.leaves)
@@ -189,7 +196,7 @@ def cmd_walk(args) -> int:
 
     wall = _wall(args.wall)
     scene = _load(args)
-    session = Session(scene, wall, args.method, args.bounds)
+    session = Session(scene, wall, args.method, args.bounds, occlusion=_occlusion(args))
     frames = scene_path(scene, wall, args.path, args.frames)
     session.frame(frames[0])  # compile
     counts = np.zeros((len(frames), wall.tiles), dtype=np.int64)
@@ -290,7 +297,8 @@ def cmd_overdraw(args) -> int:
                        console=Console(stderr=True), disable=args.json))
     report = overdraw.run(args.scene, wall, args.path, args.frames, sizes, args.method,
                           args.bounds, args.hierarchy, args.branching,
-                          progress=lambda: next(steps, None)).summary()
+                          progress=lambda: next(steps, None),
+                          occlusion=args.occlusion).summary()
     if args.json:
         print(json.dumps(report))
         return 0
@@ -299,15 +307,21 @@ def cmd_overdraw(args) -> int:
                   f"{describe_wall(wall)}; {args.frames} frames of the {args.path} path; method "
                   f"{args.method}, bounds {args.bounds}")
     table = Table(title="triangles drawn per frame, summed over the tiles")
-    for col in ("lists", "triangles", "x floor", "draw calls", "cull ms"):
+    occluded = any(e["occlusion"] for e in report["settings"])
+    for col in ("lists", "triangles", "x floor", "draw calls", "cull ms",
+                *(["occlude ms"] if occluded else [])):
         table.add_column(col, justify="right")
+    blank = [""] * (2 + occluded)
     table.add_row("no culling", f"{report['none']:,.0f}", f"{report['none_over_floor']:.1f}",
-                  "", "")
+                  *blank)
     for e in report["settings"]:
         name = "leaves" if e["clusters"] == "off" else f"clusters of {e['clusters']}"
+        name += ", occlusion" if e.get("occlusion") else ""
         table.add_row(name, f"{e['triangles']:,.0f}", f"{e['over_floor']:.2f}",
-                      f"{e['draw_calls']:,.0f}", f"{e['cull_ms_median']:.3f}")
-    table.add_row("floor", f"{report['floor']:,.0f}", "1.00", "", "")
+                      f"{e['draw_calls']:,.0f}", f"{e['cull_ms_median']:.3f}",
+                      *([f"{e['occlude_ms_median']:.3f}" if e["occlusion"] else ""]
+                        if occluded else []))
+    table.add_row("floor", f"{report['floor']:,.0f}", "1.00", *blank)
     console.print(table)
     return 0
 
@@ -325,6 +339,7 @@ def parser() -> argparse.ArgumentParser:
     from .cull import METHODS
     from .lowilie import EFFORTS
     from .clusters import AUTO_SIZE, MAX_SIZE, MIN_SIZE
+    from .occlude import SETTINGS
     from .paths import PATHS
     from .scene import BRANCHING, CLUSTERS
 
@@ -344,6 +359,11 @@ def parser() -> argparse.ArgumentParser:
                                 f"K ({MIN_SIZE}-{MAX_SIZE}), or not at all (off); auto, the "
                                 f"default: {AUTO_SIZE}, coarser in scenes that would get more "
                                 f"cluster nodes than twice their own")
+
+    def occlusion_arg(q, default="off"):
+        q.add_argument("--occlusion", choices=SETTINGS, default=default,
+                       help="drop what occluders hide: never (off), every frame (on), or "
+                            f"when the camera is inside the scene (auto); default {default}")
 
     def scene_args(q):
         build_args(q)
@@ -365,6 +385,7 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--shadow-fit", choices=EFFORTS, default="refined",
                    help="shadow frusta: the bounding-sphere frustum, the paper's greedy quad, or "
                         "the refined quad (default)")
+    occlusion_arg(q)
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_cull)
 
@@ -401,6 +422,7 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--path", choices=PATHS, default="orbit")
     q.add_argument("--method", choices=METHODS, default="adaptive")
     q.add_argument("--bounds", choices=KINDS, default="obb")
+    occlusion_arg(q)
     q.set_defaults(func=cmd_walk)
 
     q = sub.add_parser("prepare", help="write a scene's prepared file, so that it loads in "
@@ -420,6 +442,8 @@ def parser() -> argparse.ArgumentParser:
                         f"{CLUSTERS})")
     q.add_argument("--method", choices=METHODS, default="adaptive")
     q.add_argument("--bounds", choices=KINDS, default="obb")
+    q.add_argument("--occlusion", action="store_true",
+                   help="also the clusters' lists with occlusion culling on (every frame)")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_overdraw)
 

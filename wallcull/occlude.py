@@ -44,6 +44,11 @@ from .scene import SceneState
 from .wall import Frame
 
 CHOICES = ("size", "last")
+#: ``on``: every frame; ``auto``: the frames whose camera is inside the scene's box (grown by a
+#: tenth), where most of what a tile's frustum holds lies behind something (docs/occlusion.md).
+MODES = ("on", "auto")
+#: The occlusion setting's words, ``off`` among them (no occlusion culling).
+SETTINGS = ("off", *MODES)
 
 #: Nodes are hidden only this far (relative) beyond the occluders' depth.
 DEPTH_MARGIN = 1e-3
@@ -55,15 +60,25 @@ MAX_TEXELS = 1024
 
 @dataclass(frozen=True)
 class OcclusionOptions:
-    """``budget``: occluder triangles per frame; ``texels``: buffer texels across one tile's
-    (one screen's) width; ``choice``: occluders by ``size`` this frame, or what was visible
-    ``last`` frame."""
+    """``mode``: every frame (``on``) or frames from inside the scene (``auto``); ``budget``:
+    occluder triangles per frame; ``texels``: buffer texels across one tile's (one screen's)
+    width; ``choice``: occluders by ``size`` this frame, or what was visible ``last`` frame."""
 
+    mode: str = "on"
     budget: int = 20_000
     texels: int = 32
     choice: str = "size"
 
+    @classmethod
+    def parse(cls, setting: str) -> "OcclusionOptions | None":
+        """The options of an occlusion setting (``off``, ``on``, ``auto``); None for off."""
+        if setting not in SETTINGS:
+            raise InputError(f"occlusion must be {', '.join(SETTINGS)}, got {setting!r}")
+        return None if setting == "off" else cls(mode=setting)
+
     def __post_init__(self):
+        if self.mode not in MODES:
+            raise InputError(f"occlusion mode must be {' or '.join(MODES)}, got {self.mode!r}")
         if self.choice not in CHOICES:
             raise InputError(f"occluders must be chosen by {' or '.join(CHOICES)}, "
                              f"got {self.choice!r}")
@@ -148,6 +163,15 @@ class Occluder:
         self._last: np.ndarray | None = None
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
+
+    def wanted(self, frame: Frame) -> bool:
+        """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
+        if self.options.mode == "on":
+            return True
+        lo, hi = self.state.scene.box
+        grow = 0.1 * (hi - lo)
+        eye = frame.eye_world
+        return bool(((lo - grow <= eye) & (eye <= hi + grow)).all())
 
     def occlude(self, vis: Visibility, frame: Frame) -> Visibility:
         """``vis`` (the frame's frustum-culled lists) without what the occluders hide."""

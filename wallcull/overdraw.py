@@ -6,7 +6,8 @@ draw four ways:
 * **none**: no culling, every tile draws the whole scene;
 * **leaves**: each tile draws every triangle of every leaf in its list (clusters off);
 * **clusters** (one count per cluster size): each tile draws its whole leaves and the triangle
-  ranges of its partial leaves (:mod:`wallcull.clusters`);
+  ranges of its partial leaves (:mod:`wallcull.clusters`), and, when asked, the same with
+  occlusion culling (:mod:`wallcull.occlude`);
 * **floor**: the triangles not wholly outside the tile's frustum, clipped exactly: what any
   frustum culling must draw at least.
 
@@ -25,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from .cull import Visibility
+from .occlude import OcclusionOptions
 from .pipeline import Session
 from .scene import Scene
 from .wall import Frame, Frusta, Wall
@@ -37,17 +39,19 @@ class Counts:
     triangles: list[int] = field(default_factory=list)
     calls: list[int] = field(default_factory=list)
     cull_ms: list[float] = field(default_factory=list)
+    occlude_ms: list[float] = field(default_factory=list)
 
-    def add(self, vis: Visibility, cull_ms: float) -> None:
+    def add(self, vis: Visibility, timings: dict) -> None:
         self.triangles.append(int(vis.triangles().sum()))
         self.calls.append(int(vis.draw_calls().sum()))
-        self.cull_ms.append(cull_ms)
+        self.cull_ms.append(timings["cull_ms"])
+        self.occlude_ms.append(timings.get("occlude_ms", 0.0))
 
 
 @dataclass
 class Report:
-    """A path's overdraw: ``settings`` maps a cluster size (None: off, the leaf-level lists)
-    to its :class:`Counts`; ``floor`` and ``none`` are per frame."""
+    """A path's overdraw: ``settings`` maps ``(cluster size, occlusion)`` (size None: the
+    leaf-level lists) to its :class:`Counts`; ``floor`` and ``none`` are per frame."""
 
     scene: str
     triangles: int
@@ -68,32 +72,37 @@ class Report:
         out = {"scene": self.scene, "triangles": self.triangles, "tiles": self.tiles,
                "frames": self.frames, "floor": floor / self.frames, "none": self.none,
                "none_over_floor": over(self.none * self.frames), "settings": []}
-        for size, c in self.settings.items():
+        for (size, occluded), c in self.settings.items():
             out["settings"].append({
-                "clusters": "off" if size is None else size,
+                "clusters": "off" if size is None else size, "occlusion": occluded,
                 "triangles": float(np.mean(c.triangles)), "over_floor": over(np.sum(c.triangles)),
                 "draw_calls": float(np.mean(c.calls)),
-                "cull_ms_median": float(np.median(c.cull_ms))})
+                "cull_ms_median": float(np.median(c.cull_ms)),
+                **({"occlude_ms_median": float(np.median(c.occlude_ms))} if occluded else {})})
         return out
 
 
 def measure(scenes: dict, wall: Wall, frames: list[Frame], method: str = "adaptive",
-            bounds: str = "obb", progress=None) -> Report:
+            bounds: str = "obb", progress=None, occlusion: bool = False) -> Report:
     """Walk ``frames`` with each of ``scenes`` (cluster size -> the scene loaded with it; None
-    must be among them: the leaf-level lists, which the floor is counted over)."""
+    must be among them: the leaf-level lists, which the floor is counted over), each also with
+    occlusion culling on every frame when ``occlusion``."""
     base: Scene = scenes[None]
     tiles = wall.tiles
+    keys = [(size, occluded) for size in scenes for occluded in (False, True)[:1 + occlusion]]
     report = Report(base.name, int(base.stats["triangles"]), tiles, len(frames),
-                    settings={size: Counts() for size in scenes})
-    sessions = {size: Session(scene, wall, method, bounds) for size, scene in scenes.items()}
+                    settings={key: Counts() for key in keys})
+    sessions = {(size, occluded): Session(scenes[size], wall, method, bounds,
+                                          occlusion=OcclusionOptions() if occluded else None)
+                for size, occluded in keys}
     for s in sessions.values():
         s.frame(frames[0])  # compiles the kernels before anything is timed
     for frame in frames:
-        results = {size: session.frame(frame) for size, session in sessions.items()}
-        for size, result in results.items():
-            report.settings[size].add(result.visibility, result.timings["cull_ms"])
-        report.floor.append(int(floor(base, results[None].frusta,
-                                      results[None].visibility).sum()))
+        results = {key: session.frame(frame) for key, session in sessions.items()}
+        for key, result in results.items():
+            report.settings[key].add(result.visibility, result.timings)
+        plain = results[None, False]
+        report.floor.append(int(floor(base, plain.frusta, plain.visibility).sum()))
         if progress is not None:
             progress()
     return report
@@ -180,7 +189,8 @@ def triangle_meets(tri, planes) -> bool:
 
 def run(spec: str, wall: Wall, path: str = "orbit", frames: int = 60,
         sizes=(None,), method: str = "adaptive", bounds: str = "obb",
-        hierarchy: str = "auto", branching: int = 8, progress=None) -> Report:
+        hierarchy: str = "auto", branching: int = 8, progress=None,
+        occlusion: bool = False) -> Report:
     """``wallcull overdraw``: the scene ``spec`` loaded with each cluster size of ``sizes``
     (None, clusters off, always among them), walked along ``path``."""
     from .paths import scene_path
@@ -189,4 +199,4 @@ def run(spec: str, wall: Wall, path: str = "orbit", frames: int = 60,
     scenes = {size: load(spec, hierarchy, branching, clusters=size)
               for size in dict.fromkeys((None, *sizes))}
     return measure(scenes, wall, scene_path(scenes[None], wall, path, frames), method, bounds,
-                   progress)
+                   progress, occlusion)

@@ -68,7 +68,7 @@ class Session:
         visibility = self.culler.cull(frusta)
         t1 = time.perf_counter()
         timings = {"cull_ms": (t1 - t0) * 1e3}
-        if self.occluder is not None:
+        if self.occluder is not None and self.occluder.wanted(frame):
             visibility = self.occluder.occlude(visibility, frame)
             t1 = time.perf_counter()
             timings["occlude_ms"] = visibility.stats["occlude_ms"]

@@ -56,7 +56,7 @@ def run(ctx: Context) -> tuple[dict, str]:
 
 
 def _by_size(summary: dict) -> dict:
-    return {e["clusters"]: e for e in summary["settings"]}
+    return {e["clusters"]: e for e in summary["settings"] if not e["occlusion"]}
 
 
 def report_md(ctx: Context, data: dict) -> str:
