@@ -187,9 +187,11 @@ class Occluder:
             seeds = self._last
         else:
             seeds = np.unique(vis.nodes)
-        units = _pick(seeds, box, scene.child_start, scene.child_count, scene.children,
-                      self._occluding, views.affine, near, self._stamp, self._frame)
+        units, angle = _pick(seeds, box, scene.child_start, scene.child_count, scene.children,
+                             self._occluding, views.affine, near, self._stamp, self._frame)
         first, count = scene.cluster_faces
+        # the most image for the triangles first: a wall's two triangles before a pipe's forty
+        units = units[np.argsort(-angle ** 2 / np.maximum(count[units], 1), kind="stable")]
         owner = np.where(scene.cluster_leaf[units] >= 0, scene.cluster_leaf[units], units)
         take = np.cumsum(count[units]) <= o.budget
         units, owner = units[take], owner[take]
@@ -277,8 +279,8 @@ def _depths(units, box, affine):
 
 @njit(cache=True)
 def _pick(seeds, box, child_start, child_count, children, occluding, affine, near, stamp, frame):
-    """The childless nodes under ``seeds`` that may occlude, largest angle first. Only nodes
-    spanning at least a 500th of a radian are opened (what is smaller hides little)."""
+    """The childless nodes under ``seeds`` that may occlude, and the angle each spans. Only
+    nodes spanning at least a 500th of a radian are opened (what is smaller hides little)."""
     stack = np.empty(seeds.shape[0] + 64, np.int64)
     found = np.empty(seeds.shape[0] * 4 + 64, np.int64)
     angle = np.empty(found.shape[0])
@@ -309,8 +311,7 @@ def _pick(seeds, box, child_start, child_count, children, occluding, affine, nea
             for c in range(child_start[i], child_start[i] + child_count[i]):
                 stack[sp] = children[c]
                 sp += 1
-    order = np.argsort(-angle[:k])
-    return found[:k][order]
+    return found[:k], angle[:k]
 
 
 @njit(cache=True)
