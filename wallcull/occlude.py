@@ -577,7 +577,7 @@ def _extreme(buf, offsets, v, w0, h0, i0, i1, j0, j1, largest):
 
 @njit(cache=True)
 def _judge(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo, izhi, offsets,
-           half):
+           half, child_count_i, hull):
     """0: node ``i`` is hidden in tile ``t`` (from every eye); 1: it is not, and no part of it
     can be; 2: a part of it might be. ``half (6, 3)`` is scratch."""
     ball = box[i, 3]
@@ -632,12 +632,72 @@ def _judge(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo, iz
         # hidden beyond 1 / iz: over every texel (the smallest iz), or over some (the largest)
         if not d_near * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) \
                 > 1 + DEPTH_MARGIN:
-            hidden = False
-            if d_far * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) > 1 + DEPTH_MARGIN:
-                partly = True
+            partly = partly or d_far * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) \
+                > 1 + DEPTH_MARGIN
+            # a node that cannot be opened: over the texels its outline touches, not its box
+            if not (child_count_i == 0 and partly
+                    and _outline_hidden(hull, cx, cy, cz, hv, rect[v], w, h, i0, i1, j0, j1,
+                                        d_near, izlo, offsets[v, 0])):
+                hidden = False
     if hidden:
         return 0
     return 2 if partly else 1
+
+
+@njit(cache=True)
+def _outline_hidden(hull, cx, cy, cz, hv, rect, w, h, i0, i1, j0, j1, d_near, izlo, at):
+    """Whether every texel of ``[i0, i1) x [j0, j1)`` that the outline of the box (centre
+    ``c``, half vectors ``hv``, view coordinates) touches holds occluders nearer than
+    ``d_near``. The outline: the convex hull of the eight corners on the image (gift
+    wrapping), in texel coordinates; a texel is left out only when all four of its corners lie
+    outside one of its edges (then the two are apart)."""
+    sx = w / (rect[1] - rect[0])
+    sy = h / (rect[3] - rect[2])
+    for c in range(8):
+        s0 = 1.0 if c & 1 else -1.0
+        s1 = 1.0 if c & 2 else -1.0
+        s2 = 1.0 if c & 4 else -1.0
+        d = -(cz + s0 * hv[0, 2] + s1 * hv[1, 2] + s2 * hv[2, 2])
+        hull[0, c] = ((cx + s0 * hv[0, 0] + s1 * hv[1, 0] + s2 * hv[2, 0]) / d - rect[0]) * sx
+        hull[1, c] = ((cy + s0 * hv[0, 1] + s1 * hv[1, 1] + s2 * hv[2, 1]) / d - rect[2]) * sy
+    # gift wrapping: the hull's corners in counter-clockwise order, into hull[2] (indices)
+    start = 0
+    for c in range(1, 8):
+        if hull[0, c] < hull[0, start] or (hull[0, c] == hull[0, start]
+                                            and hull[1, c] < hull[1, start]):
+            start = c
+    n = 0
+    p = start
+    while True:
+        hull[2, n] = p
+        n += 1
+        q = (p + 1) % 8
+        for r in range(8):
+            cross = ((hull[0, q] - hull[0, p]) * (hull[1, r] - hull[1, p])
+                     - (hull[1, q] - hull[1, p]) * (hull[0, r] - hull[0, p]))
+            if cross < 0:
+                q = r
+        p = q
+        if p == start or n == 8:
+            break
+    for j in range(j0, j1):
+        for i in range(i0, i1):
+            touched = True
+            for e in range(n):
+                a = int(hull[2, e])
+                b = int(hull[2, (e + 1) % n])
+                ex, ey = hull[0, b] - hull[0, a], hull[1, b] - hull[1, a]
+                out = True
+                for cy_ in range(2):
+                    for cx_ in range(2):
+                        if ex * (j + cy_ - hull[1, a]) - ey * (i + cx_ - hull[0, a]) >= 0:
+                            out = False
+                if out:
+                    touched = False
+                    break
+            if touched and not d_near * izlo[at + j * w + i] > 1 + DEPTH_MARGIN:
+                return False
+    return True
 
 
 @njit(cache=True)
@@ -650,6 +710,7 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
     out_start = np.zeros(tiles + 1, np.int64)
     stack = np.empty(1024, np.int64)
     half = np.empty((6, 3))
+    hull = np.empty((3, 9))
     k = 0
     hidden = 0
     for t in range(tiles):
@@ -663,7 +724,7 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
             sp -= 1
             i = stack[sp]
             state = _judge(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo,
-                           izhi, offsets, half)
+                           izhi, offsets, half, child_count[i], hull)
             if state == 0:
                 hidden += 1
                 continue
