@@ -3,11 +3,12 @@ cluster size costs.
 
 Every scene (the two bundled look-alikes and the third-party scenes of ``scenes/``) on the
 8 x 8 wall, the ``orbit`` path (the whole scene in view) and the ``fly`` path (the camera inside
-it), adaptive, OBBs, each cluster size of :data:`SIZES` and clusters off, measured by
-:func:`wallcull.overdraw.measure`, the numbers ``wallcull overdraw`` prints: triangles drawn per
-frame summed over the tiles, over the exact floor (the triangles not wholly outside a tile's
-frustum); draw calls; the median cull time. The speed-accuracy trade of the cluster size is the
-Pareto front of cull time against triangles drawn.
+it), adaptive, OBBs, each cluster size of :data:`SIZES` and clusters off, each with occlusion
+culling off and on, measured by :func:`wallcull.overdraw.measure`, the numbers ``wallcull
+overdraw --occlusion`` prints: triangles drawn per frame summed over the tiles, over the exact
+floor (the triangles not wholly outside a tile's frustum); draw calls; the median cull (and
+occlusion) time. The speed-accuracy trade of the cluster size and of occlusion is the Pareto
+front of time against triangles drawn.
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ def run(ctx: Context) -> tuple[dict, str]:
         out[name] = {}
         for path in PATHS:
             frame_list = C.path_frames(scenes[None], wall, path, frames)
-            report = overdraw.measure(scenes, wall, frame_list, progress=task.advance)
+            report = overdraw.measure(scenes, wall, frame_list, progress=task.advance,
+                                      occlusion=True)
             out[name][path] = report.summary()
     task.done()
     data = {"wall": "examples/wall-8x8.json", "method": "adaptive", "bounds": "obb",
@@ -55,8 +57,8 @@ def run(ctx: Context) -> tuple[dict, str]:
     return data, report_md(ctx, data)
 
 
-def _by_size(summary: dict) -> dict:
-    return {e["clusters"]: e for e in summary["settings"] if not e["occlusion"]}
+def _by_size(summary: dict, occlusion: bool = False) -> dict:
+    return {e["clusters"]: e for e in summary["settings"] if e["occlusion"] == occlusion}
 
 
 def report_md(ctx: Context, data: dict) -> str:
@@ -82,6 +84,11 @@ def report_md(ctx: Context, data: dict) -> str:
                          *(f"{by[k]['over_floor']:.2f}" for k in sizes)])
             rows.append(["", "", "", "draw calls", *(f"{by[k]['draw_calls']:,.0f}" for k in sizes)])
             rows.append(["", "", "", "cull ms", *(f"{by[k]['cull_ms_median']:.3f}" for k in sizes)])
+            occ = _by_size(s, True)
+            rows.append(["", "", "", "with occlusion", *(f"{occ[k]['over_floor']:.2f}"
+                                                          for k in sizes)])
+            rows.append(["", "", "", "occlusion ms", *(f"{occ[k]['occlude_ms_median']:.3f}"
+                                                        for k in sizes)])
         md.append(C.table(["scene", "triangles", "floor", "none / floor",
                            *(f"{k}" for k in sizes)], rows))
     fig, axes = plt.subplots(1, len(PATHS), figsize=(10, 4))
@@ -91,12 +98,15 @@ def report_md(ctx: Context, data: dict) -> str:
             xs = [by[k]["cull_ms_median"] for k in sizes]
             ys = [by[k]["over_floor"] for k in sizes]
             ax.plot(xs, ys, "-o", color=f"C{j}", label=name, ms=4)
+            occ = _by_size(paths[path], True)
+            ax.plot([occ[k]["cull_ms_median"] + occ[k]["occlude_ms_median"] for k in sizes],
+                    [occ[k]["over_floor"] for k in sizes], ":^", color=f"C{j}", ms=4)
             for k, x, y in zip(sizes, xs, ys):
                 if k in ("off", data["default"]) or k == sizes[1]:
                     ax.annotate(str(k), (x, y), fontsize=7, xytext=(3, 3),
                                 textcoords="offset points")
         ax.set_yscale("log")
-        ax.set_xlabel("cull ms per frame (median)")
+        ax.set_xlabel("cull (+ occlusion, dotted) ms per frame, median")
         ax.set_ylabel("triangles drawn / floor")
         ax.set_title(f"{path} path, 8 x 8")
         ax.grid(alpha=0.3)
@@ -105,7 +115,24 @@ def report_md(ctx: Context, data: dict) -> str:
     md.append("\n" + ctx.savefig(fig, "clusters.png",
                                  "cull time against triangles drawn, by cluster size") + "\n")
     md.append(_targets(data))
+    md.append(_occlusion_targets(data))
     return "\n".join(md)
+
+
+def _occlusion_targets(data: dict) -> str:
+    """Occlusion on the fly path at the default: triangles drawn with it over without."""
+    k = data["default"]
+    rows = []
+    for name, paths in data["scenes"].items():
+        plain, occ = _by_size(paths["fly"]).get(k), _by_size(paths["fly"], True).get(k)
+        if plain is None or occ is None:
+            continue
+        rows.append([name, f"{occ['triangles'] / max(plain['triangles'], 1):.2f}",
+                     f"{occ['occlude_ms_median']:.2f}", f"{occ['over_floor']:.2f}"])
+    return ("\nOcclusion culling on the fly path, at the default cluster size: triangles drawn "
+            "with it over without (the target is <= 0.5 on powerplant and sportsCar), its time "
+            "per frame, and what is drawn over the frustum floor:\n\n"
+            + C.table(["scene", "with / without", "occlusion ms", "x floor"], rows) + "\n")
 
 
 def _targets(data: dict) -> str:
