@@ -12,7 +12,8 @@ Framebuffer of a renderer (``width x height``):
 
 * attachment 0: ``RGBA8`` color, Lambert shading with a headlight at the eye times a flat colour
   per ``draw_id`` (back faces darker), background ``BACKGROUND``;
-* attachment 1: ``R32UI`` ids, the ``draw_id`` of the nearest surface, ``0`` for background;
+* attachment 1: ``R32UI`` ids, the ``draw_id`` of the nearest surface, ``0`` for background
+  (with ``triangle_ids``: ``draw_id`` plus the index of the nearest triangle in its mesh);
 * depth: ``DEPTH_COMPONENT24`` (a depth texture, so it can be read back).
 
 With ``samples > 0`` drawing goes to multisampled renderbuffers of the same formats, resolved into
@@ -63,6 +64,8 @@ _FRAGMENT_SHADER = """
 #version 330
 uniform vec3 color;
 uniform uint draw_id;
+uniform bool triangle_ids;  // ids per triangle: draw_id + the triangle's index in its mesh
+uniform uint first;         // the index of the draw's first triangle in its mesh
 in vec3 v_eye;
 layout(location = 0) out vec4 f_color;
 layout(location = 1) out uint f_id;
@@ -72,7 +75,7 @@ void main() {
     float shade = 0.25 + 0.75 * abs(dot(n, normalize(-v_eye)));
     if (!gl_FrontFacing) shade *= 0.5;  // makes wrong winding (e.g. mirrors) visible
     f_color = vec4(color * shade, 1.0);
-    f_id = draw_id;
+    f_id = triangle_ids ? draw_id + first + uint(gl_PrimitiveID) : draw_id;
 }
 """
 
@@ -242,7 +245,8 @@ class TileRenderer:
 
     def render(self, draws: Iterable[tuple], view: np.ndarray,
                projection: np.ndarray, *, clip_plane=None, reversed_z: bool = False,
-               front_face_cw: bool = False, camera_relative: bool = False) -> Image:
+               front_face_cw: bool = False, camera_relative: bool = False,
+               triangle_ids: bool = False) -> Image:
         """Draw ``(key, model (4, 4), draw_id >= 1)`` triples and read the frame back. A fourth
         item, ``ranges (k, 2)`` of ``(first triangle, triangles)``, draws only those triangles
         of the mesh (a leaf a tile shows in part: its clusters' draw ranges); None draws all.
@@ -262,6 +266,9 @@ class TileRenderer:
         clipped (``gl_ClipDistance[0]``), the inward-normal convention of ``wallcull.wall``.
         ``front_face_cw``: clockwise front faces, for mirrored views; nothing is culled either way,
         front faces are only shaded brighter than back faces.
+        ``triangle_ids``: each pixel's id is its triangle's, ``draw_id`` plus the triangle's
+        index in its mesh (``gl_PrimitiveID``, counted from the range's first triangle), so a
+        draw of ``k`` triangles uses the ids ``draw_id`` to ``draw_id + k - 1``.
         Raises KeyError for a key not uploaded, ValueError for a bad matrix or draw_id.
         """
         view = _matrix(view, "view")
@@ -271,8 +278,10 @@ class TileRenderer:
         for key, _, draw_id, ranges in draws:
             if key not in self._meshes:
                 raise KeyError(f"no mesh uploaded under {key!r}")
-            if not 1 <= draw_id < 2**32:
-                raise ValueError(f"draw_id must be in [1, 2**32), got {draw_id}")
+            top = draw_id + (max(self._meshes[key].triangles - 1, 0) if triangle_ids else 0)
+            if not 1 <= draw_id <= top < 2**32:
+                raise ValueError(f"draw_id must be in [1, 2**32), got {draw_id}"
+                                 + (" (and its mesh's triangles after it)" if triangle_ids else ""))
             if ranges is not None and len(ranges) and (
                     ranges.min() < 0 or (ranges.sum(axis=1) > self._meshes[key].triangles).any()):
                 raise ValueError(f"ranges outside the {self._meshes[key].triangles} triangles "
@@ -307,6 +316,7 @@ class TileRenderer:
             self._clear_color.clear(*BACKGROUND)
             self._draw_fbo.use()
             program["plane"].value = tuple(plane)
+            program["triangle_ids"].value = triangle_ids
             for key, model, draw_id, ranges in draws:
                 mesh = self._meshes[key]
                 world = to_world @ model @ _translation(mesh.center)
@@ -317,9 +327,11 @@ class TileRenderer:
                 program["color"].value = draw_color(draw_id)
                 program["draw_id"].value = draw_id
                 if ranges is None:
+                    program["first"].value = 0
                     mesh.vao.render(moderngl.TRIANGLES)
                 else:  # one draw call per range, counted in indices
                     for first, count in ranges.tolist():
+                        program["first"].value = first
                         mesh.vao.render(moderngl.TRIANGLES, vertices=3 * count, first=3 * first)
             if self.samples:
                 ctx.copy_framebuffer(self._fbo, self._draw_fbo)
