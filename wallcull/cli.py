@@ -293,37 +293,59 @@ def cmd_overdraw(args) -> int:
     wall = _wall(args.wall)
     if args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")
+    resolution = None
+    if args.visible or args.visible_resolution:
+        resolution = overdraw.default_resolution(wall)
+        if args.visible_resolution:
+            resolution[:] = _pixels(args.visible_resolution, "--visible-resolution")
     steps = iter(track(range(args.frames), description="overdraw", transient=True,
                        console=Console(stderr=True), disable=args.json))
     report = overdraw.run(args.scene, wall, args.path, args.frames, sizes, args.method,
                           args.bounds, args.hierarchy, args.branching,
-                          progress=lambda: next(steps, None),
-                          occlusion=args.occlusion).summary()
+                          progress=lambda: next(steps, None), occlusion=args.occlusion,
+                          resolution=resolution).summary()
     if args.json:
         print(json.dumps(report))
         return 0
     console = Console()
+    seen = "visible" in report
     console.print(f"[bold]{report['scene']}[/]: {report['triangles']:,} triangles; "
                   f"{describe_wall(wall)}; {args.frames} frames of the {args.path} path; method "
-                  f"{args.method}, bounds {args.bounds}")
+                  f"{args.method}, bounds {args.bounds}"
+                  + (f"; id buffers of {report['visible_resolution']} pixels" if seen else ""))
     table = Table(title="triangles drawn per frame, summed over the tiles")
     occluded = any(e["occlusion"] for e in report["settings"])
-    for col in ("lists", "triangles", "x floor", "draw calls", "cull ms",
-                *(["occlude ms"] if occluded else [])):
+    for col in ("lists", "triangles", "x floor", *(["x visible"] if seen else []),
+                "draw calls", "cull ms", *(["occlude ms"] if occluded else [])):
         table.add_column(col, justify="right")
-    blank = [""] * (2 + occluded)
-    table.add_row("no culling", f"{report['none']:,.0f}", f"{report['none_over_floor']:.1f}",
-                  *blank)
+
+    def row(name, triangles, over_floor, over_visible, *times):
+        table.add_row(name, f"{triangles:,.0f}", over_floor,
+                      *([f"{over_visible:.2f}"] if seen else []),
+                      *(times or [""] * (2 + occluded)))
+
+    row("no culling", report["none"], f"{report['none_over_floor']:.1f}",
+        report.get("none_over_visible"))
     for e in report["settings"]:
         name = "leaves" if e["clusters"] == "off" else f"clusters of {e['clusters']}"
-        name += ", occlusion" if e.get("occlusion") else ""
-        table.add_row(name, f"{e['triangles']:,.0f}", f"{e['over_floor']:.2f}",
-                      f"{e['draw_calls']:,.0f}", f"{e['cull_ms_median']:.3f}",
-                      *([f"{e['occlude_ms_median']:.3f}" if e["occlusion"] else ""]
-                        if occluded else []))
-    table.add_row("floor", f"{report['floor']:,.0f}", "1.00", *blank)
+        name += ", occlusion" if e["occlusion"] else ""
+        row(name, e["triangles"], f"{e['over_floor']:.2f}", e.get("over_visible"),
+            f"{e['draw_calls']:,.0f}", f"{e['cull_ms_median']:.3f}",
+            *([f"{e['occlude_ms_median']:.3f}" if e["occlusion"] else ""] if occluded else []))
+    row("floor", report["floor"], "1.00", report.get("floor_over_visible"))
+    if seen:
+        row("visible floor", report["visible"],
+            f"{report['visible'] / report['floor']:.2f}" if report["floor"] else "nan", 1.0)
     console.print(table)
     return 0
+
+
+def _pixels(text: str, option: str) -> tuple[int, int]:
+    """``WxH`` (e.g. ``240x135``) as two positive integers, or a one-line error."""
+    w, x, h = text.lower().partition("x")
+    if x and w.strip().isdigit() and h.strip().isdigit() and int(w) > 0 and int(h) > 0:
+        return int(w), int(h)
+    raise InputError(f"{option} must be WIDTHxHEIGHT in pixels, e.g. 240x135, got {text!r}")
 
 
 def cmd_scenes(args) -> int:
@@ -340,6 +362,7 @@ def parser() -> argparse.ArgumentParser:
     from .lowilie import EFFORTS
     from .clusters import AUTO_SIZE, MAX_SIZE, MIN_SIZE
     from .occlude import SETTINGS
+    from .overdraw import RESOLUTION_DIVISOR
     from .paths import PATHS
     from .scene import BRANCHING, CLUSTERS
 
@@ -444,6 +467,12 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--bounds", choices=KINDS, default="obb")
     q.add_argument("--occlusion", action="store_true",
                    help="also the clusters' lists with occlusion culling on (every frame)")
+    q.add_argument("--visible", action="store_true",
+                   help="also count the visible floor: the triangles with a pixel in the tile's "
+                        "id buffer (each tile's list rasterized in software: slower)")
+    q.add_argument("--visible-resolution", metavar="WxH",
+                   help=f"pixels of each tile's id buffer (implies --visible; default: the "
+                        f"tile's resolution / {RESOLUTION_DIVISOR}, 240x135 for 1920x1080 tiles)")
     q.add_argument("--json", action="store_true")
     q.set_defaults(func=cmd_overdraw)
 

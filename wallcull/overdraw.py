@@ -9,12 +9,17 @@ draw four ways:
   ranges of its partial leaves (:mod:`wallcull.clusters`), and, when asked, the same with
   occlusion culling (:mod:`wallcull.occlude`);
 * **floor**: the triangles not wholly outside the tile's frustum, clipped exactly: what any
-  frustum culling must draw at least.
+  frustum culling must draw at least;
+* **visible** (when asked, it costs): the triangles with at least one pixel in the tile's id
+  buffer, drawn by the software rasterizer of :mod:`wallcull.raster` with the tile's fitted
+  view and projection at a reduced resolution: what even an exact occlusion culling must draw.
 
 It also counts draw calls (a whole leaf is one, a partial leaf one per range) and times the
 cull. The floor is counted by one compiled kernel (:func:`_floor`) over the triangles the
 leaf-level lists draw, a superset of it because the culler is conservative (the tests hold
 it to the exact oracle of :mod:`wallcull.oracle`, and this kernel to the oracle's clipping).
+The visible floor rasterizes the same leaf-level lists: every triangle a tile may show, and
+every triangle that may hide one, is among them.
 """
 
 from __future__ import annotations
@@ -25,7 +30,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from . import raster
 from .cull import Visibility
+from .fit import FitOptions, Fits
 from .occlude import OcclusionOptions
 from .pipeline import Session
 from .scene import Scene
@@ -51,7 +58,8 @@ class Counts:
 @dataclass
 class Report:
     """A path's overdraw: ``settings`` maps ``(cluster size, occlusion)`` (size None: the
-    leaf-level lists) to its :class:`Counts`; ``floor`` and ``none`` are per frame."""
+    leaf-level lists) to its :class:`Counts`; ``floor``, ``visible`` (when measured, at
+    ``resolution``: each tile's ``(width, height)``) and ``none`` are per frame."""
 
     scene: str
     triangles: int
@@ -59,34 +67,59 @@ class Report:
     frames: int
     floor: list[int] = field(default_factory=list)
     settings: dict = field(default_factory=dict)
+    visible: list[int] | None = None
+    resolution: np.ndarray | None = None
 
     @property
     def none(self) -> int:
         return self.triangles * self.tiles
 
     def summary(self) -> dict:
-        """Means per frame; ratios to the floor of sums over the path (a frame that sees
-        nothing weighs nothing)."""
+        """Means per frame; ratios to the floor (and the visible floor, when measured) of
+        sums over the path (a frame that sees nothing weighs nothing)."""
         floor = float(np.sum(self.floor))
-        over = (lambda total: total / floor) if floor else (lambda total: float("nan"))
+        over = _ratio(floor)
         out = {"scene": self.scene, "triangles": self.triangles, "tiles": self.tiles,
                "frames": self.frames, "floor": floor / self.frames, "none": self.none,
                "none_over_floor": over(self.none * self.frames), "settings": []}
+        if self.visible is not None:
+            visible = float(np.sum(self.visible))
+            over_visible = _ratio(visible)
+            out.update(visible=visible / self.frames,
+                       visible_resolution=_resolution_text(self.resolution),
+                       none_over_visible=over_visible(self.none * self.frames),
+                       floor_over_visible=over_visible(floor))
         for (size, occluded), c in self.settings.items():
-            out["settings"].append({
-                "clusters": "off" if size is None else size, "occlusion": occluded,
-                "triangles": float(np.mean(c.triangles)), "over_floor": over(np.sum(c.triangles)),
-                "draw_calls": float(np.mean(c.calls)),
-                "cull_ms_median": float(np.median(c.cull_ms)),
-                **({"occlude_ms_median": float(np.median(c.occlude_ms))} if occluded else {})})
+            entry = {"clusters": "off" if size is None else size, "occlusion": occluded,
+                     "triangles": float(np.mean(c.triangles)),
+                     "over_floor": over(np.sum(c.triangles)),
+                     "draw_calls": float(np.mean(c.calls)),
+                     "cull_ms_median": float(np.median(c.cull_ms))}
+            if occluded:
+                entry["occlude_ms_median"] = float(np.median(c.occlude_ms))
+            if self.visible is not None:
+                entry["over_visible"] = over_visible(np.sum(c.triangles))
+            out["settings"].append(entry)
         return out
 
 
+def _ratio(denominator: float):
+    return (lambda total: total / denominator) if denominator else (lambda total: float("nan"))
+
+
+def _resolution_text(resolution: np.ndarray) -> str:
+    """``240x135``, or the distinct sizes of a wall whose tiles differ, comma-separated."""
+    sizes = dict.fromkeys(f"{w}x{h}" for w, h in resolution.tolist())
+    return ",".join(sizes)
+
+
 def measure(scenes: dict, wall: Wall, frames: list[Frame], method: str = "adaptive",
-            bounds: str = "obb", progress=None, occlusion: bool = False) -> Report:
+            bounds: str = "obb", progress=None, occlusion: bool = False,
+            resolution: np.ndarray | None = None) -> Report:
     """Walk ``frames`` with each of ``scenes`` (cluster size -> the scene loaded with it; None
-    must be among them: the leaf-level lists, which the floor is counted over), each also with
-    occlusion culling on every frame when ``occlusion``."""
+    must be among them: the leaf-level lists, which the floors are counted over), each also
+    with occlusion culling on every frame when ``occlusion``. With ``resolution`` (``(tiles,
+    2)`` pixels), the visible floor too."""
     base: Scene = scenes[None]
     tiles = wall.tiles
     keys = [(size, occluded) for size in scenes for occluded in (False, True)[:1 + occlusion]]
@@ -95,6 +128,10 @@ def measure(scenes: dict, wall: Wall, frames: list[Frame], method: str = "adapti
     sessions = {(size, occluded): Session(scenes[size], wall, method, bounds,
                                           occlusion=OcclusionOptions() if occluded else None)
                 for size, occluded in keys}
+    if resolution is not None:  # the leaf-level session also fits: the tiles' matrices
+        sessions[None, False].fit_options = FitOptions()
+        report.visible, report.resolution = [], resolution
+        first = raster.first_ids(base)
     for s in sessions.values():
         s.frame(frames[0])  # compiles the kernels before anything is timed
     for frame in frames:
@@ -103,6 +140,9 @@ def measure(scenes: dict, wall: Wall, frames: list[Frame], method: str = "adapti
             report.settings[key].add(result.visibility, result.timings)
         plain = results[None, False]
         report.floor.append(int(floor(base, plain.frusta, plain.visibility).sum()))
+        if resolution is not None:
+            report.visible.append(int(visible(base, plain.fits, plain.visibility, resolution,
+                                              first).sum()))
         if progress is not None:
             progress()
     return report
@@ -187,16 +227,54 @@ def triangle_meets(tri, planes) -> bool:
     return True
 
 
+def visible(scene: Scene, fits: Fits, vis: Visibility, resolution: np.ndarray,
+            first: np.ndarray | None = None) -> np.ndarray:
+    """``(tiles,)`` distinct triangles in each tile's id buffer: the leaves ``vis`` lists,
+    rasterized with the tile's fitted view and projection at ``resolution[t]`` pixels
+    (``first``: :func:`wallcull.raster.first_ids` of ``scene``, if at hand)."""
+    start, leaves = vis.leaf_lists()
+    first = raster.first_ids(scene) if first is None else first
+    out = np.zeros(len(start) - 1, np.int64)
+    for t in range(len(out)):
+        view = fits.view if fits.view.ndim == 2 else fits.view[t]
+        ids = raster.render(scene, leaves[start[t]:start[t + 1]], view, fits.projection[t],
+                            *resolution[t], first).ids
+        out[t] = _distinct(ids.ravel())
+    return out
+
+
+@njit(cache=True)
+def _distinct(ids) -> int:
+    """How many different ids other than 0 (the background)."""
+    s = np.sort(ids)
+    n = 0
+    for i in range(len(s)):
+        if s[i] != 0 and (i == 0 or s[i] != s[i - 1]):
+            n += 1
+    return n
+
+
+#: The visible floor's default resolution is each tile's divided by this.
+RESOLUTION_DIVISOR = 8
+
+
+def default_resolution(wall: Wall) -> np.ndarray:
+    """The visible floor's default pixels per tile: each tile's resolution over
+    :data:`RESOLUTION_DIVISOR`, rounded up (240 x 135 for 1920 x 1080 tiles)."""
+    return -(-wall.resolutions // RESOLUTION_DIVISOR)
+
+
 def run(spec: str, wall: Wall, path: str = "orbit", frames: int = 60,
         sizes=(None,), method: str = "adaptive", bounds: str = "obb",
         hierarchy: str = "auto", branching: int = 8, progress=None,
-        occlusion: bool = False) -> Report:
+        occlusion: bool = False, resolution: np.ndarray | None = None) -> Report:
     """``wallcull overdraw``: the scene ``spec`` loaded with each cluster size of ``sizes``
-    (None, clusters off, always among them), walked along ``path``."""
+    (None, clusters off, always among them), walked along ``path``; the visible floor too
+    with ``resolution`` (``(tiles, 2)`` pixels)."""
     from .paths import scene_path
     from .scene import load
 
     scenes = {size: load(spec, hierarchy, branching, clusters=size)
               for size in dict.fromkeys((None, *sizes))}
     return measure(scenes, wall, scene_path(scenes[None], wall, path, frames), method, bounds,
-                   progress, occlusion)
+                   progress, occlusion, resolution)
