@@ -185,8 +185,17 @@ def _triangle(win, i, j, k, tid, depth, ids):
     for py in range(int(lo_y), int(hi_y) + 1):
         cy = py + 0.5
         row = height - 1 - py
-        for px in range(int(lo_x), int(hi_x) + 1):
+        # The row's span between the edges, widened by a pixel each side: a long thin
+        # triangle costs its pixels, not its box; the exact tests below decide each pixel.
+        left, right = lo_x, hi_x
+        left, right = _span(x1, y1, x2, y2, cy, left, right)
+        left, right = _span(x2, y2, x0, y0, cy, left, right)
+        left, right = _span(x0, y0, x1, y1, cy, left, right)
+        for px in range(int(left), int(right) + 1):
             cx = px + 0.5
+            z = z0 + dzdx * (cx - x0) + dzdy * (cy - y0)
+            if not z < depth[row, px]:
+                continue
             e0 = _edge(x1, y1, x2, y2, cx, cy)
             if e0 < 0.0 or (e0 == 0.0 and not tl0):
                 continue
@@ -196,7 +205,18 @@ def _triangle(win, i, j, k, tid, depth, ids):
             e2 = _edge(x0, y0, x1, y1, cx, cy)
             if e2 < 0.0 or (e2 == 0.0 and not tl2):
                 continue
-            z = z0 + dzdx * (cx - x0) + dzdy * (cy - y0)
-            if z < depth[row, px]:
-                depth[row, px] = z
-                ids[row, px] = tid
+            depth[row, px] = z
+            ids[row, px] = tid
+
+
+@njit(cache=True, inline="always")
+def _span(ax, ay, bx, by, cy, left, right):
+    """``(left, right)`` pixel columns narrowed to where row ``cy`` is on the inner side of
+    edge ``a -> b`` of a counter-clockwise triangle, give or take a pixel."""
+    dy = by - ay
+    if dy == 0.0:
+        return left, right
+    x = ax + (bx - ax) * (cy - ay) / dy - 0.5  # the edge crosses the row at pixel x + 0.5
+    if dy > 0.0:  # inside to the left of x
+        return left, min(right, math.floor(x) + 1.0)
+    return max(left, math.ceil(x) - 1.0), right
