@@ -24,11 +24,10 @@ from hypothesis import given, settings, strategies as st
 
 from wallcull import overdraw, raster
 from wallcull.cli import main
-from wallcull.cull import cull
 from wallcull.fit import FitOptions, tile_projections, tile_views
 from wallcull.paths import scene_path
 from wallcull.pipeline import Session
-from wallcull.scene import Scene, SceneState, load
+from wallcull.scene import Scene, load
 from wallcull.wall import Frame, Frusta, Wall
 
 from .drawing import Draws
@@ -296,6 +295,11 @@ def test_overdraw_reports_the_visible_floor(capsys):
         assert e["over_visible"] >= report["floor_over_visible"]
     assert main(["overdraw", "scenes/CesiumMilkTruck.glb", "--frames", "1"]) == 0
     assert "visible" not in capsys.readouterr().out  # only when asked
+    # a wall of screens: each tile its own view (a CAVE around the eye)
+    assert main(["overdraw", "scenes/CesiumMilkTruck.glb", "--wall", "examples/wall-cave.json",
+                 "--frames", "2", "--visible-resolution", "48x48", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["floor"] >= report["visible"] > 0
 
 
 def test_overdraw_refuses_a_bad_resolution(capsys):
