@@ -300,6 +300,12 @@ def test_overdraw_reports_the_visible_floor(capsys):
                  "--frames", "2", "--visible-resolution", "48x48", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["floor"] >= report["visible"] > 0
+    # the table, into a pipe: every row whole, however many columns
+    assert main(["overdraw", "scenes/CesiumMilkTruck.glb", "--frames", "1", "--occlusion",
+                 "--visible-resolution", "48x27"]) == 0
+    table = capsys.readouterr().out
+    assert "clusters of auto, occlusion" in table and "visible floor" in table
+    assert "\u2026" not in table  # nothing cut short with an ellipsis
 
 
 def test_overdraw_refuses_a_bad_resolution(capsys):

@@ -282,6 +282,7 @@ def cmd_prepare(args) -> int:
 
 def cmd_overdraw(args) -> int:
     from rich.console import Console
+    from rich.measure import Measurement
     from rich.progress import track
     from rich.table import Table
 
@@ -336,6 +337,9 @@ def cmd_overdraw(args) -> int:
     if seen:
         row("visible floor", report["visible"],
             f"{report['visible'] / report['floor']:.2f}" if report["floor"] else "nan", 1.0)
+    if not console.is_terminal:  # a file or a pipe: whole rows, no number cut short
+        console.width = max(console.width, Measurement.get(
+            console, console.options.update_width(1000), table).maximum)
     console.print(table)
     return 0
 
