@@ -332,6 +332,53 @@ def test_a_page_that_lost_its_lists_asks_for_full_ones(server, http, browser, re
         http.delete(f"/walls/{wid}", headers=AUTH)
 
 
+def stall(page, ms: int) -> None:
+    """Keep the page's main thread busy for ``ms`` milliseconds, from now on (a slow page:
+    it reads and acknowledges nothing meanwhile)."""
+    page.evaluate(f"setTimeout(() => {{ const t = Date.now(); while (Date.now() - t < {ms}); }},"
+                  " 0)")
+
+
+def test_two_pages_on_overlapping_tiles_both_keep_drawing(server, http, browser, references,
+                                                         blocks):
+    """A second page on tiles that a first one draws (6 of 5-6) falls behind (the server
+    stops sending to it: its window) while the first acknowledges frame after frame, then the
+    first stalls too. Each page gets deltas against what it acknowledged itself, so neither
+    meets a delta it cannot apply, and both draw the newest frame right."""
+    wid = create_wall(http, GRID, scene=blocks)["id"]
+    w, h = 160, 90
+    first = open_page(browser, f"{server}/walls/{wid}/view?tiles=5-6&token={TOKEN}&ids=1"
+                               f"&size={w}x{h}")
+    second = None
+    try:
+        number = post(http, wid, BLOCK_FRAMES[0])
+        wait_acked(first, number)
+        second = open_page(browser, f"{server}/walls/{wid}/view?tiles=6&token={TOKEN}&ids=1"
+                                    f"&size={w}x{h}")
+        wait_acked(second, number)
+        stall(second, 3000)
+        for k in range(1, 16):
+            if k == 15:
+                stall(first, 4000)  # the first page has not acknowledged the newest frame
+            number = post(http, wid, {"position": [2, 2 - 0.25 * k, 14 - 0.25 * k],
+                                      "orientation": turn(k)})
+            if k < 15:
+                wait_acked(first, number)
+        for page in (first, second):
+            wait_acked(page, number)
+            assert page.evaluate("window.wallcull.fulls") == 0  # every delta applied
+            assert page.wallcull_errors == []
+        ref = references(blocks)
+        want = ref.ids(ref.packet(wid, 6, number), w, h)
+        check_tile(browser_ids(first, 6), want, "tile 6 on the first page")
+        check_tile(browser_ids(second, 6), want, "tile 6 on the second page")
+    finally:
+        for page in (first, second):
+            if page is not None:
+                page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
 def test_cave_screens_match_the_reference_renderer(server, http, browser, references, blocks):
     wid = create_wall(http, CAVE, scene=blocks)["id"]
     compare_frames(http, browser, server, references, blocks, wid, BLOCK_FRAMES[:2],

@@ -140,6 +140,62 @@ def test_full_lists_on_request_and_after_a_reconnection(client, wall, scene):
         assert message["frame"] == 3 and message["base"] == 2
 
 
+def test_two_nodes_on_the_same_tiles_each_get_deltas_against_what_they_hold(client, wall,
+                                                                              scene):
+    """Node A (tiles 0-2) acknowledges every frame; node B (tiles 1-2) joins late and falls
+    behind, so the server stops sending to it (the window) while A moves on. B's next message
+    is a delta against what B acknowledged, never against A's newer frames; and a node stuck
+    in the window that asks for full lists gets them at once."""
+    wid, creds = wall["id"], wall["credentials"]
+    driver = {"Authorization": f"Bearer {creds['driver']}"}
+    path = frames(scene, 30)
+    reference = Session(scene, Wall.from_dict(WALL), fit=FitOptions())
+    want = {}
+
+    def post(k):
+        r = client.post(f"/walls/{wid}/frames", json={"frame": path[k]}, headers=driver)
+        assert r.status_code == 200, r.text
+        start, leaves = reference.frame(path[k]).visibility.leaf_lists()
+        want[k] = [leaves[start[t]:start[t + 1]].tolist() for t in range(6)]
+
+    def take(node, ws):
+        message = msgpack.unpackb(ws.receive_bytes())
+        for tile in node.take(message):  # raises when the base is not held
+            assert tile.leaves.tolist() == want[message["frame"]][tile.tile]
+        return message
+
+    a, b = NodeState(), NodeState()
+    with client.websocket_connect(f"/walls/{wid}/nodes/stream?token="
+                                  f"{creds['nodes'][0]['token']}") as ws_a:
+        for k in range(10):
+            post(k)
+            assert take(a, ws_a)["frame"] == k
+            ws_a.send_bytes(msgpack.packb({"ack": k}))
+        with client.websocket_connect(f"/walls/{wid}/nodes/stream?tiles=1-2&token={TOKEN}") \
+                as ws_b:
+            first = take(b, ws_b)
+            assert first["frame"] == 9 and first["base"] is None
+            for k in range(10, 15):  # B acknowledges nothing: the window stops its stream
+                post(k)
+                assert take(a, ws_a)["frame"] == k
+                if k < 14:
+                    ws_a.send_bytes(msgpack.packb({"ack": k}))
+            ws_b.send_bytes(msgpack.packb({"ack": 9}))
+            late = take(b, ws_b)  # the newest frame, against frame 9 (A acknowledged 13)
+            assert late["base"] == 9 and late["frame"] > 9
+            ws_a.send_bytes(msgpack.packb({"ack": 14}))
+            for k in range(15, 30):
+                post(k)
+                assert take(a, ws_a)["frame"] == k
+                ws_a.send_bytes(msgpack.packb({"ack": k}))
+            ws_b.send_bytes(msgpack.packb({"full": True}))  # no ack: still in the window
+            while True:  # what was sent before the request, then the full lists
+                message = take(b, ws_b)
+                if message["base"] is None:
+                    break
+            assert message["frame"] == 29
+
+
 def test_a_cave_in_stereo_over_the_api(client, scene):
     """A wall given screen by screen, stereo frames: the node rebuilds each screen's own view
     and each eye's matrices, equal to the fits computed here; packets carry left and right."""

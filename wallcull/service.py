@@ -480,36 +480,42 @@ class WallSession:
         for event in (self._new_frame, self._new_ack, self.gone):
             event.set()
 
-    def _base(self, tiles, number: int, full: bool, since: int) -> int | None:
+    def _base(self, tiles, number: int, full: bool, since: int,
+              held: int | None = None) -> int | None:
         """What the packet (or node message) of ``tiles`` for frame ``number`` is a delta
         against: the frame they have all acknowledged if that is at least ``since``, else None
-        (full lists)."""
+        (full lists). ``held``: a stream's own newest acknowledgement, used instead of the
+        tiles' (another node on the same tiles may have acknowledged a frame that this one
+        never received)."""
         if number > self.latest or number < 0:
             raise NotFound(f"frame {number} does not exist yet (latest {self.latest})")
         if self.history.get(number) is None:
             if number > self.history.oldest:
                 raise NotFound(f"there is no frame {number}: frame numbers skipped it")
             raise Gone(f"frame {number} has left the history (oldest {self.history.oldest})")
-        ack = int(self.acks[tiles].min())
+        ack = int(self.acks[tiles].min()) if held is None else held
         base = None if full or ack < 0 or ack < since else ack
         held = base is not None and base < number and self.history.get(base) is not None
         return base if held else None
 
-    def packet(self, tile: int, number: int, full: bool = False, since: int = -1) -> dict:
+    def packet(self, tile: int, number: int, full: bool = False, since: int = -1,
+               held: int | None = None) -> dict:
         """Tile ``tile``'s packet of frame ``number``: a delta against the tile's acknowledged
         frame if that is at least ``since``, else a full list. A stream passes its first frame
-        as ``since``: a node that reconnected holds nothing from before it."""
+        as ``since``: a node that reconnected holds nothing from before it, and ``held`` (see
+        :meth:`node_message`)."""
         self.check_tile(tile)
         return protocol.packet(self.history, number, tile,
-                               self._base(tile, number, full, since))
+                               self._base(tile, number, full, since, held))
 
     def packet_bytes(self, tile: int, number: int, full: bool = False,
-                     since: int = -1) -> tuple[memoryview, bool]:
+                     since: int = -1, held: int | None = None) -> tuple[memoryview, bool]:
         """:meth:`packet` as msgpack bytes, and whether it is a delta. The first tile to ask
         for a frame against a base encodes every tile's packet of that frame against it
-        (:mod:`wallcull.encode`); the others take their slice."""
+        (:mod:`wallcull.encode`); the others take their slice. ``held``: see
+        :meth:`node_message`."""
         self.check_tile(tile)
-        base = self._base(tile, number, full, since)
+        base = self._base(tile, number, full, since, held)
         record = self.history.get(number)
         cache = record.__dict__.setdefault("_encoded", {})
         encoded = cache.get(base)
@@ -521,11 +527,14 @@ class WallSession:
         return encoded[tile], base is not None
 
     def node_message(self, tiles: np.ndarray, number: int, full: bool = False,
-                     since: int = -1, binary: bool = True) -> tuple[bytes, bool]:
+                     since: int = -1, binary: bool = True,
+                     held: int | None = None) -> tuple[bytes, bool]:
         """The node message of ``tiles`` (sorted, checked) for frame ``number``, msgpack or
         JSON, and whether it is a delta: against the frame all of them acknowledged if that
-        is at least ``since`` (a stream's first frame), else full lists."""
-        base = self._base(tiles, number, full, since)
+        is at least ``since`` (a stream's first frame), else full lists. A stream passes
+        ``held``, the newest frame acknowledged on itself: several nodes may drive the same
+        tiles, and each gets deltas against what it holds."""
+        base = self._base(tiles, number, full, since, held)
         if binary:
             return encode.node_message(self.history, number, tiles, base), base is not None
         message = protocol.node_message(self.history, number, tiles, base)

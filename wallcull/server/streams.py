@@ -195,8 +195,10 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
     ack_came = asyncio.Event()
 
     async def acknowledged(number: int) -> bool:
-        """Wait until this stream has acknowledged ``number`` (False: idle too long)."""
-        while acked[0] < number and not session.closed:
+        """Wait until this stream has acknowledged ``number`` or asked for full lists (a node
+        that could not use a delta acknowledges nothing until it has them); False: idle too
+        long."""
+        while acked[0] < number and not wants.get("full") and not session.closed:
             ack_came.clear()
             waits = [asyncio.ensure_future(ack_came.wait()),
                      asyncio.ensure_future(session.gone.wait())]
@@ -222,12 +224,15 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
                     return "idle"
                 number = session.latest
             full = wants.pop("full", False)
+            # deltas against what this stream acknowledged, not what the tiles did: another
+            # node on the same tiles may be ahead of this one (or behind it)
             if node:  # its tiles' entries, encoded once per frame for every node
-                data, delta = session.node_message(tiles, number, full, since, binary)
+                data, delta = session.node_message(tiles, number, full, since, binary,
+                                                   held=acked[0])
             elif binary:  # encoded once per frame for every tile (wallcull.encode)
-                data, delta = session.packet_bytes(tile, number, full, since)
+                data, delta = session.packet_bytes(tile, number, full, since, held=acked[0])
             else:
-                pkt = session.packet(tile, number, full, since)
+                pkt = session.packet(tile, number, full, since, held=acked[0])
                 data, delta = protocol.encode(pkt, False), pkt["base"] is not None
             await write(data)
             since = number if since < 0 else since
@@ -247,6 +252,7 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
                     raise InputError("a message must be an object")
                 if msg.get("full"):
                     wants["full"] = True
+                    ack_came.set()
                 if "ack" in msg:
                     if not isinstance(msg["ack"], int) or isinstance(msg["ack"], bool):
                         raise InputError("ack must be a frame number")
