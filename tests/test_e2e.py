@@ -188,6 +188,58 @@ def test_nodes_over_nats_end_to_end(nats_server, scene):
     check(result, "ws")
 
 
+def test_two_nodes_on_the_same_subject_over_nats(nats_server, scene):
+    """Two render nodes take the same NATS subject (a node of all 16 tiles): the first draws
+    slower than frames come at 60 Hz, the second joins later and keeps up. Each message is one
+    both can use (deltas against what both acknowledged, full lists until the newcomer has
+    acknowledged), so neither ever misses a base, and both rebuild every frame's lists
+    exactly."""
+    url, nats = nats_server
+    count = 120
+
+    async def scenario():
+        async with Driver(url, TOKEN) as driver:
+            info = await driver.create_wall(SCENE, WALL, nodes=[list(range(16))])
+            wid = info["id"]
+            frames = await driver.frames(SCENE, info["wall"], "orbit", count)
+            expected = expected_lists(scene, frames)
+            mismatches, seen = [], {0: asyncio.Event()}
+
+            def checker(tile, frame, leaves):
+                start, want = expected[frame]
+                if not np.array_equal(leaves, want[start[tile]:start[tile + 1]]):
+                    mismatches.append((frame, tile))
+                if frame >= 20:
+                    seen[0].set()
+
+            def nodes(draw_time):
+                return asyncio.create_task(run_wall(
+                    url, wid, "all", token=TOKEN, until=count - 1, idle_timeout=30,
+                    on_list=checker, nats=nats, draw_time=draw_time))
+
+            first = nodes(0.02)  # behind, more and more
+            await asyncio.sleep(1.0)  # subscribed: frames published from now on reach it
+            await driver.stream_frames(wid)
+            posting = asyncio.create_task(driver.run(wid, frames, rate=60))
+            await asyncio.wait_for(seen[0].wait(), 60)
+            second = nodes(0.0)  # joins while the first is still drawing older frames
+            clients = [c for group in await asyncio.gather(first, second) for c in group]
+            await posting
+            await driver.call("DELETE", f"/walls/{wid}", auth=True)
+            return clients, mismatches
+
+    clients, mismatches = asyncio.run(scenario())
+    assert len(clients) == 2 and mismatches == []
+    for client in clients:
+        stats = client.tile_stats[0]
+        assert stats.errors == [] and client.stats.base_misses == 0
+        assert stats.frame[-1] == count - 1 and len(stats.frame) > 20
+        # deltas, all of them used (a tile with an empty list gets it, no longer than a delta)
+        entries = [full for s in client.tile_stats.values()
+                   for full, n in zip(s.full, s.leaves) if n > 0]
+        assert sum(not full for full in entries) > 0.5 * len(entries)
+
+
 def test_ordering_check_catches_a_tile_running_ahead():
     """The barrier check is real: a tile acknowledging k + 1 before the barrier of k answered,
     or a frame posted before the previous barrier, are reported."""

@@ -49,6 +49,7 @@ import argparse
 import asyncio
 import json
 import os
+import secrets
 import signal
 import sys
 import time
@@ -656,6 +657,9 @@ class NodeClient(TileClient):
         self.nats, self.nats_prefix = nats, nats_prefix
         self._nc = None  # the NATS connection, with nats
         self._wants_full = False
+        # its name in acknowledgements and full requests over NATS: other nodes may take the
+        # same subject, and each gets deltas against what all of them hold
+        self.name = secrets.token_hex(4)
 
     def records(self) -> list[dict]:
         cache = self.cache.stats()
@@ -728,7 +732,8 @@ class NodeClient(TileClient):
             for tile in self.tiles:
                 self.on_event("ack", tile, number)
         if self._nc is not None:
-            await self._nc.publish(self.subject("ack"), msgpack.packb({"ack": number}))
+            await self._nc.publish(self.subject("ack"), msgpack.packb({"ack": number,
+                                                                      "node": self.name}))
         else:
             await self._ws.send(protocol.encode({"ack": number}, self.binary)
                                 if self.binary else json.dumps({"ack": number}))
@@ -774,7 +779,8 @@ class NodeClient(TileClient):
                 if self._wants_full:
                     self._wants_full = False
                     try:
-                        reply = await self._nc.request(self.subject("full"), b"", timeout=5)
+                        reply = await self._nc.request(
+                            self.subject("full"), msgpack.packb({"node": self.name}), timeout=5)
                     except NatsTimeout:
                         self._wants_full = True  # no server yet: ask again
                         continue

@@ -96,7 +96,7 @@ CHANNELS = {
     "natsFull": {"address": "{prefix}.{wid}.full.{first}",
                  "title": "NATS: full lists, by request (the reply: a node message)",
                  "parameters": _params("prefix", "wid", "first"),
-                 "messages": _ref("empty", "nodeMessage", "streamError")},
+                 "messages": _ref("empty", "control", "nodeMessage", "streamError")},
 }
 
 
@@ -120,7 +120,8 @@ OPERATIONS = {
     "consoleStatus": _op("send", "consoleStream", "consoleStatus"),
     "publishNodeMessages": _op("send", "natsNode", "nodeMessage"),
     "takeAcks": _op("receive", "natsAck", "control"),
-    "answerFull": _op("receive", "natsFull", "empty", reply=("nodeMessage", "streamError")),
+    "answerFull": _op("receive", "natsFull", "empty", "control",
+                      reply=("nodeMessage", "streamError")),
 }
 
 

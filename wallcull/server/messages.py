@@ -172,15 +172,21 @@ class NodeMessage(Message):
     left: EyeView = None
     right: EyeView = None
     transforms: Transforms = None
-    tiles: list[TileEntry]
+    tiles: Annotated[list[TileEntry], Field(
+        description="every tile of the node in a message with full lists; in a delta only "
+                    "the tiles with something new: one left out keeps its list, extent and "
+                    "depth of the base frame")]
 
 
 class Control(Message):
-    """From a node: it has drawn frame ack; full: send full lists next."""
+    """From a node: it has drawn frame ack; full: send full lists next; node (NATS: in its
+    acknowledgements and full requests): its name, when several nodes may take the same
+    subject."""
 
     model_config = ConfigDict(json_schema_extra={"minProperties": 1})
     ack: Id = None
     full: bool = None
+    node: Annotated[str, Field(max_length=64)] = None
 
 
 class StreamError(Message):

@@ -17,6 +17,12 @@ A node that joins, or that holds no longer the base of a delta it gets, asks for
 not acknowledged any of the last ``WINDOW`` frames published to it is published nothing more
 (as a WebSocket stream is) until it acknowledges or asks again: a dead node costs nothing.
 
+Several nodes may take the same subject (two machines mirroring the same tiles): each names
+itself in its acknowledgements and full requests (``{"ack": n, "node": "a1b2"}``; a node that
+does not is one nameless subscriber), and a delta is against a frame every subscriber that
+acknowledged within the window holds: the oldest of their acknowledgements, if none of them
+joined after it; else the message has full lists.
+
 Access control on a broker is the broker's (accounts and subject permissions); the server's
 own tokens guard its HTTP and WebSocket API.
 """
@@ -25,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
@@ -37,6 +44,51 @@ log = logging.getLogger("wallcull")
 
 #: Frames published to a node without an acknowledgement before it is skipped.
 WINDOW = 8
+#: Subscribers one node subject keeps track of (their names come from the network).
+MAX_SUBSCRIBERS = 32
+
+
+@dataclass
+class _Subscriber:
+    """One node on a subject: the newest frame it acknowledged, the first it holds."""
+
+    acked: int = -1
+    since: int = -1
+
+
+@dataclass
+class _Node:
+    """A node subject of a wall: its tiles, the newest frame published, its subscribers."""
+
+    subject: str
+    tiles: np.ndarray
+    sent: int = -1
+    subscribers: dict = field(default_factory=dict)  # name (or None) -> _Subscriber
+
+    def base(self) -> tuple[bool, int | None]:
+        """Whether to publish the next frame, and the base every live subscriber holds
+        (None: full lists). Subscribers silent for the window are forgotten."""
+        low = self.sent - WINDOW + 1
+        live = {k: v for k, v in self.subscribers.items() if self.sent < 0
+                or max(v.acked, v.since) >= low}
+        self.subscribers = live
+        if not live:
+            return self.sent < 0, None
+        oldest = min(v.acked for v in live.values())
+        joined = max(v.since for v in live.values())
+        return True, oldest if oldest >= 0 and oldest >= joined else None
+
+    def take(self, name, ack: int | None = None, since: int | None = None) -> None:
+        """An acknowledgement (``ack``) or a full request answered with frame ``since``."""
+        found = self.subscribers.get(name)
+        if found is None:
+            if len(self.subscribers) >= MAX_SUBSCRIBERS:
+                return
+            found = self.subscribers[name] = _Subscriber(since=ack if since is None else since)
+        if since is not None:
+            found.acked, found.since = -1, since
+        if ack is not None and ack > found.acked:
+            found.acked = ack
 
 
 class NatsBridge:
@@ -46,6 +98,7 @@ class NatsBridge:
         self.url, self.walls, self.metrics, self.prefix = url, walls, metrics, prefix
         self.nc = None
         self.tasks: dict[str, asyncio.Task] = {}
+        self.nodes: dict[tuple[str, str], _Node] = {}  # (wall, first tile) -> its node
 
     async def start(self, timeout: float = 10.0) -> None:
         """Connect (failing after ``timeout`` seconds: a broker named but unreachable is a
@@ -79,20 +132,24 @@ class NatsBridge:
         return f"{self.prefix}.{wid}.{kind}.{first}"
 
     async def _publish(self, session: WallSession) -> None:
-        nodes = [(self.subject(session.id, "node", tiles[0]), np.asarray(tiles, np.int64))
-                 for tiles in session.nodes]
-        sent = [-1] * len(nodes)  # the newest frame published to each node
+        nodes = []
+        for tiles in session.nodes:
+            node = _Node(self.subject(session.id, "node", tiles[0]), np.asarray(tiles, np.int64))
+            self.nodes[session.id, str(tiles[0])] = node
+            nodes.append(node)
         last = -1
         try:
             while not session.closed:
                 number = await session.next_frame(last)
-                for k, (subject, tiles) in enumerate(nodes):
-                    if sent[k] >= 0 and session.acks[tiles].min() < sent[k] - WINDOW + 1:
-                        continue  # none of the last WINDOW frames it was sent acknowledged
-                    data, delta = session.node_message(tiles, number)
-                    await self.nc.publish(subject, data)
+                for node in nodes:
+                    publish, base = node.base()
+                    if not publish:
+                        continue  # no subscriber acknowledged any of the last WINDOW frames
+                    data, delta = session.node_message(node.tiles, number, full=base is None,
+                                                       held=base)
+                    await self.nc.publish(node.subject, data)
                     self.metrics.packet(delta, len(data), "nats")
-                    sent[k] = number
+                    node.sent = number
                 last = number
         except NotFound:
             pass  # the wall was deleted
@@ -101,36 +158,52 @@ class NatsBridge:
             raise
         finally:
             self.tasks.pop(session.id, None)
+            for node in nodes:
+                self.nodes.pop((session.id, str(node.tiles[0])), None)
 
-    def _node(self, subject: str) -> tuple[WallSession, np.ndarray]:
-        """The wall and the node's tiles a subject names (``PREFIX.W.kind.T``)."""
+    def _node(self, subject: str) -> tuple[WallSession, _Node]:
+        """The wall and the node a subject names (``PREFIX.W.kind.T``)."""
         parts = subject.split(".")
         wid, first = parts[-3], parts[-1]
         session = self.walls.get(wid)
-        for tiles in session.nodes:
-            if str(tiles[0]) == first:
-                return session, np.asarray(tiles, np.int64)
-        raise NotFound(f"wall {wid} has no node of first tile {first}")
+        node = self.nodes.get((wid, first))
+        if node is None:
+            raise NotFound(f"wall {wid} has no node of first tile {first}")
+        return session, node
+
+    @staticmethod
+    def _name(body: dict):
+        name = body.get("node")
+        if name is not None and not (isinstance(name, str) and len(name) <= 64):
+            raise InputError("node must be a name of at most 64 characters")
+        return name
 
     async def _ack(self, msg) -> None:
         try:
-            session, tiles = self._node(msg.subject)
-            number = msgpack.unpackb(msg.data).get("ack")
+            session, node = self._node(msg.subject)
+            body = msgpack.unpackb(msg.data)
+            number = body.get("ack")
             if not isinstance(number, int) or isinstance(number, bool):
                 raise InputError("ack must be a frame number")
-            session.ack(tiles, number)
+            session.ack(node.tiles, number)
+            node.take(self._name(body), ack=number)
         except Exception as exc:  # noqa: BLE001 - counted; it must not stop the subscription
             self.metrics.errors.labels("nats").inc()
             log.debug("NATS ack on %s refused: %r", msg.subject, exc)
 
     async def _full(self, msg) -> None:
         try:
-            session, tiles = self._node(msg.subject)
+            session, node = self._node(msg.subject)
             if session.latest < 0:
                 raise NotFound("no frame yet")
-            data, _ = session.node_message(tiles, session.latest, full=True)
+            body = msgpack.unpackb(msg.data) if msg.data else {}
+            if not isinstance(body, dict):
+                raise InputError("a full request is empty or {\"node\": name}")
+            number = session.latest
+            data, _ = session.node_message(node.tiles, number, full=True)
+            node.take(self._name(body), since=number)
             self.metrics.packet(False, len(data), "nats")
-        except (NotFound, Gone) as exc:
+        except (NotFound, Gone, InputError, ValueError, msgpack.UnpackException) as exc:
             data = msgpack.packb({"error": str(exc)})
         if msg.reply:
             await msg.respond(data)
