@@ -220,3 +220,34 @@ def test_a_node_tells_what_its_deltas_would_have_cost_as_full_lists():
             assert full_size(message, len(raw), frames, node.frusta.held[number]) == len(whole)
             deltas += message["base"] is not None
         assert deltas == 5
+
+
+def test_a_delta_leaves_out_the_tiles_with_nothing_new():
+    """On a big wall most tiles keep their list, extent and depth from one frame to the next
+    (empty ones above all): a delta leaves them out, and a node keeps the base's, so that
+    every tile's list and matrices are still those of the full message."""
+    from wallcull_clients.node import NodeState
+    from wallcull.fit import FitOptions
+    from wallcull.paths import scene_path
+
+    scene = load("powerplant")
+    wall = Wall.from_dict(json.loads((ROOT / "examples" / "wall-16x16.json").read_text()))
+    session = Walls().create(scene, wall, "adaptive", "obb", False, 4, FitOptions())
+    tiles = np.arange(wall.tiles)
+    node, left_out = NodeState(), 0
+    for k, frame in enumerate(scene_path(scene, wall, "orbit", 600)[:5]):
+        number, _ = session.post_frame(frame.to_dict())
+        message = msgpack.unpackb(encode.node_message(session.history, number, tiles,
+                                                      number - 1 if k else None))
+        assert message == protocol.node_message(session.history, number, tiles,
+                                                number - 1 if k else None)
+        left_out += wall.tiles - len(message["tiles"])
+        whole = NodeState().take(msgpack.unpackb(encode.node_message(session.history, number,
+                                                                     tiles, None)))
+        got = node.take(message)
+        assert [f.tile for f in got] == tiles.tolist()
+        for g, w in zip(got, whole):
+            assert g.leaves.tolist() == w.leaves.tolist()
+            for key in ("view", "projection"):
+                np.testing.assert_array_equal(g.matrices[key], w.matrices[key])
+    assert left_out > 4 * wall.tiles // 2  # most of every delta's tiles

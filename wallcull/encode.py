@@ -590,8 +590,10 @@ def _extent_depth(out, p, sends, tangents, depth, bits, bits32):
 def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_start, sends, C,
              S, M, E, out, out_start):
     """Every tile's node-message entry into ``out``: its id, its list (full, or the delta's
-    non-empty parts when they are shorter than the list), its count, its view where it has its own, its extent and depth range
-    where ``sends`` (T, 2) says, its shadows, mirrors and eyes."""
+    non-empty parts when they are shorter than the list), its count, its view where it has
+    its own, its extent and depth range where ``sends`` (T, 2) says, its shadows, mirrors and
+    eyes. In a delta, a tile with nothing new (the same list, extent and depth, nothing of its
+    own) has no entry: ``out_start[t] == out_start[t + 1]``."""
     q, tr, tangents, depth = C[0], C[1], C[2], C[3]
     tiles = leaf_start.shape[0] - 1
     own_view = q.shape[0] > 1
@@ -603,7 +605,8 @@ def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_sta
         out_start[t] = p
         n_added = added_start[t + 1] - added_start[t] if delta else 0
         n_removed = removed_start[t + 1] - removed_start[t] if delta else 0
-        whole = not delta or n_added + n_removed >= leaf_start[t + 1] - leaf_start[t]
+        changes = n_added + n_removed
+        whole = not delta or (changes > 0 and changes >= leaf_start[t + 1] - leaf_start[t])
         if whole:  # a delta no shorter than the list: the list
             n_added = n_removed = 0
         shadows = 0
@@ -612,6 +615,9 @@ def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_sta
         mirrors = 0
         for k in range(M[0].shape[0]):
             mirrors += M[0][k, t]
+        if delta and changes == 0 and not (own_view or sends[t, 0] or sends[t, 1] or shadows
+                                           or mirrors or eyes):
+            continue  # nothing new: the node keeps the base's
         p = _map(out, p, 2 + whole + (n_added > 0) + (n_removed > 0) + own_view
                  + sends[t, 0] + sends[t, 1] + (shadows > 0) + (mirrors > 0) + eyes)
         p = _key(out, p, K_TILE)
@@ -640,20 +646,24 @@ def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_sta
 
 class NodeEntries:
     """One frame's node-message parts against one base: every tile's entry (``data``,
-    ``start``) and what every message of the frame shares (``head``: its key/value pairs,
+    ``start``; none for a tile a delta leaves out), how many entries tiles ``[0, t)`` have
+    (``counted``), and what every message of the frame shares (``head``: its key/value pairs,
     ``head_pairs`` of them)."""
 
-    def __init__(self, data: bytes, start: list, head: bytes, head_pairs: int):
-        self.data, self.start, self.head, self.head_pairs = data, start, head, head_pairs
+    def __init__(self, data: bytes, start: np.ndarray, head: bytes, head_pairs: int):
+        self.data, self.start, self.head, self.head_pairs = data, start.tolist(), head, head_pairs
+        self.counted = np.concatenate([[0], np.cumsum(np.diff(start) > 0)]).tolist()
         self._view = memoryview(data)
 
-    def body(self, tiles: np.ndarray) -> bytes | memoryview:
-        """The entries of ``tiles`` (sorted), concatenated: one slice when they are
-        consecutive."""
+    def body(self, tiles: np.ndarray) -> tuple[int, bytes | memoryview]:
+        """How many entries ``tiles`` (sorted) have, and those entries concatenated: one slice
+        when the tiles are consecutive."""
         first, last = int(tiles[0]), int(tiles[-1])
         if last - first + 1 == len(tiles):
-            return self._view[self.start[first]:self.start[last + 1]]
-        return b"".join(self._view[self.start[t]:self.start[t + 1]] for t in tiles.tolist())
+            return (self.counted[last + 1] - self.counted[first],
+                    self._view[self.start[first]:self.start[last + 1]])
+        parts = [self._view[self.start[t]:self.start[t + 1]] for t in tiles.tolist()]
+        return sum(len(part) > 0 for part in parts), b"".join(parts)
 
 
 def node_entries(history, number: int, base: int | None) -> NodeEntries:
@@ -681,8 +691,8 @@ def node_entries(history, number: int, base: int | None) -> NodeEntries:
              arrays.M, arrays.E, out, out_start)
     head = protocol.node_head(record.number, record.time, record.fits, base)
     packed = b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in head.items())
-    found = cache[base] = NodeEntries(out[:out_start[-1]].tobytes(), out_start.tolist(),
-                                      packed, len(head))
+    found = cache[base] = NodeEntries(out[:out_start[-1]].tobytes(), out_start, packed,
+                                      len(head))
     while len(cache) > 4:
         cache.pop(next(iter(cache)))
     return found
@@ -706,8 +716,9 @@ def node_message(history, number: int, tiles, base: int | None = None) -> bytes:
         found = protocol.transforms(history, record, tiles, base, added)
         if found is not None:
             moved, pairs = _TRANSFORMS_KEY + msgpack.packb(found), pairs + 1
-    return b"".join((_map_header(pairs), parts.head, moved, _TILES_KEY,
-                     _array_header(len(tiles)), parts.body(tiles)))
+    entries, body = parts.body(tiles)
+    return b"".join((_map_header(pairs), parts.head, moved, _TILES_KEY, _array_header(entries),
+                     body))
 
 
 _TRANSFORMS_KEY, _TILES_KEY = msgpack.packb("transforms"), msgpack.packb("tiles")

@@ -70,16 +70,20 @@ class Frusta:
         self.keep = keep
         self.held: OrderedDict[int, dict] = OrderedDict()  # frame -> {(tile, eye, key): value}
 
-    def take(self, message: dict) -> dict[int, dict]:
+    def take(self, message: dict, tiles=None) -> dict[int, dict]:
         """``{tile: {"view", "projection", "near", "far", "left"?, "right"?}}`` of a node
-        message. Raises KeyError when a delta leaves out what only a base not held had."""
+        message, for its entries' tiles and ``tiles`` (those a delta left out keep the base's
+        extent and depth). Raises KeyError when a delta leaves out what only a base not held
+        had."""
         base = message.get("base")
         held = self.held.get(base, {}) if base is not None else {}
         reversed_z = bool(message.get("reversed_z", False))
         now, out = {}, {}
         shared = {}  # eye -> the matrix of the message's shared view: built once for all tiles
-        for entry in message["tiles"]:
-            tile = entry["tile"]
+        entries = {entry["tile"]: entry for entry in message["tiles"]}
+        for tile in tiles or ():
+            entries.setdefault(tile, {"tile": tile})
+        for tile, entry in entries.items():
             parts = {None: (entry, message.get("view"))}
             parts.update({eye: (entry[eye], message.get(eye, {}).get("view"))
                           for eye in EYES if eye in entry})

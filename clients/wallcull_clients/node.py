@@ -58,18 +58,20 @@ class NodeState:
         held = self.lists.get(base) if base is not None else {}
         if held is None:
             raise InputError(f"delta against frame {base}, which this node does not hold")
-        lists = {}
+        lists = dict(held)  # a tile a delta leaves out keeps the base's list
+        entries = {tile: {"tile": tile, "count": len(held[tile])} for tile in held}
         for entry in message["tiles"]:
             tile = entry["tile"]
             if base is not None and tile not in held and "visible" not in entry:
                 raise InputError(f"delta for tile {tile}, whose list of frame {base} is not held")
             lists[tile] = protocol.apply(held.get(tile), entry, base)
+            entries[tile] = entry
         try:
-            matrices = self.frusta.take(message)
+            matrices = self.frusta.take(message, sorted(lists))
         except KeyError as exc:
             raise InputError(str(exc.args[0])) from None
-        out = [TileFrame(e["tile"], lists[e["tile"]], matrices[e["tile"]], e)
-               for e in message["tiles"]]
+        out = [TileFrame(tile, lists[tile], matrices[tile], entries[tile])
+               for tile in sorted(lists)]
         moved = message.get("transforms")
         if moved:
             for leaf, m in zip(moved["ids"], moved["matrices"]):
@@ -113,16 +115,29 @@ def _map_len(pairs: int) -> int:
     return 1 if pairs < 16 else 3
 
 
+def _array_len(items: int) -> int:
+    return 1 if items < 16 else 3 if items < 1 << 16 else 5
+
+
 def full_size(message: dict, size: int, frames: list[TileFrame], held_frusta: dict) -> int:
     """The bytes ``message`` (``size`` bytes, a delta) would have taken with full lists, as the
     server would have encoded it: each entry's list as ``visible``, every extent and depth
     spelled out (``held_frusta``: ``{(tile, eye, key): value}`` as :class:`Frusta` keeps them),
-    no base. Exact, without encoding anything."""
+    every tile the delta left out with its entry, no base. Exact, without encoding
+    anything."""
     if message.get("base") is None:
         return size
     out = size - len(msgpack.packb(message["base"])) + 1  # nil
     lists = {f.tile: f.leaves for f in frames}
-    for entry in message["tiles"]:
+    sent = len(message["tiles"])
+    out += _array_len(len(frames)) - _array_len(sent)
+    entries = {e["tile"]: e for e in message["tiles"]}
+    for tile in lists:
+        if tile not in entries:  # left out: its entry would have been tile and count
+            entries[tile] = {"tile": tile, "count": len(lists[tile])}
+            out += 1 + len(msgpack.packb("tile")) + len(msgpack.packb(tile)) \
+                + len(msgpack.packb("count")) + len(msgpack.packb(len(lists[tile])))
+    for entry in entries.values():
         tile, pairs = entry["tile"], len(entry)
         if "visible" not in entry:
             for key in ("added", "removed"):

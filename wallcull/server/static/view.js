@@ -93,8 +93,11 @@ class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
     const heldFrusta = base === null ? new Map() : this.frusta.get(base) || new Map();
     if (!held) throw new Error(`delta against frame ${base}, which this page does not hold`);
     const lists = new Map(), now = new Map(), tiles = [];
-    for (const entry of msg.tiles) {
-      const tile = entry.tile;
+    // a tile a delta leaves out keeps the base's list, extent and depth
+    const entries = new Map([...held].map(([tile, list]) => [tile, { tile, count: list.length }]));
+    for (const entry of msg.tiles) entries.set(entry.tile, entry);
+    for (const tile of [...entries.keys()].sort((a, b) => a - b)) {
+      const entry = entries.get(tile);
       if (base !== null && !held.has(tile) && entry.visible === undefined) {
         throw new Error(`delta for tile ${tile}, whose list of frame ${base} is not held`);
       }
