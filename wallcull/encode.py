@@ -25,6 +25,7 @@ a dynamic scene, still go through dicts.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import lru_cache
 
 import msgpack
 import numpy as np
@@ -325,7 +326,7 @@ def _eye_mirrors(out, p, e, t, M, E, bits):
     return p
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fit_segments(F, S, M, E, out, out_start, out_pairs):
     """Every tile's fitted frusta, as a packet carries them, as msgpack key/value pairs into
     ``out``: ``out_start`` (T + 1) offsets, ``out_pairs`` (T) pairs per tile."""
@@ -374,12 +375,31 @@ class _FitArrays:
 
     def __init__(self, fits: Fits):
         tiles = len(fits)
-        shadows, mirrors, eyes = fits.shadows, fits.mirrors, fits.eyes
         shared = fits.view.ndim == 2
+        if fits.shadows or fits.mirrors or fits.eyes:
+            self.S, self.M, self.E = self._parts(fits, tiles, shared)
+        else:  # the common case: nothing but each tile's view and projection
+            self.S, self.M, self.E = _no_parts(tiles, shared)
+        L, Q, E = self.S[0].shape[0], self.M[0].shape[0], self.E[0].shape[0]
+        views = _views(fits.view)
+        self.F = (views, np.frombuffer(msgpack.packb(fits.view.tolist()) if shared else b"",
+                                       np.uint8), fits.projection, fits.near, fits.far)
+        self.C = tuple(fits.compact)  # node messages: rigid views, extents
+        self.tiles = tiles
+        entries = 1 + L + Q * (1 + E) + E
+        names = len(self.S[8]) + len(self.M[7]) * (1 + E)
+        #: an upper bound on a frame's fits in bytes: every matrix, number, key and name
+        self.bound = tiles * (entries * (2 * MAT4 + 4 * NUMBER + 256) + names
+                              + len(self.S[10])) + NUMBER * (len(self.S[7]) + len(self.M[6]))
+
+    @staticmethod
+    def _parts(fits: Fits, tiles: int, shared: bool) -> tuple[tuple, tuple, tuple]:
+        """The shadows (S), mirrors (M) and eyes (E) of a frame, as the kernels take them."""
+        shadows, mirrors, eyes = fits.shadows, fits.mirrors, fits.eyes
         vshape = (1 if shared else tiles, 4, 4)
         L, Q = len(shadows), len(mirrors)
         offsets = np.cumsum([0] + [len(s.casters) for s in shadows])
-        self.S = (
+        S = (
             np.array([s.kind for s in shadows], np.int64).reshape(L, tiles),
             np.array([s.view for s in shadows]).reshape(L, tiles, 4, 4),
             np.array([s.projection for s in shadows]).reshape(L, tiles, 4, 4),
@@ -392,7 +412,7 @@ class _FitArrays:
             *_pack_each([s.cube_views.tolist() if s.cube_views is not None else []
                          for s in shadows]))
         offsets = np.cumsum([0] + [len(m.visible) for m in mirrors])
-        self.M = (
+        M = (
             np.array([m.shown for m in mirrors], np.bool_).reshape(Q, tiles),
             np.array([_views(m.view) for m in mirrors]).reshape(Q, *vshape),
             *_pack_each([m.view.tolist() if shared else [] for m in mirrors]),
@@ -406,22 +426,26 @@ class _FitArrays:
         e_projection = np.array([e.projection for e in eyes]).reshape(E, tiles, 4, 4)
         e_near = np.array([e.near for e in eyes]).reshape(E, tiles)
         e_far = np.array([e.far for e in eyes]).reshape(E, tiles)
-        self.E = (
+        E = (
             e_views, *_pack_each([e.view.tolist() if shared else [] for e in eyes]),
             e_projection, e_near, e_far,
             np.array([[_views(v) for v, _, _ in e.mirrors] for e in eyes]).reshape(E, Q, *vshape),
             np.array([[pr for _, pr, _ in e.mirrors] for e in eyes]).reshape(E, Q, tiles, 4, 4),
             np.array([[ok for _, _, ok in e.mirrors] for e in eyes], np.bool_).reshape(E, Q, tiles))
-        views = _views(fits.view)
-        self.F = (views, np.frombuffer(msgpack.packb(fits.view.tolist()) if shared else b"",
-                                       np.uint8), fits.projection, fits.near, fits.far)
-        self.C = tuple(fits.compact)  # node messages: rigid views, extents
-        self.tiles = tiles
-        entries = 1 + L + Q * (1 + E) + E
-        names = len(self.S[8]) + len(self.M[7]) * (1 + E)
-        #: an upper bound on a frame's fits in bytes: every matrix, number, key and name
-        self.bound = tiles * (entries * (2 * MAT4 + 4 * NUMBER + 256) + names
-                              + len(self.S[10])) + NUMBER * (len(self.S[7]) + len(self.M[6]))
+        return S, M, E
+
+
+@lru_cache(maxsize=16)
+def _no_parts(tiles: int, shared: bool) -> tuple[tuple, tuple, tuple]:
+    """The empty shadows, mirrors and eyes of a wall's frames (built once: 40 us a frame)."""
+    class Nothing:
+        shadows, mirrors, eyes = [], [], []
+
+    parts = _FitArrays._parts(Nothing, tiles, shared)
+    for part in parts:
+        for a in part:
+            a.flags.writeable = False
+    return parts
 
 
 def fit_arrays(record) -> _FitArrays:
@@ -435,7 +459,7 @@ def fit_arrays(record) -> _FitArrays:
 # --------------------------------------------------------------------------- packets
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _packets(tiles, frame, time, base, leaves, leaf_start, added, added_start, removed,
              removed_start, segments, segment_start, segment_pairs, extra, extra_start,
              extra_pairs, out, out_start):
@@ -586,7 +610,7 @@ def _extent_depth(out, p, sends, tangents, depth, bits, bits32):
     return p
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_start, sends, C,
              S, M, E, out, out_start):
     """Every tile's node-message entry into ``out``: its id, its list (full, or the delta's
@@ -669,7 +693,15 @@ class NodeEntries:
 def node_entries(history, number: int, base: int | None) -> NodeEntries:
     """Frame ``number``'s :class:`NodeEntries` against ``base`` (held, and older; None: full
     lists), kept on its record: every node of the wall takes its message from these."""
-    record = history.frames[number]
+    return entries(history.frames[number], None if base is None else history.frames[base])
+
+
+def entries(record, prior=None) -> NodeEntries:
+    """:func:`node_entries` of a frame record against the record ``prior`` (None: full
+    lists). The server calls it in the thread that computed the frame, against the frame
+    before it (what most nodes have acknowledged by the time it is sent), so that its event
+    loop only slices; the kernels run without the GIL."""
+    base = None if prior is None else prior.number
     cache = record.__dict__.setdefault("_entries", {})
     found = cache.get(base)
     if found is not None:
@@ -681,7 +713,6 @@ def node_entries(history, number: int, base: int | None) -> NodeEntries:
         delta, lists = (zero, zero, zero, zero), len(record.leaves)
         sends = np.ones((tiles, 2), np.bool_)
     else:
-        prior = history.frames[base]
         delta = protocol.tile_deltas(record, prior)
         lists = len(delta[0]) + len(delta[2])
         sends = record.fits.compact.changed(prior.fits.compact)

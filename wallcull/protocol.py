@@ -174,7 +174,7 @@ def tile_deltas(record: FrameRecord, prior: FrameRecord):
     return cache[prior.number]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _merge_deltas(start, leaves, prior_start, prior_leaves):
     tiles = start.shape[0] - 1
     added = np.empty(leaves.shape[0], np.int64)

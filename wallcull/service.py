@@ -413,9 +413,15 @@ class WallSession:
         posed = self._ever_moved
         record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed, posed,
                                       self.session.state.world[posed])
+        t2 = time.perf_counter()
+        # every tile's node-message entry against the frame before, encoded here (often a
+        # worker thread) rather than on the event loop when the first stream asks for it
+        encode.entries(record, self.history.get(self.latest))
+        t3 = time.perf_counter()
         if self.on_number is not None:
             self.on_number(number)
         return record, {"update_ms": (t1 - t0) * 1e3, **result.timings,
+                        "encode_ms": (t3 - t2) * 1e3,
                         "total_ms": (time.perf_counter() - t0) * 1e3}
 
     def publish(self, record: protocol.FrameRecord) -> int:

@@ -104,7 +104,7 @@ async def take_frame(state, session, body: FramePost) -> dict[str, Any]:
                                                      updates, body.number, body.refit)
     metrics = state.metrics
     metrics.frames.inc()
-    for stage in ("cull_ms", "fit_ms", "total_ms"):
+    for stage in ("cull_ms", "fit_ms", "encode_ms", "total_ms"):
         metrics.stage.labels(stage[:-3]).observe(timings[stage] / 1e3)
     out: dict[str, Any] = {"frame": number, "timings": timings}
     if body.packets:
