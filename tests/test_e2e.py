@@ -212,13 +212,15 @@ def test_two_nodes_on_the_same_subject_over_nats(nats_server, scene):
                 if frame >= 20:
                     seen[0].set()
 
-            def nodes(draw_time):
+            def nodes(draw_time, ready=None):
                 return asyncio.create_task(run_wall(
                     url, wid, "all", token=TOKEN, until=count - 1, idle_timeout=30,
-                    on_list=checker, nats=nats, draw_time=draw_time))
+                    on_list=checker, nats=nats, draw_time=draw_time,
+                    ready=lambda clients: ready.set() if ready else None))
 
-            first = nodes(0.02)  # behind, more and more
-            await asyncio.sleep(1.0)  # subscribed: frames published from now on reach it
+            subscribed = asyncio.Event()
+            first = nodes(0.02, subscribed)  # behind, more and more
+            await asyncio.wait_for(subscribed.wait(), 60)
             await driver.stream_frames(wid)
             posting = asyncio.create_task(driver.run(wid, frames, rate=60))
             await asyncio.wait_for(seen[0].wait(), 60)

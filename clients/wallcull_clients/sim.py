@@ -300,6 +300,7 @@ class TileClient:
         self.http = Connection(server, token)
         self.last_frame = -1
         self.images = {}  # the last frame drawn per tile, with a renderer
+        self._counted = {}  # tile -> (its list, triangles, cache evictions) when last counted
         self.connected = asyncio.Event()
         self._ws = None
         self._accept = MSGPACK if binary else "application/json"
@@ -439,22 +440,25 @@ class TileClient:
     async def draw_tile(self, tile: int, stats: TileStats, leaves: np.ndarray, view,
                         projection) -> int:
         """One tile's list: its meshes cached (fetched once per node), its triangles counted,
-        and drawn when the tile has a renderer."""
-        meshes = self.scene.mesh_of[leaves]
-        uses = np.bincount(meshes, minlength=len(self.scene.keys))
-        for m in np.flatnonzero(uses).tolist():
-            if self.cache.get(self.scene.keys[m]) is None:
-                await self.fetch_mesh(m)
-        triangles = int(uses @ self.triangles_of)
-        stats.triangles.append(triangles)
+        and drawn when the tile has a renderer. A list a node message left as it was (the same
+        array), with nothing evicted since, has its meshes and its count."""
         renderer = self.renderers.get(tile)
+        counted = self._counted.get(tile)
+        if counted is None or counted[0] is not leaves or counted[2] != self.cache.evictions:
+            uses = np.bincount(self.scene.mesh_of[leaves], minlength=len(self.scene.keys))
+            for m in np.flatnonzero(uses).tolist():
+                if self.cache.get(self.scene.keys[m]) is None:
+                    await self.fetch_mesh(m)
+            counted = self._counted[tile] = (leaves, int(uses @ self.triangles_of),
+                                             self.cache.evictions)
+        stats.triangles.append(counted[1])
         if renderer is not None:
             keys = self.scene.keys
             self.images[tile] = renderer.render(
                 [(keys[m], self.world[leaf], leaf + 1)
-                 for leaf, m in zip(leaves.tolist(), meshes.tolist())],
+                 for leaf, m in zip(leaves.tolist(), self.scene.mesh_of[leaves].tolist())],
                 np.asarray(view), np.asarray(projection))
-        return triangles
+        return counted[1]
 
     @property
     def image(self):
