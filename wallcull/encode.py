@@ -732,12 +732,29 @@ def entries(record, prior=None) -> NodeEntries:
 def node_message(history, number: int, tiles, base: int | None = None) -> bytes:
     """Frame ``number``'s node message for ``tiles`` (sorted) as msgpack, equal to
     :func:`wallcull.protocol.node_message` packed: deltas against frame ``base`` when it is
-    given and still held, else full lists."""
+    given and still held, else full lists. Kept on the frame's record: every stream of the
+    same tiles against the same base sends the same bytes."""
     record = history.frames[number]
     prior = history.get(base) if base is not None and base < number else None
     base = None if prior is None else base
-    parts = node_entries(history, number, base)
     tiles = np.asarray(tiles, np.int64)
+    made = record.__dict__.setdefault("_messages", {})
+    key = (tiles.tobytes(), base)
+    found = made.get(key)
+    if found is None:
+        if len(made) >= MESSAGES_KEPT:  # streams on many bases: start over
+            made.clear()
+        found = made[key] = _node_message(history, record, prior, tiles)
+    return found
+
+
+#: Node messages a frame's record keeps (by tiles and base) for the streams still to send it.
+MESSAGES_KEPT = 4096
+
+
+def _node_message(history, record, prior, tiles: np.ndarray) -> bytes:
+    base = None if prior is None else prior.number
+    parts = entries(record, prior)
     pairs, moved = parts.head_pairs + 1, b""
     if len(record.posed):  # a dynamic scene: the moved leaves any of the tiles may lack
         added = None
@@ -747,8 +764,8 @@ def node_message(history, number: int, tiles, base: int | None = None) -> bytes:
         found = protocol.transforms(history, record, tiles, base, added)
         if found is not None:
             moved, pairs = _TRANSFORMS_KEY + msgpack.packb(found), pairs + 1
-    entries, body = parts.body(tiles)
-    return b"".join((_map_header(pairs), parts.head, moved, _TILES_KEY, _array_header(entries),
+    count, body = parts.body(tiles)
+    return b"".join((_map_header(pairs), parts.head, moved, _TILES_KEY, _array_header(count),
                      body))
 
 
