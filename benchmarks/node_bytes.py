@@ -1,0 +1,63 @@
+"""What a frame's node messages are made of, as the server sends them to every node of a wall:
+bytes per frame with full lists and as deltas against the frame before, and the delta's bytes
+by key (the shared head, each tile entry's parts).
+
+    python benchmarks/node_bytes.py [WALL.json] [TILES_PER_NODE] [FRAMES]
+
+The power plant's orbit, 600 frames a loop (the load test's path at 60 frames/s), frames 30
+on; every node of ``TILES_PER_NODE`` consecutive tiles.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+
+import msgpack
+import numpy as np
+
+from wallcull import encode
+from wallcull.paths import scene_path
+from wallcull.scene import load
+from wallcull.service import Walls
+from wallcull.wall import Wall
+
+
+def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
+         count: int = 150) -> None:
+    with open(wall_file) as f:
+        spec = json.load(f)
+    scene, wall = load("powerplant"), Wall.from_dict(spec)
+    nodes = [list(range(k, min(k + per_node, wall.tiles))) for k in range(0, wall.tiles, per_node)]
+    session = Walls().create(scene, wall, "adaptive", "obb", False, 64, nodes=nodes)
+    frames = [f.to_dict() for f in scene_path(scene, wall, "orbit", 600)[:count]]
+    full = delta = 0
+    parts = Counter()
+    for number, frame in enumerate(frames):
+        session.post_frame(frame)
+        if number < 30:
+            continue
+        for tiles in session.nodes:
+            tiles = np.asarray(tiles)
+            full += len(encode.node_message(session.history, number, tiles, None))
+            raw = encode.node_message(session.history, number, tiles, number - 1)
+            delta += len(raw)
+            message = msgpack.unpackb(raw)
+            for key, value in message.items():
+                if key != "tiles":
+                    parts["head: " + key] += len(msgpack.packb(key)) + len(msgpack.packb(value))
+            parts["head: map, tiles key and array"] += len(msgpack.packb({"tiles": []}))
+            for entry in message["tiles"]:
+                parts["entry: map"] += 1
+                for key, value in entry.items():
+                    parts["entry: " + key] += len(msgpack.packb(key)) + len(msgpack.packb(value))
+    n = len(frames) - 30
+    print(f"{wall_file}, {len(nodes)} nodes of {per_node}: full {full / n:,.0f} B/frame, "
+          f"delta {delta / n:,.0f} B/frame, {full / delta:.2f}x")
+    for key, value in parts.most_common():
+        print(f"  {key:32} {value / n:8,.0f} B/frame")
+
+
+if __name__ == "__main__":
+    main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]))

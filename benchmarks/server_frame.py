@@ -1,0 +1,57 @@
+"""The server's own work per frame of a wall, in one process, without the network: computing
+the frame (cull, lists, fits, every tile's node-message entry), publishing it, every node's
+message (a delta against the frame before) and every node's acknowledgement, as
+``wallcull.service.WallSession`` does them for the streams. What ``wallcull loadtest``
+measures beyond this is the WebSocket (or NATS) stack around the same calls.
+
+    python benchmarks/server_frame.py [WALL.json] [TILES_PER_NODE] [FRAMES]
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+
+from wallcull.paths import scene_path
+from wallcull.scene import load
+from wallcull.service import Walls
+from wallcull.wall import Wall
+
+
+def main(wall_file: str = "examples/wall-8x8.json", per_node: int = 4,
+         count: int = 300) -> None:
+    with open(wall_file) as f:
+        spec = json.load(f)
+    scene, wall = load("powerplant"), Wall.from_dict(spec)
+    nodes = [list(range(k, min(k + per_node, wall.tiles))) for k in range(0, wall.tiles, per_node)]
+    session = Walls().create(scene, wall, "adaptive", "obb", False, 64, nodes=nodes)
+    tiles = [np.asarray(t) for t in session.nodes]
+    stages = {"compute": [], "publish": [], "messages": [], "acks": []}
+    for number, frame in enumerate(f.to_dict() for f in
+                                   scene_path(scene, wall, "orbit", 600)[:count]):
+        t0 = time.perf_counter()
+        record, _ = session.compute_frame(frame)
+        t1 = time.perf_counter()
+        session.publish(record)
+        t2 = time.perf_counter()
+        for node in tiles:
+            session.node_message(node, number, held=number - 1)
+        t3 = time.perf_counter()
+        for node in tiles:
+            session.ack(node, number)
+        t4 = time.perf_counter()
+        for key, value in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
+            stages[key].append(value * 1e3)
+    median = {key: float(np.median(values[30:])) for key, values in stages.items()}
+    total = sum(median.values())
+    print(f"{wall_file}, {len(tiles)} nodes of {per_node}: "
+          + ", ".join(f"{k} {v:.3f}" for k, v in median.items())
+          + f" ms (medians); {total:.3f} ms a frame, {1e3 * total / wall.tiles:.1f} us a "
+            "tile-frame")
+
+
+if __name__ == "__main__":
+    main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]))
