@@ -70,20 +70,19 @@ class Frusta:
         self.keep = keep
         self.held: OrderedDict[int, dict] = OrderedDict()  # frame -> {(tile, eye, key): value}
 
-    def take(self, message: dict, tiles=None) -> dict[int, dict]:
+    def take(self, message: dict) -> dict[int, dict]:
         """``{tile: {"view", "projection", "near", "far", "left"?, "right"?}}`` of a node
-        message, for its entries' tiles and ``tiles`` (those a delta left out keep the base's
-        extent and depth). Raises KeyError when a delta leaves out what only a base not held
-        had."""
+        message: its entries' tiles, and the base's tiles a delta left out (they keep the
+        base's extent and depth). Raises KeyError when a delta leaves out what only a base not
+        held had."""
         base = message.get("base")
         held = self.held.get(base, {}) if base is not None else {}
         reversed_z = bool(message.get("reversed_z", False))
         now, out = {}, {}
         shared = {}  # eye -> the matrix of the message's shared view: built once for all tiles
-        entries = {entry["tile"]: entry for entry in message["tiles"]}
-        for tile in tiles or ():
-            entries.setdefault(tile, {"tile": tile})
-        for tile, entry in entries.items():
+        entries = {tile: {"tile": tile} for tile, eye, key in held if eye is None}
+        entries.update((entry["tile"], entry) for entry in message["tiles"])
+        for tile, entry in sorted(entries.items()):
             parts = {None: (entry, message.get("view"))}
             parts.update({eye: (entry[eye], message.get(eye, {}).get("view"))
                           for eye in EYES if eye in entry})

@@ -67,7 +67,7 @@ class NodeState:
             lists[tile] = protocol.apply(held.get(tile), entry, base)
             entries[tile] = entry
         try:
-            matrices = self.frusta.take(message, sorted(lists))
+            matrices = self.frusta.take(message)
         except KeyError as exc:
             raise InputError(str(exc.args[0])) from None
         out = [TileFrame(tile, lists[tile], matrices[tile], entries[tile])
