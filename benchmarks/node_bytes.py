@@ -10,28 +10,20 @@ on; every node of ``TILES_PER_NODE`` consecutive tiles.
 
 from __future__ import annotations
 
-import json
 import sys
 from collections import Counter
 
 import msgpack
 import numpy as np
+from server_frame import wall_session  # beside this file
 
 from wallcull import encode
-from wallcull.paths import scene_path
-from wallcull.scene import load
-from wallcull.service import Walls
-from wallcull.wall import Wall
 
 
 def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
          count: int = 150) -> None:
-    with open(wall_file) as f:
-        spec = json.load(f)
-    scene, wall = load("powerplant"), Wall.from_dict(spec)
-    nodes = [list(range(k, min(k + per_node, wall.tiles))) for k in range(0, wall.tiles, per_node)]
-    session = Walls().create(scene, wall, "adaptive", "obb", False, 64, nodes=nodes)
-    frames = [f.to_dict() for f in scene_path(scene, wall, "orbit", 600)[:count]]
+    session, frames = wall_session(wall_file, per_node)
+    frames = frames[:count]
     full = delta = 0
     parts = Counter()
     for number, frame in enumerate(frames):
@@ -53,7 +45,7 @@ def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
                 for key, value in entry.items():
                     parts["entry: " + key] += len(msgpack.packb(key)) + len(msgpack.packb(value))
     n = len(frames) - 30
-    print(f"{wall_file}, {len(nodes)} nodes of {per_node}: full {full / n:,.0f} B/frame, "
+    print(f"{wall_file}, {len(session.nodes)} nodes of {per_node}: full {full / n:,.0f} B/frame, "
           f"delta {delta / n:,.0f} B/frame, {full / delta:.2f}x")
     for key, value in parts.most_common():
         print(f"  {key:32} {value / n:8,.0f} B/frame")

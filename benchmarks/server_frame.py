@@ -21,17 +21,24 @@ from wallcull.service import Walls
 from wallcull.wall import Wall
 
 
-def main(wall_file: str = "examples/wall-8x8.json", per_node: int = 4,
-         count: int = 300) -> None:
+def wall_session(wall_file: str, per_node: int):
+    """A wall of the power plant whose nodes drive ``per_node`` consecutive tiles each: the
+    session, and its frames, the orbit's 600 frames a loop (the load test's at 60 frames/s)."""
     with open(wall_file) as f:
-        spec = json.load(f)
-    scene, wall = load("powerplant"), Wall.from_dict(spec)
+        wall = Wall.from_dict(json.load(f))
+    scene = load("powerplant")
     nodes = [list(range(k, min(k + per_node, wall.tiles))) for k in range(0, wall.tiles, per_node)]
     session = Walls().create(scene, wall, "adaptive", "obb", False, 64, nodes=nodes)
+    return session, [f.to_dict() for f in scene_path(scene, wall, "orbit", 600)]
+
+
+def main(wall_file: str = "examples/wall-8x8.json", per_node: int = 4,
+         count: int = 300) -> None:
+    session, frames = wall_session(wall_file, per_node)
+    wall = session.wall
     tiles = [np.asarray(t) for t in session.nodes]
     stages = {"compute": [], "publish": [], "messages": [], "acks": []}
-    for number, frame in enumerate(f.to_dict() for f in
-                                   scene_path(scene, wall, "orbit", 600)[:count]):
+    for number, frame in enumerate(frames[:count]):
         t0 = time.perf_counter()
         record, _ = session.compute_frame(frame)
         t1 = time.perf_counter()
