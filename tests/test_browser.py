@@ -270,15 +270,19 @@ BLOCK_FRAMES.append({**BLOCK_FRAMES[1], "updates": {
 def compare_frames(http, browser, server, references, scene, wid, frames, tiles, size, token,
                    what, bar=AGREE, query=""):
     """Open the page of ``tiles``, post ``frames`` one by one, and compare each tile's ids
-    with the reference once the page has acknowledged the frame."""
+    with the reference (the whole leaves of the tile's list) once the page has acknowledged
+    the frame; returns the canvas size, the last frame's ids by tile, and how many leaves the
+    page drew in part, by their draw ranges, over the frames."""
     w, h = size
     page = open_page(browser, f"{server}/walls/{wid}/view?token={token}&ids=1&size={w}x{h}"
                               f"{query}")
     try:
+        ranged = 0
         for frame in frames:
             number = post(http, wid, frame)
             wait_acked(page, number)
             assert page.evaluate("window.wallcull.drawn") == number
+            ranged += page.evaluate("window.wallcull.ranged")
             drawn = {}
             for tile in tiles:
                 want = references(scene).ids(references(scene).packet(wid, tile, number), w, h)
@@ -290,7 +294,7 @@ def compare_frames(http, browser, server, references, scene, wid, frames, tiles,
         assert page.wallcull_errors == []
         canvas = page.evaluate("[document.getElementById('wall').width, "
                                "document.getElementById('wall').height]")
-        return canvas, drawn  # the canvas size, the last frame's ids by tile
+        return canvas, drawn, ranged
     finally:
         page.close()
         http.delete(f"/walls/{wid}", headers=AUTH)
@@ -303,8 +307,8 @@ def test_grid_tiles_match_the_reference_renderer(server, http, browser, referenc
     info = create_wall(http, GRID, nodes=[[5, 6]], scene=blocks)
     token = next(n["token"] for n in info["credentials"]["nodes"] if n["tiles"] == [5, 6])
     # no ?tiles=: the node credential's own, side by side in one canvas
-    canvas, drawn = compare_frames(http, browser, server, references, blocks, info["id"],
-                                   BLOCK_FRAMES, (5, 6), (640, 360), token, "grid tile")
+    canvas, drawn, _ = compare_frames(http, browser, server, references, blocks, info["id"],
+                                      BLOCK_FRAMES, (5, 6), (640, 360), token, "grid tile")
     assert canvas == [1280, 360]
     b0 = references(blocks).names.index("b0")
     assert (drawn[5] == b0 + 1).mean() > 0.01  # the block moved into view, where it went
@@ -386,10 +390,13 @@ def test_cave_screens_match_the_reference_renderer(server, http, browser, refere
 
 
 def test_the_power_plant_too(server, http, browser, references):
-    """A real scene, at the rasterizers' own agreement on coincident faces (module doc)."""
+    """A real scene, at the rasterizers' own agreement on coincident faces (module doc); its
+    leaves cut into clusters, the page draws those the tiles show in part by their ranges."""
     wid = create_wall(http, GRID)["id"]
-    compare_frames(http, browser, server, references, SCENE, wid, GRID_FRAMES, (5, 6),
-                   (640, 360), TOKEN, "power plant tile", bar=0.99, query="&tiles=5-6")
+    _, _, ranged = compare_frames(http, browser, server, references, SCENE, wid, GRID_FRAMES,
+                                  (5, 6), (640, 360), TOKEN, "power plant tile", bar=0.99,
+                                  query="&tiles=5-6")
+    assert ranged > 10
 
 
 def test_stereo_eyes_side_by_side(server, http, browser, references, blocks):

@@ -66,6 +66,8 @@ def _check_frame(session, number: int, bases) -> dict:
             assert pkt == expect, (number, t, base)
             seen["delta"] += pkt["base"] is not None
             seen["transforms"] += "transforms" in pkt
+            seen["ranges"] = seen.get("ranges", 0) + len(pkt.get("ranges", []))
+            seen["whole"] = seen.get("whole", 0) + len(pkt.get("whole", []))
             seen["mirrors"] += len(pkt.get("mirrors", []))
             for shadow in pkt.get("shadows", []):
                 seen["shadows"] += 1
@@ -98,6 +100,7 @@ def test_packets_with_lights_and_mirrors_decode_to_the_dicts():
         for key, value in _check_frame(session, number, range(k)).items():
             seen[key] = seen.get(key, 0) + value
     assert seen["shadows"] and seen["cube"] and seen["mirrors"] and seen["delta"], seen
+    assert seen["ranges"] and seen["whole"], seen  # leaves drawn in part, and whole again
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

@@ -44,6 +44,7 @@ class Holder:
 
     def __init__(self):
         self.lists: dict[int, np.ndarray] = {}
+        self.parts: dict[int, dict] = {}  # frame -> leaf -> draw ranges
         self.transforms: dict[int, list] = {}
         self.current: np.ndarray | None = None
         self.frame = -1
@@ -58,17 +59,19 @@ class Holder:
         base = pkt["base"]
         assert pkt["frame"] > self.frame, "packets must arrive in frame order"
         if base is None:
-            held = None
+            held = held_parts = None
             self.full += 1
         else:
             assert base in self.lists, f"delta against frame {base}, which this node never held"
-            held = self.lists[base]
+            held, held_parts = self.lists[base], self.parts[base]
             self.deltas += 1
             for k in [k for k in self.lists if k < base]:
-                del self.lists[k]
+                del self.lists[k], self.parts[k]
         out = protocol.apply(held, pkt)
         assert np.all(np.diff(out) > 0), "a list is sorted and has no repeats"
         self.lists[pkt["frame"]] = out
+        self.parts[pkt["frame"]] = protocol.apply_parts(held_parts, pkt, out)
+        assert set(self.parts[pkt["frame"]]) <= set(out.tolist()), "ranges of listed leaves"
         moved = pkt.get("transforms")
         if moved:
             assert len(moved["ids"]) == len(moved["matrices"])
@@ -91,17 +94,39 @@ class Holder:
                 assert leaf not in self.transforms, f"leaf {leaf} never moved"
 
 
-def make_record(number: int, lists: list[np.ndarray], changed=(), world=None) -> FrameRecord:
-    """A FrameRecord by hand. ``world``: leaf -> 4x4 of every leaf moved so far."""
+def make_record(number: int, lists: list[np.ndarray], changed=(), world=None,
+                parts: list[dict] | None = None) -> FrameRecord:
+    """A FrameRecord by hand. ``world``: leaf -> 4x4 of every leaf moved so far; ``parts``:
+    per tile, leaf -> its draw ranges ``(k, 2)`` (listed leaves only)."""
     world = world or {}
     start = np.zeros(len(lists) + 1, dtype=I64)
     np.cumsum([len(x) for x in lists], out=start[1:])
     posed = np.array(sorted(world), dtype=I64)
     posed_world = np.array([world[k] for k in posed.tolist()]).reshape(len(posed), 4, 4)
+    record_parts = None
+    if parts is not None:
+        part_start = np.zeros(len(lists) + 1, I64)
+        np.cumsum([len(p) for p in parts], out=part_start[1:])
+        items = [(leaf, r) for p in parts for leaf, r in sorted(p.items())]
+        range_start = np.zeros(len(items) + 1, I64)
+        np.cumsum([len(r) for _, r in items], out=range_start[1:])
+        record_parts = (part_start, np.array([leaf for leaf, _ in items], I64), range_start,
+                        np.concatenate([r for _, r in items]).astype(I64) if items
+                        else np.zeros((0, 2), I64))
     return FrameRecord(number, float(number), start,
                        np.concatenate(lists).astype(I64) if lists else np.zeros(0, I64),
                        [{"view": [[float(number)]], "tag": t} for t in range(len(lists))],
-                       np.array(sorted(set(changed)), dtype=I64), posed, posed_world)
+                       np.array(sorted(set(changed)), dtype=I64), posed, posed_world,
+                       record_parts)
+
+
+def random_parts(rng, lists: list[np.ndarray], share: float) -> list[dict]:
+    """Draw ranges for a random ``share`` of each tile's leaves: sorted, apart, from a few
+    fixed patterns (so that they often repeat from frame to frame)."""
+    patterns = [np.array([[0, 4]]), np.array([[0, 2], [5, 3]]), np.array([[3, 9]]),
+                np.array([[1, 1], [4, 1], [9, 2]])]
+    return [{int(leaf): patterns[int(rng.integers(len(patterns)))]
+             for leaf in tile if rng.random() < share} for tile in lists]
 
 
 @contextlib.contextmanager
@@ -303,6 +328,7 @@ def test_applied_packets_hold_the_true_lists(leaves, tiles, frames, history, chu
     truth = [np.sort(rng.choice(universe, size=int(rng.integers(0, leaves + 1)),
                                 replace=False)) for _ in range(tiles)]
     world: dict[int, np.ndarray] = {}
+    parts = [{} for _ in range(tiles)]
     nodes = [Holder() for _ in range(tiles)]
     server_ack = [-1] * tiles
     since = [-1] * tiles  # first frame a restarted node received: deltas only from there on
@@ -318,7 +344,11 @@ def test_applied_packets_hold_the_true_lists(leaves, tiles, frames, history, chu
             changed = universe[rng.random(leaves) < moving]
             for leaf in changed.tolist():
                 world[leaf] = rng.normal(size=(4, 4))
-            h.add(make_record(number, truth, changed, world))
+            if rng.random() < churn + 0.2:  # leaves drawn in part change less than the lists
+                parts = random_parts(rng, truth, 0.4)
+            parts = [{leaf: r for leaf, r in p.items() if leaf in set(t.tolist())}
+                     for p, t in zip(parts, truth)]
+            h.add(make_record(number, truth, changed, world, parts))
             for due, t, frame in [a for a in in_flight if a[0] <= i]:
                 server_ack[t] = max(server_ack[t], frame)
             in_flight = [a for a in in_flight if a[0] > i]
@@ -338,6 +368,10 @@ def test_applied_packets_hold_the_true_lists(leaves, tiles, frames, history, chu
                 if since[t] < 0:
                     since[t] = number
                 np.testing.assert_array_equal(held, truth[t])
+                got = node.parts[number]
+                assert got.keys() == parts[t].keys()
+                for leaf, r in parts[t].items():
+                    np.testing.assert_array_equal(got[leaf], r)
                 node.check_transforms(world)
                 if rng.random() < how["ack"]:
                     in_flight.append((i + 1 + how["delay"], t, number))

@@ -110,7 +110,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
         result = session.frame(frame)
         if stages:
             history.add(FrameRecord(k, 0.0, *result.leaves, result.fits, none, none,
-                                    np.zeros((0, 4, 4))))
+                                    np.zeros((0, 4, 4)), result.parts))
             frame_packets(history, k, tiles, k - 1 if k else None)
             node_entries(history, k, k - 1 if k else None)
     history = History(4)
@@ -134,7 +134,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             coverages.extend(np.concatenate(fitted).tolist() if fitted else [])
         if stages:
             history.add(FrameRecord(k, time.time(), *result.leaves, result.fits, none, none,
-                                    np.zeros((0, 4, 4))))
+                                    np.zeros((0, 4, 4)), result.parts))
             t0 = time.perf_counter()
             entries = node_entries(history, k, k - 1 if k else None)
             t1 = time.perf_counter()

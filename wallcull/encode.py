@@ -37,11 +37,11 @@ from .fit import CUBE, FRUSTUM, Fits
 _KEYS = ("frame", "tile", "time", "base", "visible", "added", "removed", "count", "view",
          "projection", "near", "far", "shadows", "mirrors", "light", "cube", "views", "coverage",
          "casters", "mirror", "front_face", "cw", "left", "right", "rotation", "translation",
-         "extent", "depth")
+         "extent", "depth", "ranges", "whole")
 (K_FRAME, K_TILE, K_TIME, K_BASE, K_VISIBLE, K_ADDED, K_REMOVED, K_COUNT, K_VIEW,
  K_PROJECTION, K_NEAR, K_FAR, K_SHADOWS, K_MIRRORS, K_LIGHT, K_CUBE, K_VIEWS, K_COVERAGE,
  K_CASTERS, K_MIRROR, K_FRONT_FACE, V_CW, K_LEFT, K_RIGHT, K_ROTATION, K_TRANSLATION, K_EXTENT,
- K_DEPTH) = range(len(_KEYS))
+ K_DEPTH, K_RANGES, K_WHOLE) = range(len(_KEYS))
 
 
 def _pack_each(items) -> tuple[np.ndarray, np.ndarray]:
@@ -160,6 +160,23 @@ def _ints(buf, p, values, a, b):
     p = _array(buf, p, b - a)
     for i in range(a, b):
         p = _int(buf, p, values[i])
+    return p
+
+
+@njit(cache=True)
+def _parts(buf, p, which, a, b, part_leaf, range_start, ranges):
+    """The draw ranges of parts ``which[a:b]`` (:class:`wallcull.protocol.FrameRecord`'s
+    ``parts``), keyed: ``"ranges": [[leaf, first, count, ...], ...]``."""
+    p = _key(buf, p, K_RANGES)
+    p = _array(buf, p, b - a)
+    for k in range(a, b):
+        q = which[k]
+        r0, r1 = range_start[q], range_start[q + 1]
+        p = _array(buf, p, 1 + 2 * (r1 - r0))
+        p = _int(buf, p, part_leaf[q])
+        for r in range(r0, r1):
+            p = _int(buf, p, ranges[r, 0])
+            p = _int(buf, p, ranges[r, 1])
     return p
 
 
@@ -461,16 +478,21 @@ def fit_arrays(record) -> _FitArrays:
 
 @njit(cache=True, nogil=True)
 def _packets(tiles, frame, time, base, leaves, leaf_start, added, added_start, removed,
-             removed_start, segments, segment_start, segment_pairs, extra, extra_start,
+             removed_start, parts, segments, segment_start, segment_pairs, extra, extra_start,
              extra_pairs, out, out_start):
-    """The packets of ``tiles`` into ``out`` (see :func:`packets`)."""
+    """The packets of ``tiles`` into ``out`` (see :func:`packets`); ``parts``: the draw ranges
+    to send (:func:`_part_changes`)."""
+    which, which_start, whole, whole_start, part_leaf, range_start, ranges = parts
     bits = np.empty(1)
     p = 0
     for k in range(tiles.shape[0]):
         t = tiles[k]
         out_start[k] = p
         delta = base >= 0
-        pairs = 4 + (2 if delta else 1) + 1 + segment_pairs[t] + extra_pairs[k]
+        n_parts = which_start[t + 1] - which_start[t]
+        n_whole = whole_start[t + 1] - whole_start[t]
+        pairs = 4 + (2 if delta else 1) + 1 + (n_parts > 0) + (n_whole > 0) + segment_pairs[t] \
+            + extra_pairs[k]
         p = _map(out, p, pairs)
         p = _key(out, p, K_FRAME)
         p = _int(out, p, frame)
@@ -492,6 +514,12 @@ def _packets(tiles, frame, time, base, leaves, leaf_start, added, added_start, r
             p = _ints(out, p, leaves, leaf_start[t], leaf_start[t + 1])
         p = _key(out, p, K_COUNT)
         p = _int(out, p, leaf_start[t + 1] - leaf_start[t])
+        if n_parts:
+            p = _parts(out, p, which, which_start[t], which_start[t + 1], part_leaf,
+                       range_start, ranges)
+        if n_whole:
+            p = _key(out, p, K_WHOLE)
+            p = _ints(out, p, whole, whole_start[t], whole_start[t + 1])
         p = _copy(out, p, extra, extra_start[k], extra_start[k + 1])
         p = _copy(out, p, segments, segment_start[t], segment_start[t + 1])
     out_start[tiles.shape[0]] = p
@@ -519,13 +547,35 @@ class Encoded(Sequence):
         return len(self.data)
 
 
+def _part_changes(record, prior=None) -> tuple:
+    """The draw ranges a frame sends against ``prior`` (None: all of them), for the compiled
+    writers: ``(which, which_start, whole, whole_start, part_leaf, range_start, ranges)``,
+    ``which`` indexing the record's parts (:func:`wallcull.protocol.part_deltas`)."""
+    part_start, part_leaf, range_start, ranges = record.parts
+    if prior is None:
+        none = np.zeros(len(part_start), np.int64)
+        return (np.arange(len(part_leaf)), part_start, none[:0], none, part_leaf, range_start,
+                ranges)
+    return (*protocol.part_deltas(record, prior), part_leaf, range_start, ranges)
+
+
+def _parts_bound(parts: tuple) -> int:
+    """Bytes the draw ranges of ``parts`` take at most (per tile, its keys included)."""
+    which, _, whole, _, _, range_start, _ = parts
+    ranges = int((range_start[which + 1] - range_start[which]).sum()) if len(which) else 0
+    tiles = len(parts[1])
+    return NUMBER * (2 * ranges + 2 * len(which) + len(whole)) + 16 * tiles
+
+
 def packets(record, tiles: np.ndarray, base: int | None = None,
-            delta: tuple | None = None, extras: dict | None = None) -> Encoded:
+            delta: tuple | None = None, extras: dict | None = None,
+            prior=None) -> Encoded:
     """The msgpack packets of ``tiles`` for one frame: full lists when ``base`` is None, else
     deltas against frame ``base`` (``delta``: :func:`wallcull.protocol.tile_deltas` of the
-    two). ``extras`` maps a tile to pre-encoded key/value pairs ``(bytes, count)`` it carries
-    besides (moved transforms). ``record`` is a :class:`wallcull.protocol.FrameRecord`; its
-    fits' segments are encoded once and kept on it."""
+    two; ``prior``: its record, whose draw ranges the delta's are against). ``extras`` maps a
+    tile to pre-encoded key/value pairs ``(bytes, count)`` it carries besides (moved
+    transforms). ``record`` is a :class:`wallcull.protocol.FrameRecord`; its fits' segments
+    are encoded once and kept on it."""
     segments = record.__dict__.get("_segments")
     if segments is None:
         arrays = fit_arrays(record)
@@ -551,13 +601,14 @@ def packets(record, tiles: np.ndarray, base: int | None = None,
         extra_pairs = np.zeros(len(tiles), np.int64)
     lists = np.diff(record.start)[tiles].sum() if base is None else \
         (np.diff(added_start)[tiles].sum() + np.diff(removed_start)[tiles].sum())
+    parts = _part_changes(record, None if base is None else prior)
     size = int(NUMBER * (lists + 8 * len(tiles)) + 96 * len(tiles) + len(extra)
-               + np.diff(seg_start)[tiles].sum())
+               + np.diff(seg_start)[tiles].sum() + _parts_bound(parts))
     out = np.empty(size, np.uint8)
     out_start = np.empty(len(tiles) + 1, np.int64)
     _packets(tiles, record.number, float(record.time), -1 if base is None else int(base),
-             record.leaves, record.start, added, added_start, removed, removed_start, data,
-             seg_start, seg_pairs, extra, extra_start, extra_pairs, out, out_start)
+             record.leaves, record.start, added, added_start, removed, removed_start, parts,
+             data, seg_start, seg_pairs, extra, extra_start, extra_pairs, out, out_start)
     return Encoded(out[:out_start[-1]].tobytes(), out_start)
 
 
@@ -578,7 +629,7 @@ def frame_packets(history, number: int, tiles, base: int | None = None) -> Encod
                                         added)
             if moved is not None:
                 extras[t] = (msgpack.packb("transforms") + msgpack.packb(moved), 1)
-    return packets(record, tiles, None if prior is None else base, delta, extras)
+    return packets(record, tiles, None if prior is None else base, delta, extras, prior)
 
 
 # --------------------------------------------------------------------------- node messages
@@ -611,14 +662,15 @@ def _extent_depth(out, p, sends, tangents, depth, bits, bits32):
 
 
 @njit(cache=True, nogil=True)
-def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_start, sends, C,
-             S, M, E, out, out_start):
+def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_start, parts,
+             sends, C, S, M, E, out, out_start):
     """Every tile's node-message entry into ``out``: its id, its list (full, or the delta's
     non-empty parts when they are shorter than the list), its count, its view where it has
     its own, its extent and depth range where ``sends`` (T, 2) says, its shadows, mirrors and
     eyes. In a delta, a tile with nothing new (the same list, extent and depth, nothing of its
     own) has no entry: ``out_start[t] == out_start[t + 1]``."""
     q, tr, tangents, depth = C[0], C[1], C[2], C[3]
+    which, which_start, back, back_start, part_leaf, range_start, ranges = parts
     tiles = leaf_start.shape[0] - 1
     own_view = q.shape[0] > 1
     eyes = E[0].shape[0]
@@ -639,11 +691,14 @@ def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_sta
         mirrors = 0
         for k in range(M[0].shape[0]):
             mirrors += M[0][k, t]
+        n_parts = which_start[t + 1] - which_start[t]
+        n_back = back_start[t + 1] - back_start[t]
         if delta and changes == 0 and not (own_view or sends[t, 0] or sends[t, 1] or shadows
-                                           or mirrors or eyes):
+                                           or mirrors or eyes or n_parts or n_back):
             continue  # nothing new: the node keeps the base's
-        p = _map(out, p, 2 + whole + (n_added > 0) + (n_removed > 0) + own_view
-                 + sends[t, 0] + sends[t, 1] + (shadows > 0) + (mirrors > 0) + eyes)
+        p = _map(out, p, 2 + whole + (n_added > 0) + (n_removed > 0) + (n_parts > 0)
+                 + (n_back > 0) + own_view + sends[t, 0] + sends[t, 1] + (shadows > 0)
+                 + (mirrors > 0) + eyes)
         p = _key(out, p, K_TILE)
         p = _int(out, p, t)
         if whole:
@@ -657,6 +712,12 @@ def _entries(delta, leaves, leaf_start, added, added_start, removed, removed_sta
             p = _ints(out, p, removed, removed_start[t], removed_start[t + 1])
         p = _key(out, p, K_COUNT)
         p = _int(out, p, leaf_start[t + 1] - leaf_start[t])
+        if n_parts:
+            p = _parts(out, p, which, which_start[t], which_start[t + 1], part_leaf,
+                       range_start, ranges)
+        if n_back:  # leaves drawn in part in the base, whole now
+            p = _key(out, p, K_WHOLE)
+            p = _ints(out, p, back, back_start[t], back_start[t + 1])
         if own_view:
             p = _key(out, p, K_VIEW)
             p = _rigid(out, p, q[t], tr[t], bits)
@@ -716,10 +777,12 @@ def entries(record, prior=None) -> NodeEntries:
         delta = protocol.tile_deltas(record, prior)
         lists = len(delta[0]) + len(delta[2])
         sends = record.fits.compact.changed(prior.fits.compact)
-    out = np.empty(NUMBER * (lists + 2 * tiles) + 64 * tiles + arrays.bound, np.uint8)
+    parts = _part_changes(record, prior)
+    out = np.empty(NUMBER * (lists + 2 * tiles) + 64 * tiles + arrays.bound + _parts_bound(parts),
+                   np.uint8)
     out_start = np.empty(tiles + 1, np.int64)
-    _entries(base is not None, record.leaves, record.start, *delta, sends, arrays.C, arrays.S,
-             arrays.M, arrays.E, out, out_start)
+    _entries(base is not None, record.leaves, record.start, *delta, parts, sends, arrays.C,
+             arrays.S, arrays.M, arrays.E, out, out_start)
     head = protocol.node_head(record.number, record.time, record.fits, base)
     packed = b"".join(msgpack.packb(k) + msgpack.packb(v) for k, v in head.items())
     found = cache[base] = NodeEntries(out[:out_start[-1]].tobytes(), out_start, packed,

@@ -36,6 +36,13 @@ class FrameResult:
         """Every tile's sorted leaf ids, CSR ``(start, leaves)``: what packets carry."""
         return self.visibility.leaf_lists()
 
+    @property
+    def parts(self) -> tuple:
+        """Every tile's leaves drawn in part and their draw ranges, CSR ``(part_start,
+        part_leaf, range_start, ranges)``: what packets carry beside the lists."""
+        d = self.visibility.draw_ranges()
+        return d.part_start, d.part_leaf, d.range_start, d.ranges
+
 
 class Session:
     """A scene culled to a wall with one method and one bound type; with ``fit`` options, each

@@ -7,6 +7,8 @@ A *packet* tells one tile's render node what to draw for one frame::
      "visible": [leaf ids],          # full packets only
      "added": [ids], "removed": [ids],   # deltas only: list(n) = list(b) + added - removed
      "count": len(list(n)),          # for the client to check itself
+     "ranges": [[leaf, first, count, first, count, ...], ...],  # leaves drawn in part
+     "whole": [ids],                 # deltas only: partial in the base, drawn whole now
      "transforms": {"ids": [...], "matrices": [[16 floats, row by row], ...]},  # moved leaves
      ...fitted frusta ("view", "projection", ...: see wallcull.fit)}
 
@@ -20,6 +22,13 @@ full ones until an acknowledgement on the new stream lands; over HTTP, such a no
 world transforms of the leaves in the list that moved (dynamic scenes) and that the client may
 not have: every moved leaf in a full packet; in a delta, the added ones and those that moved
 since the base.
+
+A leaf of the list that the tile shows only in part (its clusters, :mod:`wallcull.clusters`)
+comes with its *draw ranges*: the runs ``[first, first + count)`` of its mesh's triangles to
+draw, sorted, adjacent ones merged; every other listed leaf is drawn whole. A full packet
+carries every partial leaf's ranges; a delta those new or changed since the base, and in
+``whole`` the base's partial leaves still listed and now drawn whole (a leaf that leaves the
+list takes its ranges with it). Empty ``ranges`` and ``whole`` are left out.
 
 A *node message* carries one frame to a render node that drives several tiles (one message
 and one acknowledgement per node per frame; a node of one tile is the special case). What the
@@ -35,6 +44,7 @@ which a node turns back into the exact matrix (:mod:`wallcull_clients.frusta`)::
                 "visible": [...],               # the list, or the delta's non-empty parts
                 "added": [...], "removed": [...],  # (when shorter than the list)
                 "count": c,
+                "ranges": [...], "whole": [...],  # as in a packet
                 "view": {...},                  # screens: each tile's own eye space
                 "extent": [l/n, r/n, b/n, t/n], # the frustum's sides, as tangents
                 "depth": [n, f],                # its near and far distances
@@ -115,7 +125,10 @@ def rows(m: np.ndarray) -> list:
 
 @dataclass
 class FrameRecord:
-    """What the server keeps of one frame: per-tile leaf lists, fits, and moved leaves."""
+    """What the server keeps of one frame: per-tile leaf lists, fits, moved leaves, and the
+    draw ranges of the leaves each tile shows in part (``parts``: CSR ``(part_start (tiles +
+    1,), part_leaf, range_start, ranges (R, 2))`` as :meth:`wallcull.cull.Visibility.
+    draw_ranges` gives them; None: every leaf drawn whole)."""
 
     number: int
     time: float
@@ -125,9 +138,25 @@ class FrameRecord:
     changed: np.ndarray  # leaf ids whose world transform changed in this frame
     posed: np.ndarray  # sorted ids of every leaf ever moved
     posed_world: np.ndarray  # (len(posed), 4, 4) their world transforms at this frame
+    parts: tuple | None = None
+
+    def __post_init__(self):
+        if self.parts is None:
+            none = np.zeros(0, np.int64)
+            self.parts = (np.zeros(len(self.start), np.int64), none, np.zeros(1, np.int64),
+                          np.zeros((0, 2), np.int64))
 
     def tile(self, tile: int) -> np.ndarray:
         return self.leaves[self.start[tile]:self.start[tile + 1]]
+
+    def tile_parts(self, tile: int, which=None) -> list[list[int]]:
+        """Tile ``tile``'s partial leaves on the wire: ``[[leaf, first, count, first, count,
+        ...], ...]`` (``which``: indices into the frame's parts, else all of the tile's)."""
+        part_start, part_leaf, range_start, ranges = self.parts
+        if which is None:
+            which = range(part_start[tile], part_start[tile + 1])
+        return [[int(part_leaf[p]), *ranges[range_start[p]:range_start[p + 1]].ravel().tolist()]
+                for p in which]
 
 
 @dataclass
@@ -202,6 +231,81 @@ def _merge_deltas(start, leaves, prior_start, prior_leaves):
     return added[:na], added_start, removed[:nr], removed_start
 
 
+def part_deltas(record: FrameRecord, prior: FrameRecord):
+    """Every tile's change of draw ranges from ``prior`` to ``record``, in CSR form ``(changed,
+    changed_start, whole, whole_start)``, cached on ``record``: the partial leaves whose ranges
+    are new or differ (indices into ``record.parts``), and the leaves partial in ``prior``,
+    still listed, now drawn whole."""
+    cache = record.__dict__.setdefault("_part_deltas", {})
+    if prior.number not in cache:
+        cache[prior.number] = _merge_parts(record.start, record.leaves, *record.parts,
+                                           *prior.parts)
+        while len(cache) > 4:
+            cache.pop(next(iter(cache)))
+    return cache[prior.number]
+
+
+@njit(cache=True, nogil=True)
+def _merge_parts(start, leaves, part_start, part_leaf, range_start, ranges,
+                 prior_part_start, prior_part_leaf, prior_range_start, prior_ranges):
+    tiles = start.shape[0] - 1
+    changed = np.empty(part_leaf.shape[0], np.int64)
+    whole = np.empty(prior_part_leaf.shape[0], np.int64)
+    changed_start = np.zeros(tiles + 1, np.int64)
+    whole_start = np.zeros(tiles + 1, np.int64)
+    nc = nw = 0
+    for t in range(tiles):
+        i, j, li = part_start[t], prior_part_start[t], start[t]
+        while i < part_start[t + 1] or j < prior_part_start[t + 1]:
+            if j >= prior_part_start[t + 1] or (i < part_start[t + 1]
+                                                 and part_leaf[i] < prior_part_leaf[j]):
+                changed[nc] = i  # partial now, not before
+                nc += 1
+                i += 1
+            elif i >= part_start[t + 1] or prior_part_leaf[j] < part_leaf[i]:
+                leaf = prior_part_leaf[j]  # partial before, not now: whole, if still listed
+                while li < start[t + 1] and leaves[li] < leaf:
+                    li += 1
+                if li < start[t + 1] and leaves[li] == leaf:
+                    whole[nw] = leaf
+                    nw += 1
+                j += 1
+            else:
+                a, b = range_start[i], range_start[i + 1]
+                c, d = prior_range_start[j], prior_range_start[j + 1]
+                same = b - a == d - c
+                k = 0
+                while same and k < b - a:
+                    same = (ranges[a + k, 0] == prior_ranges[c + k, 0]
+                            and ranges[a + k, 1] == prior_ranges[c + k, 1])
+                    k += 1
+                if not same:
+                    changed[nc] = i
+                    nc += 1
+                i += 1
+                j += 1
+        changed_start[t + 1] = nc
+        whole_start[t + 1] = nw
+    return changed[:nc], changed_start, whole[:nw], whole_start
+
+
+def _parts(record: FrameRecord, prior: FrameRecord | None, tile: int) -> dict:
+    """A tile's draw ranges in a packet or entry: all of them (``ranges``) when ``prior`` is
+    None, else those new or changed since it (``ranges``) and the leaves drawn whole again
+    (``whole``); empty keys left out."""
+    out: dict[str, Any] = {}
+    if prior is None:
+        ranges = record.tile_parts(tile)
+    else:
+        changed, c_start, whole, w_start = part_deltas(record, prior)
+        ranges = record.tile_parts(tile, changed[c_start[tile]:c_start[tile + 1]])
+        if w_start[tile + 1] > w_start[tile]:
+            out["whole"] = whole[w_start[tile]:w_start[tile + 1]].tolist()
+    if ranges:
+        out["ranges"] = ranges
+    return out
+
+
 def packet(history: History, number: int, tile: int, base: int | None) -> dict:
     """Tile ``tile``'s packet of frame ``number``, a delta against frame ``base`` when given
     and still held (else a full list)."""
@@ -220,6 +324,7 @@ def packet(history: History, number: int, tile: int, base: int | None) -> dict:
         out["added"] = added.tolist()
         out["removed"] = removed_all[r_start[tile]:r_start[tile + 1]].tolist()
     out["count"] = len(current)
+    out.update(_parts(record, prior, tile))
     moved = transforms(history, record, tile, out["base"], added)
     if moved is not None:
         out["transforms"] = moved
@@ -305,6 +410,7 @@ def node_message(history: History, number: int, tiles, base: int | None) -> dict
         if base is not None:
             added += pkt["added"]
         entry["count"] = pkt["count"]
+        entry.update({k: pkt[k] for k in ("ranges", "whole") if k in pkt})
         if own_view:
             entry["view"] = _rigid(c.rotation[t], c.translation[t])
         entry.update(_frustum(sends[t], c.tangents[t], c.depth[t]))
@@ -329,6 +435,28 @@ def node_message(history: History, number: int, tiles, base: int | None) -> dict
 
 
 _OWN = object()  # apply(): the packet's own base
+
+
+def apply_parts(held: dict | None, pkt: dict, leaves: np.ndarray, base: Any = _OWN) -> dict:
+    """A client's draw ranges after a packet (or a node message's tile entry, with the
+    message's ``base``): ``{leaf: ranges (k, 2)}`` of the leaves drawn in part, every other
+    leaf of ``leaves`` (the list after the packet) drawn whole. A full packet holds them all;
+    a delta holds those new or changed since the base (``ranges``), and the base's partial
+    leaves drawn whole again (``whole``); the base's others stay, if still listed."""
+    base = pkt.get("base") if base is _OWN else base
+    out = {}
+    if base is not None:
+        if held is None:
+            raise InputError(f"delta against frame {base}, whose ranges are not held")
+        whole = set(pkt.get("whole", ()))
+        kept = [leaf for leaf in held if leaf not in whole]
+        listed = np.isin(kept, leaves) if kept else []
+        out = {leaf: held[leaf] for leaf, ok in zip(kept, listed) if ok}
+    for item in pkt.get("ranges", ()):
+        if len(item) < 3 or len(item) % 2 != 1:
+            raise InputError(f"a tile's ranges must be [leaf, first, count, ...], got {item}")
+        out[int(item[0])] = np.asarray(item[1:], dtype=np.int64).reshape(-1, 2)
+    return out
 
 
 def apply(held: np.ndarray | None, pkt: dict, base: Any = _OWN) -> np.ndarray:

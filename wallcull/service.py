@@ -412,7 +412,7 @@ class WallSession:
         start, leaves = result.leaves
         posed = self._ever_moved
         record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed, posed,
-                                      self.session.state.world[posed])
+                                      self.session.state.world[posed], result.parts)
         t2 = time.perf_counter()
         # every tile's node-message entry against the frame before, encoded here (often a
         # worker thread) rather than on the event loop when the first stream asks for it

@@ -1,6 +1,7 @@
 """What a render node keeps between node messages (:mod:`wallcull.protocol`), and what it makes
-of each: every tile's leaf list, rebuilt from the delta's base, and its matrices
-(:mod:`wallcull_clients.frusta`), and the world transforms of the leaves that moved.
+of each: every tile's leaf list and the draw ranges of the leaves it shows in part, rebuilt
+from the delta's base, its matrices (:mod:`wallcull_clients.frusta`), and the world transforms
+of the leaves that moved.
 
 A delta's base is the newest frame the node had acknowledged when the server made the
 message; acknowledgements only grow, so the lists (and extents) older than the newest base
@@ -30,6 +31,7 @@ class TileFrame:
     leaves: np.ndarray  # sorted leaf ids
     matrices: dict  # view, projection, near, far; left/right for stereo
     entry: dict  # the message's entry (shadows, mirrors, ...)
+    ranges: dict  # leaf id -> (k, 2) triangle ranges, for the leaves drawn in part
 
 
 class NodeState:
@@ -38,6 +40,7 @@ class NodeState:
     def __init__(self, keep: int = 256):
         self.keep = keep
         self.lists: OrderedDict[int, dict[int, np.ndarray]] = OrderedDict()  # frame -> tile ->
+        self.parts: dict[int, dict[int, dict]] = {}  # frame -> tile -> leaf -> ranges
         self.frusta = Frusta(keep)
         self.moved: dict[int, np.ndarray] = {}  # leaf id -> its world transform (4 x 4)
         self.frame = -1
@@ -58,31 +61,35 @@ class NodeState:
         held = self.lists.get(base) if base is not None else {}
         if held is None:
             raise InputError(f"delta against frame {base}, which this node does not hold")
-        lists = dict(held)  # a tile a delta leaves out keeps the base's list
+        held_parts = self.parts.get(base, {})
+        lists = dict(held)  # a tile a delta leaves out keeps the base's list and ranges
+        parts = dict(held_parts)
         entries = {tile: {"tile": tile, "count": len(held[tile])} for tile in held}
         for entry in message["tiles"]:
             tile = entry["tile"]
             if base is not None and tile not in held and "visible" not in entry:
                 raise InputError(f"delta for tile {tile}, whose list of frame {base} is not held")
             lists[tile] = protocol.apply(held.get(tile), entry, base)
+            parts[tile] = protocol.apply_parts(held_parts.get(tile, {}), entry, lists[tile], base)
             entries[tile] = entry
         try:
             matrices = self.frusta.take(message)
         except KeyError as exc:
             raise InputError(str(exc.args[0])) from None
-        out = [TileFrame(tile, lists[tile], matrices[tile], entries[tile])
+        out = [TileFrame(tile, lists[tile], matrices[tile], entries[tile], parts.get(tile, {}))
                for tile in sorted(lists)]
         moved = message.get("transforms")
         if moved:
             for leaf, m in zip(moved["ids"], moved["matrices"]):
                 self.moved[int(leaf)] = np.asarray(m, np.float64).reshape(4, 4)
         self.lists[number] = lists
+        self.parts[number] = parts
         self.frame = number
         if base is not None:
             while self.lists and next(iter(self.lists)) < base:
-                self.lists.popitem(last=False)
+                self.parts.pop(self.lists.popitem(last=False)[0], None)
         while len(self.lists) > self.keep:
-            self.lists.popitem(last=False)
+            self.parts.pop(self.lists.popitem(last=False)[0], None)
         return out
 
 
@@ -137,8 +144,18 @@ def full_size(message: dict, size: int, frames: list[TileFrame], held_frusta: di
             entries[tile] = {"tile": tile, "count": len(lists[tile])}
             out += 1 + len(msgpack.packb("tile")) + len(msgpack.packb(tile)) \
                 + len(msgpack.packb("count")) + len(msgpack.packb(len(lists[tile])))
+    ranges = {f.tile: f.ranges for f in frames}
     for entry in entries.values():
         tile, pairs = entry["tile"], len(entry)
+        # ranges: a full message holds every partial leaf's, and no "whole"
+        for key in ("ranges", "whole"):
+            if key in entry:
+                out -= len(msgpack.packb(key)) + len(msgpack.packb(entry[key]))
+                pairs -= 1
+        if ranges[tile]:
+            out += len(msgpack.packb("ranges")) + len(msgpack.packb(
+                [[leaf, *r.ravel().tolist()] for leaf, r in sorted(ranges[tile].items())]))
+            pairs += 1
         if "visible" not in entry:
             for key in ("added", "removed"):
                 if key in entry:

@@ -252,6 +252,30 @@ def _packed_len(obj, binary: bool) -> int:
 _ADDED, _REMOVED, _VISIBLE = (msgpack.packb(k) for k in ("added", "removed", "visible"))
 
 
+def wire_ranges(parts: dict) -> list[list[int]]:
+    """A tile's draw ranges as a full packet carries them (:mod:`wallcull.protocol`)."""
+    return [[leaf, *r.ravel().tolist()] for leaf, r in sorted(parts.items())]
+
+
+def _full_ranges_len(pkt: dict, parts: dict) -> int:
+    """Bytes a delta packet's draw ranges would change by as a full packet: all of the tile's
+    ranges in place of the delta's ``ranges`` and ``whole`` (msgpack, map header included)."""
+    out, pairs = 0, len(pkt)
+    for key in ("ranges", "whole"):
+        if key in pkt:
+            out -= len(msgpack.packb(key)) + len(msgpack.packb(pkt[key]))
+            pairs -= 1
+    if parts:
+        out += len(msgpack.packb("ranges")) + len(msgpack.packb(wire_ranges(parts)))
+        pairs += 1
+    # the full packet's map: "visible" for "added" and "removed" (one pair fewer)
+    return out + _map_header_len(pairs - 1) - _map_header_len(len(pkt))
+
+
+def _map_header_len(pairs: int) -> int:
+    return 1 if pairs < 16 else 3
+
+
 def msgpack_ints_len(values) -> int:
     """Bytes of a list of ints >= 0 as msgpack encodes it, without encoding it: the header
     (fixarray / array16 / array32) plus 1, 2, 3, 5 or 9 bytes per value."""
@@ -295,6 +319,7 @@ class TileClient:
         self.prefetch = prefetch
         self.on_list, self.on_event = on_list, on_event
         self.lists: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.parts: dict[int, dict] = {}  # frame -> leaf -> draw ranges, beside self.lists
         self.world = scene.world  # copied on the first moved leaf
         self.stats = TileStats(tile)
         self.http = Connection(server, token)
@@ -334,18 +359,22 @@ class TileClient:
             pkt, size, recv = repaired
             self.stats.repairs += 1
         try:
-            leaves = protocol.apply(held if pkt.get("base") is not None else None, pkt)
+            delta = pkt.get("base") is not None
+            leaves = protocol.apply(held if delta else None, pkt)
+            parts = protocol.apply_parts(self.parts.get(pkt.get("base")) if delta else None,
+                                         pkt, leaves)
         except InputError as exc:
             self.stats.errors.append(f"frame {number}: {exc}")
             self.lists.clear()  # start over from a full list
             await self._ask_full()
             return False
         self.lists[number] = leaves
+        self.parts[number] = parts
         self._prune(pkt.get("base"))
-        self._record(pkt, leaves, size, recv)
+        self._record(pkt, leaves, parts, size, recv)
         if self.on_list is not None:
             self.on_list(self.tile, number, leaves)
-        await self.draw(leaves, pkt)
+        await self.draw(leaves, parts, pkt)
         await self.acknowledge(number)
         self.last_frame = number
         return True
@@ -357,11 +386,12 @@ class TileClient:
         acks may be in flight). ``keep`` bounds the rest when acks lag very far behind."""
         if base is not None:
             while self.lists and next(iter(self.lists)) < base:
-                self.lists.popitem(last=False)
+                self.parts.pop(self.lists.popitem(last=False)[0], None)
         while len(self.lists) > self.keep:
-            self.lists.popitem(last=False)
+            self.parts.pop(self.lists.popitem(last=False)[0], None)
 
-    def _record(self, pkt: dict, leaves: np.ndarray, size: int, recv: float) -> None:
+    def _record(self, pkt: dict, leaves: np.ndarray, parts: dict, size: int,
+                recv: float) -> None:
         s = self.stats
         full = pkt.get("base") is None
         s.frame.append(pkt["frame"])
@@ -381,7 +411,8 @@ class TileClient:
                 added, removed = sorted_ints_len(pkt["added"]), sorted_ints_len(pkt["removed"])
                 s.full_bytes.append(size - (len(_ADDED) + added) - (len(_REMOVED) + removed)
                                     + len(_VISIBLE) + whole
-                                    - sorted_ints_len([pkt["base"]]) + 1 + 1)
+                                    - sorted_ints_len([pkt["base"]]) + 1 + 1
+                                    + _full_ranges_len(pkt, parts))
                 s.list_bytes.append(added + removed)
         else:
             ids = leaves.tolist()
@@ -390,9 +421,12 @@ class TileClient:
                 s.full_bytes.append(size)
                 s.list_bytes.append(whole)
             else:
-                as_full = {k: v for k, v in pkt.items() if k not in ("added", "removed")}
+                as_full = {k: v for k, v in pkt.items()
+                           if k not in ("added", "removed", "ranges", "whole")}
                 as_full["base"] = None
                 as_full["visible"] = ids
+                if parts:
+                    as_full["ranges"] = wire_ranges(parts)
                 s.full_bytes.append(_packed_len(as_full, False))
                 s.list_bytes.append(_packed_len(pkt["added"], False)
                                     + _packed_len(pkt["removed"], False))
@@ -419,10 +453,10 @@ class TileClient:
 
     # ------------------------------------------------------------------ drawing
 
-    async def draw(self, leaves: np.ndarray, pkt: dict) -> int:
+    async def draw(self, leaves: np.ndarray, parts: dict, pkt: dict) -> int:
         """Make sure every mesh is cached, then count (or render) the triangles."""
         self.move(pkt.get("transforms"))
-        triangles = await self.draw_tile(self.tile, self.stats, leaves, pkt["view"],
+        triangles = await self.draw_tile(self.tile, self.stats, leaves, parts, pkt["view"],
                                          pkt["projection"])
         if self.draw_time:  # a GPU busy for this long: the node's own time, not the process's
             await asyncio.sleep(self.draw_time)
@@ -437,28 +471,33 @@ class TileClient:
         self.world[np.asarray(transforms["ids"], dtype=np.int64)] = np.asarray(
             transforms["matrices"], dtype=np.float64).reshape(-1, 4, 4)
 
-    async def draw_tile(self, tile: int, stats: TileStats, leaves: np.ndarray, view,
-                        projection) -> int:
-        """One tile's list: its meshes cached (fetched once per node), its triangles counted,
-        and drawn when the tile has a renderer. A list a node message left as it was (the same
-        array), with nothing evicted since, has its meshes and its count."""
+    async def draw_tile(self, tile: int, stats: TileStats, leaves: np.ndarray, parts: dict,
+                        view, projection) -> int:
+        """One tile's list: its meshes cached (fetched once per node), its triangles counted
+        (a leaf drawn in part: its ranges'), and drawn when the tile has a renderer. A list a
+        node message left as it was (the same arrays), with nothing evicted since, has its
+        meshes and its count."""
         renderer = self.renderers.get(tile)
         counted = self._counted.get(tile)
-        if counted is None or counted[0] is not leaves or counted[2] != self.cache.evictions:
-            uses = np.bincount(self.scene.mesh_of[leaves], minlength=len(self.scene.keys))
+        if counted is None or counted[0] is not leaves or counted[1] is not parts \
+                or counted[3] != self.cache.evictions:
+            mesh_of = self.scene.mesh_of
+            uses = np.bincount(mesh_of[leaves], minlength=len(self.scene.keys))
             for m in np.flatnonzero(uses).tolist():
                 if self.cache.get(self.scene.keys[m]) is None:
                     await self.fetch_mesh(m)
-            counted = self._counted[tile] = (leaves, int(uses @ self.triangles_of),
-                                             self.cache.evictions)
-        stats.triangles.append(counted[1])
+            triangles = int(uses @ self.triangles_of) - sum(
+                int(self.triangles_of[mesh_of[leaf]]) - int(r[:, 1].sum())
+                for leaf, r in parts.items())
+            counted = self._counted[tile] = (leaves, parts, triangles, self.cache.evictions)
+        stats.triangles.append(counted[2])
         if renderer is not None:
             keys = self.scene.keys
             self.images[tile] = renderer.render(
-                [(keys[m], self.world[leaf], leaf + 1)
+                [(keys[m], self.world[leaf], leaf + 1, parts.get(leaf))
                  for leaf, m in zip(leaves.tolist(), self.scene.mesh_of[leaves].tolist())],
                 np.asarray(view), np.asarray(projection))
-        return counted[1]
+        return counted[2]
 
     @property
     def image(self):
@@ -702,8 +741,8 @@ class NodeClient(TileClient):
             self._record_tile(stats, message, frame, size, whole, recv)
             if self.on_list is not None:
                 self.on_list(frame.tile, number, frame.leaves)
-            await self.draw_tile(frame.tile, stats, frame.leaves, frame.matrices["view"],
-                                 frame.matrices["projection"])
+            await self.draw_tile(frame.tile, stats, frame.leaves, frame.ranges,
+                                 frame.matrices["view"], frame.matrices["projection"])
         if self.draw_time:
             await asyncio.sleep(self.draw_time)
         await self.acknowledge(number)

@@ -14,6 +14,13 @@ from pydantic.json_schema import GenerateJsonSchema
 
 Id = Annotated[int, Field(ge=0)]
 Ids = Annotated[list[Id], Field(description="leaf ids (scene.leaves), sorted")]
+Ranges = Annotated[
+    list[Annotated[list[Id], Field(min_length=3)]],
+    Field(description="leaves drawn in part: [leaf, first, count, first, count, ...] each, the "
+                      "runs of the leaf mesh's triangles to draw, sorted and apart; in a delta, "
+                      "those new or changed since the base")]
+Whole = Annotated[list[Id], Field(description="deltas: leaves drawn in part in the base, still "
+                                              "listed, and drawn whole now")]
 
 
 def Numbers(n: int, description: str | None = None):
@@ -111,6 +118,8 @@ class Packet(Message):
     added: Ids = None
     removed: Ids = None
     count: Id
+    ranges: Ranges = None
+    whole: Whole = None
     transforms: Transforms = None
     view: Matrix
     projection: Matrix
@@ -145,6 +154,8 @@ class TileEntry(Message):
     added: Ids = None
     removed: Ids = None
     count: Id
+    ranges: Ranges = None
+    whole: Whole = None
     view: Rigid = None
     extent: Extent = None
     depth: Depth = None

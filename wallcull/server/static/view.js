@@ -15,7 +15,7 @@ const status = document.getElementById("status");
 const canvas = document.getElementById("wall");
 // window.wallcull: the newest frame drawn and acknowledged, full lists asked for, errors;
 // readIds(tile); forget(): drop the lists held, as a node that lost its memory (for tests)
-const api = window.wallcull = { drawn: -1, acked: -1, fulls: 0, errors: [], readIds,
+const api = window.wallcull = { drawn: -1, acked: -1, fulls: 0, errors: [], ranged: 0, readIds,
                                 forget: () => node.lists.clear() };
 
 function say(text, error = false) {  // a note in a corner, hidden while frames come
@@ -47,6 +47,21 @@ function applyDelta(held, entry, base) {  // protocol.apply
   }
   if (out.length !== entry.count) {
     throw new Error(`tile ${entry.tile}'s list does not add up: ${out.length} leaves, count ${entry.count}`);
+  }
+  return out;
+}
+
+function applyParts(held, entry, leaves, base) {  // protocol.apply_parts
+  // leaf -> [first, count, first, count, ...]: the leaves a tile draws in part
+  const out = new Map();
+  if (base !== null) {
+    if (!held) throw new Error(`delta against frame ${base}, whose ranges are not held`);
+    const whole = new Set(entry.whole || []), listed = new Set(leaves);
+    for (const [leaf, r] of held) if (!whole.has(leaf) && listed.has(leaf)) out.set(leaf, r);
+  }
+  for (const item of entry.ranges || []) {
+    if (item.length < 3 || item.length % 2 !== 1) throw new Error(`bad ranges ${item}`);
+    out.set(item[0], item.slice(1));
   }
   return out;
 }
@@ -84,15 +99,16 @@ function mul(a, b) {  // row-major 4x4 product, float64
 
 class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
   constructor() { this.reset(); }
-  reset() { this.lists = new Map(); this.frusta = new Map(); this.frame = -1; }
+  reset() { this.lists = new Map(); this.parts = new Map(); this.frusta = new Map(); this.frame = -1; }
 
   take(msg) {
     const number = msg.frame, base = msg.base ?? null;
     if (number <= this.frame) throw new Error(`frame ${number} arrived after frame ${this.frame}`);
     const held = base === null ? new Map() : this.lists.get(base);
     const heldFrusta = base === null ? new Map() : this.frusta.get(base) || new Map();
+    const heldParts = base === null ? new Map() : this.parts.get(base) || new Map();
     if (!held) throw new Error(`delta against frame ${base}, which this page does not hold`);
-    const lists = new Map(), now = new Map(), tiles = [];
+    const lists = new Map(), parts = new Map(), now = new Map(), tiles = [];
     // a tile a delta leaves out keeps the base's list, extent and depth
     const entries = new Map([...held].map(([tile, list]) => [tile, { tile, count: list.length }]));
     for (const entry of msg.tiles) entries.set(entry.tile, entry);
@@ -102,6 +118,7 @@ class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
         throw new Error(`delta for tile ${tile}, whose list of frame ${base} is not held`);
       }
       lists.set(tile, applyDelta(held.get(tile), entry, base));
+      parts.set(tile, applyParts(heldParts.get(tile) || new Map(), entry, lists.get(tile), base));
       const eyes = [];
       for (const eye of ["", "left", "right"]) {
         const part = eye ? entry[eye] : entry;
@@ -118,12 +135,14 @@ class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
         eyes.push({ eye, view: rigid(part.view ?? shared),
                     projection: projection(value.extent, value.depth, !!msg.reversed_z) });
       }
-      tiles.push({ tile, leaves: lists.get(tile), eyes: eyes.length > 1 ? eyes.slice(1) : eyes });
+      tiles.push({ tile, leaves: lists.get(tile), ranges: parts.get(tile),
+                   eyes: eyes.length > 1 ? eyes.slice(1) : eyes });
     }
     this.lists.set(number, lists);
+    this.parts.set(number, parts);
     this.frusta.set(number, now);
     this.frame = number;
-    for (const map of [this.lists, this.frusta]) {  // what no delta can be based on now
+    for (const map of [this.lists, this.parts, this.frusta]) {  // what no delta can be based on now
       for (const k of map.keys()) if ((base !== null && k < base) || map.size > KEEP) map.delete(k);
     }
     return { number, reversed: !!msg.reversed_z, tiles, transforms: msg.transforms };
@@ -286,7 +305,12 @@ function drawTile(prog, frame, entry, x, y, w, h) {
       if (prog.u.color) gl.uniform3fv(prog.u.color, drawColor(leaf + 1));
       if (prog.u.draw_id) gl.uniform1ui(prog.u.draw_id, leaf + 1);
       gl.bindVertexArray(g.vao);
-      gl.drawElements(gl.TRIANGLES, g.count, gl.UNSIGNED_INT, 0);
+      const r = entry.ranges.get(leaf);
+      if (r === undefined) {
+        gl.drawElements(gl.TRIANGLES, g.count, gl.UNSIGNED_INT, 0);
+      } else {  // a leaf drawn in part: one call a range of triangles (12 bytes each)
+        for (let k = 0; k < r.length; k += 2) gl.drawElements(gl.TRIANGLES, 3 * r[k + 1], gl.UNSIGNED_INT, 12 * r[k]);
+      }
     }
   });
 }
@@ -298,7 +322,9 @@ function draw(frame) {
   gl.scissor(0, 0, canvas.width, canvas.height);
   gl.clearColor(0, 0, 0, 1);
   gl.clear(gl.COLOR_BUFFER_BIT);
+  api.ranged = 0;  // leaves the frame draws in part, by their ranges
   for (const entry of frame.tiles) {
+    if (tiles.has(entry.tile)) api.ranged += entry.ranges.size;
     const t = tiles.get(entry.tile);
     if (!t) continue;
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
