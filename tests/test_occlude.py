@@ -61,8 +61,9 @@ def raster(tris: np.ndarray, faces=None, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4)
             if g >= 0:
                 (x,) = [v for v in faces[g] if v not in (face[e], face[(e + 1) % 3])]
                 far[e] = points[x]
+        bw, bh = -(-w // occlude.BLOCK), -(-h // occlude.BLOCK)
         _raster_triangle(points[face], far, np.eye(3, 4), rect, w, h, 0.05, buf, mask, work, 0,
-                         scratch, spans)
+                         scratch, spans, np.zeros(bw * bh), np.zeros(bw * bh, np.uint8), bw)
     return buf, rect
 
 

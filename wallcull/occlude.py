@@ -320,11 +320,23 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     """Write every triangle of ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]``, nearest units first) into level 0 of each view (see :func:`_raster_triangle`),
     with the far vertex of each edge's neighbour face (``neighbors``: per face of the table,
-    the face across each edge, -1 for none)."""
+    the face across each edge, -1 for none). Blocks of ``BLOCK`` x ``BLOCK`` texels keep a
+    lower bound of what their texels hold, brought up to date after each unit: a triangle
+    nearer nowhere than what its blocks already hold is skipped (nearest units first, most of
+    what lies behind them is)."""
     tri = np.empty((3, 3))
     far = np.empty((3, 3))
     scratch = np.empty((16, SUB))
     spans = np.empty((2, SUB + 6), np.int64)
+    views = affine.shape[0]
+    bw = np.empty(views, np.int64)
+    bh = np.empty(views, np.int64)
+    b_at = np.zeros(views + 1, np.int64)
+    for v in range(views):
+        bw[v], bh[v] = -(-size[v, 0] // BLOCK), -(-size[v, 1] // BLOCK)
+        b_at[v + 1] = b_at[v] + bw[v] * bh[v]
+    low = np.zeros(b_at[views])  # per block: no texel holds less
+    dirty = np.zeros(b_at[views], np.uint8)
     for q in range(units.shape[0]):
         u = units[q]
         leaf = owner[q]
@@ -344,9 +356,20 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                         x = faces[g, c]
                         if x != a_ and x != b_:
                             _place(w, vertices[v0 + x], far[e])
-            for v in range(affine.shape[0]):
+            for v in range(views):
                 _raster_triangle(tri, far, affine[v], rect[v], size[v, 0], size[v, 1], near,
-                                 iz, mask, iz_work, offsets[v, 0], scratch, spans)
+                                 iz, mask, iz_work, offsets[v, 0], scratch, spans,
+                                 low[b_at[v]:b_at[v + 1]], dirty[b_at[v]:b_at[v + 1]], bw[v])
+        for v in range(views):  # the blocks this unit wrote: their bound again
+            for b in range(b_at[v + 1] - b_at[v]):
+                if dirty[b_at[v] + b]:
+                    dirty[b_at[v] + b] = 0
+                    J, I = b // bw[v], b % bw[v]
+                    lo = np.inf
+                    for j in range(J * BLOCK, min((J + 1) * BLOCK, size[v, 1])):
+                        for i in range(I * BLOCK, min((I + 1) * BLOCK, size[v, 0])):
+                            lo = min(lo, iz[offsets[v, 0] + j * size[v, 0] + i])
+                    low[b_at[v] + b] = lo
 
 
 @njit(cache=True, inline="always")
@@ -357,6 +380,8 @@ def _place(w, p, out):
 
 #: Sub-samples across a texel each way: a texel's coverage is a 64-bit mask of 8 x 8 cells.
 SUB = 8
+#: Texels across a block whose least value :func:`_rasterize` keeps.
+BLOCK = 8
 _FULL = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
@@ -381,7 +406,8 @@ def _side(px, py, i, j, k):
 
 
 @njit(cache=True)
-def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scratch, spans):
+def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scratch, spans,
+                     low, dirty, bw):
     """One occluder triangle into one view's texels, conservatively (the module docstring).
 
     Coverage: the cells (8 x 8 a texel) wholly inside the triangle, by a margin, and across an
@@ -405,6 +431,19 @@ def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scra
         if not _project(a, tri[c], rect, sx, sy, near, pts, c):
             return  # reaches behind the near plane: no occluder
     px, py, iz = pts[0], pts[1], pts[2]
+    # nowhere nearer than what every texel its box touches holds already (``low``: a lower
+    # bound per block): it can change nothing
+    i0 = max(0, int(min(px[0], px[1], px[2]) // SUB) // BLOCK)
+    i1 = min(bw - 1, int(max(px[0], px[1], px[2]) // SUB) // BLOCK)
+    j0 = max(0, int(min(py[0], py[1], py[2]) // SUB) // BLOCK)
+    j1 = min(low.shape[0] // bw - 1, int(max(py[0], py[1], py[2]) // SUB) // BLOCK)
+    if i0 <= i1 and j0 <= j1:
+        held = np.inf
+        for J in range(j0, j1 + 1):
+            for I in range(i0, i1 + 1):
+                held = min(held, low[J * bw + I])
+        if max(iz[0], iz[1], iz[2]) <= held:
+            return
     area = _side(px, py, 0, 1, 2)
     if not abs(area) > 1e-9:
         return
@@ -455,6 +494,7 @@ def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scra
     r0 = max(0, int(math.floor(y_lo)))
     r1 = min(cells_h, int(math.ceil(y_hi)))
     lo, hi = spans[0, 6:], spans[1, :SUB]
+    slope, offset = scratch[12], scratch[13]
     for J in range(r0 // SUB, -(-r1 // SUB)):
         inner_lo, inner_hi = cells_w, -1
         outer_lo, outer_hi = cells_w, -1
@@ -479,15 +519,32 @@ def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scra
             inner_hi = min(inner_hi, c1) if k else c1
         if outer_lo > outer_hi:
             continue
+        # the texels covered whole: one run, each the farthest of the planes over it, which
+        # along the run is affine in I (slope 8 ga, and the rest fixed for the row)
+        Ia, Ib = -(-inner_lo // SUB), (inner_hi + 1) // SUB - 1
+        if Ia <= Ib:
+            y0, y1 = J * SUB, J * SUB + SUB
+            for p_ in range(npl):
+                ga, gb = planes[0, p_], planes[1, p_]
+                slope[p_] = ga * SUB
+                offset[p_] = min(0.0, ga * SUB) + min(gb * y0, gb * y1) + planes[2, p_]
+            row = at + J * w
+            wrote = False
+            for I in range(Ia, Ib + 1):
+                far_iz = slope[0] * I + offset[0]
+                for p_ in range(1, npl):
+                    far_iz = min(far_iz, slope[p_] * I + offset[p_])
+                if far_iz > buf[row + I]:
+                    buf[row + I] = far_iz
+                    wrote = True
+            if wrote:
+                for b in range(Ia // BLOCK, Ib // BLOCK + 1):
+                    dirty[(J // BLOCK) * bw + b] = 1
         for I in range(outer_lo // SUB, outer_hi // SUB + 1):
+            if Ia <= I <= Ib:
+                continue
             k_at = at + J * w + I
             x0, x1 = I * SUB, I * SUB + SUB
-            y0, y1 = J * SUB, J * SUB + SUB
-            if inner_lo <= x0 and x1 - 1 <= inner_hi:  # the whole texel
-                far_iz = _lowest(planes, npl, x0, x1, y0, y1)
-                if far_iz > buf[k_at]:
-                    buf[k_at] = far_iz
-                continue
             bits = np.uint64(0)
             low_iz = np.inf
             for k in range(SUB):
@@ -505,6 +562,7 @@ def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scra
             if mask[k_at] == _FULL:
                 if iz_work[k_at] > buf[k_at]:
                     buf[k_at] = iz_work[k_at]
+                    dirty[(J // BLOCK) * bw + I // BLOCK] = 1
                 mask[k_at] = np.uint64(0)
                 iz_work[k_at] = np.inf
 
