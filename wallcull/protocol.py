@@ -194,10 +194,16 @@ def tile_deltas(record: FrameRecord, prior: FrameRecord):
     """Every tile's delta of ``record`` against ``prior`` at once, in CSR form
     ``(added, added_start, removed, removed_start)``, cached on ``record``: the streams ask for
     every tile against the same base. One compiled merge of each tile's two sorted lists."""
-    cache = record.__dict__.setdefault("_deltas", {})
+    return _per_base(record, "_deltas", prior, lambda: _merge_deltas(
+        record.start, record.leaves, prior.start, prior.leaves))
+
+
+def _per_base(record: FrameRecord, name: str, prior: FrameRecord, compute):
+    """``compute()``, kept on ``record`` under ``name`` for the base ``prior`` (the last four
+    bases asked for)."""
+    cache = record.__dict__.setdefault(name, {})
     if prior.number not in cache:
-        cache[prior.number] = _merge_deltas(record.start, record.leaves, prior.start,
-                                            prior.leaves)
+        cache[prior.number] = compute()
         while len(cache) > 4:
             cache.pop(next(iter(cache)))
     return cache[prior.number]
@@ -236,13 +242,8 @@ def part_deltas(record: FrameRecord, prior: FrameRecord):
     changed_start, whole, whole_start)``, cached on ``record``: the partial leaves whose ranges
     are new or differ (indices into ``record.parts``), and the leaves partial in ``prior``,
     still listed, now drawn whole."""
-    cache = record.__dict__.setdefault("_part_deltas", {})
-    if prior.number not in cache:
-        cache[prior.number] = _merge_parts(record.start, record.leaves, *record.parts,
-                                           *prior.parts)
-        while len(cache) > 4:
-            cache.pop(next(iter(cache)))
-    return cache[prior.number]
+    return _per_base(record, "_part_deltas", prior, lambda: _merge_parts(
+        record.start, record.leaves, *record.parts, *prior.parts))
 
 
 @njit(cache=True, nogil=True)
