@@ -2,10 +2,12 @@
 bytes per frame with full lists and as deltas against the frame before, and the delta's bytes
 by key (the shared head, each tile entry's parts).
 
-    python benchmarks/node_bytes.py [WALL.json] [TILES_PER_NODE] [FRAMES]
+    python benchmarks/node_bytes.py [WALL.json] [TILES_PER_NODE] [FRAMES] [CLUSTERS]
 
 The power plant's orbit, 600 frames a loop (the load test's path at 60 frames/s), frames 30
-on; every node of ``TILES_PER_NODE`` consecutive tiles.
+on; every node of ``TILES_PER_NODE`` consecutive tiles; the scene's leaves cut into clusters
+(``auto``, the default, a size, or ``off``: leaves whole, what packets were before draw
+ranges).
 """
 
 from __future__ import annotations
@@ -21,8 +23,8 @@ from wallcull import encode
 
 
 def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
-         count: int = 150) -> None:
-    session, frames = wall_session(wall_file, per_node)
+         count: int = 150, clusters: str = "auto") -> None:
+    session, frames = wall_session(wall_file, per_node, clusters)
     frames = frames[:count]
     full = delta = 0
     parts = Counter()
@@ -45,11 +47,12 @@ def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
                 for key, value in entry.items():
                     parts["entry: " + key] += len(msgpack.packb(key)) + len(msgpack.packb(value))
     n = len(frames) - 30
-    print(f"{wall_file}, {len(session.nodes)} nodes of {per_node}: full {full / n:,.0f} B/frame, "
+    print(f"{wall_file}, clusters {clusters}, {len(session.nodes)} nodes of {per_node}: "
+          f"full {full / n:,.0f} B/frame, "
           f"delta {delta / n:,.0f} B/frame, {full / delta:.2f}x")
     for key, value in parts.most_common():
         print(f"  {key:32} {value / n:8,.0f} B/frame")
 
 
 if __name__ == "__main__":
-    main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]))
+    main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]), *(sys.argv[4:5]))

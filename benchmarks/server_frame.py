@@ -16,17 +16,18 @@ import time
 import numpy as np
 
 from wallcull.paths import scene_path
-from wallcull.scene import load
+from wallcull.scene import load, parse_clusters
 from wallcull.service import Walls
 from wallcull.wall import Wall
 
 
-def wall_session(wall_file: str, per_node: int):
-    """A wall of the power plant whose nodes drive ``per_node`` consecutive tiles each: the
-    session, and its frames, the orbit's 600 frames a loop (the load test's at 60 frames/s)."""
+def wall_session(wall_file: str, per_node: int, clusters: str = "auto"):
+    """A wall of the power plant (its leaves cut into ``clusters``: a size, ``auto`` or
+    ``off``) whose nodes drive ``per_node`` consecutive tiles each: the session, and its
+    frames, the orbit's 600 frames a loop (the load test's at 60 frames/s)."""
     with open(wall_file) as f:
         wall = Wall.from_dict(json.load(f))
-    scene = load("powerplant")
+    scene = load("powerplant", clusters=parse_clusters(clusters))
     nodes = [list(range(k, min(k + per_node, wall.tiles))) for k in range(0, wall.tiles, per_node)]
     session = Walls().create(scene, wall, "adaptive", "obb", False, 64, nodes=nodes)
     return session, [f.to_dict() for f in scene_path(scene, wall, "orbit", 600)]
