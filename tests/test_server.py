@@ -1276,6 +1276,26 @@ def test_the_server_keeps_answering_while_a_frame_is_culled(monkeypatch):
     assert asyncio.run(scenario()) == [("health", 200), ("frame", 200)]
 
 
+def test_a_wall_can_cull_what_occluders_hide(client):
+    """``occlusion`` on POST /walls: inside the power plant, "on" lists fewer leaves than "off"
+    in no tile more; "auto" culls like "on" from inside the scene; bad values are refused."""
+    frame = {"position": [30.0, 12.0, 20.0], "orientation": [0.9238795, 0.0, 0.3826834, 0.0]}
+    walls = {mode: new_wall(client, "powerplant", occlusion=mode) for mode in ("off", "on", "auto")}
+    lists = {}
+    for mode, wid in walls.items():
+        assert client.get(f"/walls/{wid}").json()["occlusion"] == mode
+        packets = post_frame(client, wid, frame, packets=True)["packets"]
+        lists[mode] = [set(p["visible"]) for p in sorted(packets, key=lambda p: p["tile"])]
+    assert all(on <= off for on, off in zip(lists["on"], lists["off"]))
+    assert sum(map(len, lists["on"])) < sum(map(len, lists["off"]))
+    assert lists["auto"] == lists["on"]
+    r = client.post("/walls", json={"wall": WALL, "scene": "powerplant", "occlusion": "yes"},
+                    headers=AUTH)
+    assert r.status_code == 422, r.text
+    for wid in walls.values():
+        client.delete(f"/walls/{wid}", headers=AUTH)
+
+
 def test_a_wall_can_declare_its_own_lights_and_mirrors(client):
     """``settings`` on POST /walls replaces the scene's own (the power plant declares none),
     ``shadow_fit`` picks the fitting effort; bad settings are refused before any frame."""

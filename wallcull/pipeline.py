@@ -57,6 +57,7 @@ class Session:
         self.state = SceneState(scene, bounds)
         self.culler = Culler(self.state, wall, method, pseudo_groups, fine)
         self.occluder = None if occlusion is None else Occluder(self.state, wall, occlusion)
+        self.occlusion = "off" if occlusion is None else occlusion.mode  # the setting's word
         # what the scene asks for (lights, mirrors): its own, or ``settings`` for this wall
         self.raw_settings = dict(scene.settings if settings is None else settings)
         self.settings = cfg.parse(self.raw_settings)

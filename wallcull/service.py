@@ -30,6 +30,7 @@ from .credentials import Grant
 from .errors import InputError
 from .fit import FitOptions
 from .limits import Limits
+from .occlude import OcclusionOptions
 from .persist import StateFolder
 from .pipeline import Session
 from .scene import Scene, load
@@ -381,7 +382,7 @@ class WallSession:
         return {"id": self.id, "scene": self.scene.name, "wall": self.wall.to_dict(),
                 "tiles": self.wall.tiles, "method": s.method, "bounds": s.state.kind,
                 "pseudo_groups": s.culler.pseudo_groups, "shadow_fit": s.fit_options.shadow_fit,
-                "settings": s.raw_settings, "latest": self.newest,
+                "occlusion": s.occlusion, "settings": s.raw_settings, "latest": self.newest,
                 "history": self.history.size, "subscribers": self.subscribers,
                 "nodes": self.nodes}
 
@@ -615,7 +616,7 @@ def spec_of(session: WallSession) -> dict:
     return {"wall": session.wall.to_dict(), "scene": session.scene.name, "method": s.method,
             "bounds": s.state.kind, "pseudo_groups": s.culler.pseudo_groups,
             "history": session.history.size, "depth": fit.depth, "reversed_z": fit.reversed_z,
-            "shadow_fit": fit.shadow_fit, "settings": s.raw_settings}
+            "shadow_fit": fit.shadow_fit, "occlusion": s.occlusion, "settings": s.raw_settings}
 
 
 class Walls:
@@ -630,7 +631,8 @@ class Walls:
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
                history: int, fit: FitOptions = FitOptions(), nodes=None,
-               settings: Mapping[str, Any] | None = None) -> WallSession:
+               settings: Mapping[str, Any] | None = None, occlusion: str = "off"
+               ) -> WallSession:
         """A new wall, with its credentials in ``.credentials``, to be shown this once:
         ``{"driver": token, "nodes": [{"tiles", "token"}, ...]}`` (``nodes`` groups tiles
         under one node credential; by default a node per tile). ``settings``: lights and
@@ -640,7 +642,7 @@ class Walls:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
         wid = secrets.token_hex(6)
         session = self._session(wid, scene, wall, method, bounds, pseudo_groups, history, fit,
-                                settings)
+                                settings, occlusion)
         session.credentials, grants = credentials.issue(wid, wall.tiles, nodes)
         if self.state is not None:
             self.state.add_wall(wid, session.created, spec_of(session), grants)
@@ -650,12 +652,14 @@ class Walls:
     @staticmethod
     def _session(wid: str, scene: Scene, wall, method: str, bounds: str,
                  pseudo_groups: bool, history: int, fit: FitOptions,
-                 settings: Mapping[str, Any] | None = None) -> WallSession:
+                 settings: Mapping[str, Any] | None = None, occlusion: str = "off"
+                 ) -> WallSession:
         if history * wall.tiles > MAX_TILE_FRAMES:
             raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
                              f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
                              f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
-        session = Session(scene, wall, method, bounds, pseudo_groups, fit, settings)
+        session = Session(scene, wall, method, bounds, pseudo_groups, fit, settings,
+                          occlusion=OcclusionOptions.parse(occlusion))
         return WallSession(wid, session, protocol.History(history))
 
     def _add(self, session: WallSession, grants: dict[str, Grant]) -> None:
@@ -683,7 +687,8 @@ class Walls:
                                  spec.get("shadow_fit", "refined"))
                 session = self._session(row.id, scene, Wall.from_dict(spec["wall"]),
                                         spec["method"], spec["bounds"], spec["pseudo_groups"],
-                                        spec["history"], fit, spec.get("settings"))
+                                        spec["history"], fit, spec.get("settings"),
+                                        spec.get("occlusion", "off"))
             except (InputError, NotFound, KeyError, ValueError) as exc:
                 log.warning("wall %s cannot be restored and is dropped: %s", row.id, exc)
                 self.state.remove_wall(row.id)

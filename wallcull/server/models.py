@@ -76,6 +76,8 @@ class WallCreate(Body):
     depth: Literal["tight", "wall"] = "tight"
     reversed_z: Bool = False
     shadow_fit: Literal[EFFORTS] = "refined"  # type: ignore[valid-type]
+    #: Drop what occluders hide: never, every frame, or when the camera is inside the scene.
+    occlusion: Literal["off", "on", "auto"] = "off"
     #: Lights and mirrors for this wall instead of the scene's own.
     settings: Optional[SettingsSpec] = None
     #: Tiles grouped under one node credential each (a node driving several tiles); tiles
@@ -146,6 +148,7 @@ class WallInfo(BaseModel):
     bounds: str
     pseudo_groups: bool
     shadow_fit: str
+    occlusion: str
     settings: Optional[dict] = None
     latest: int
     history: int

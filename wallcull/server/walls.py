@@ -50,7 +50,7 @@ async def create_wall(request: Request, state: State,
     session = state.walls.create(scene, wall, body.method, body.bounds, body.pseudo_groups,
                                  body.history,
                                  FitOptions(body.depth, body.reversed_z, body.shadow_fit),
-                                 body.nodes, settings)
+                                 body.nodes, settings, body.occlusion)
     if state.bridge is not None:
         state.bridge.watch(session)
     # the nodes' first mesh requests find them encoded (a thread: the loop keeps serving)
