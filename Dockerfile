@@ -33,11 +33,15 @@ RUN pip install --no-deps . ./clients \
  && mkdir -p /tmp/numba-cache /var/lib/wallcull \
  && chown wallcull /tmp/numba-cache /var/lib/wallcull
 USER wallcull
+# Compile every numba kernel now, as the user that runs the server, into NUMBA_CACHE_DIR: a
+# fresh container loads them in milliseconds and answers its health check in seconds instead
+# of compiling for a minute or more at its first start (wallcull.warm).
+RUN python -m wallcull.warm
 # walls (SQLite), credentials' digests, frame numbers and uploads: kept across restarts
 VOLUME ["/var/lib/wallcull"]
 
 EXPOSE 8000
-HEALTHCHECK --interval=5s --timeout=4s --start-period=60s --retries=20 \
+HEALTHCHECK --interval=5s --timeout=4s --start-period=10s --retries=20 \
     CMD ["python", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/health', timeout=3)"]
 # The token comes from the environment: WALLCULL_TOKEN (read by `wallcull serve`); so do
 # WALLCULL_STATE, WALLCULL_CORS_ORIGINS and WALLCULL_LIMITS.

@@ -8,6 +8,7 @@ import msgpack
 import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
+from starlette.websockets import WebSocketDisconnect
 
 from wallcull.server import create_app
 
@@ -225,3 +226,49 @@ def test_the_schema_declares_security_links_and_bodies(client):
     spec = doc["components"]["schemas"]["WallSpec"]["properties"]
     assert spec["tile_size"]["items"]["minimum"] > 0 and spec["tile_size"]["minItems"] == 2
     assert doc["components"]["schemas"]["WallCreate"]["properties"]["scene"]["pattern"]
+
+
+@pytest.mark.parametrize("tile", ["%C2%B2", "%D9%A3", "%EF%BC%91", "1%C2%B2", "-1", "0x1"])
+def test_tile_numbers_in_other_digits_are_422_never_500(client, wall, tile):
+    """``"²".isdigit()`` is true and ``int("²")`` fails; ``"٣"`` reads as 3: a tile is written
+    in ASCII digits, on every route and stream, with every credential."""
+    wid = wall["id"]
+    for headers in (node(wall, 0), OPERATOR, {}):
+        r = client.get(f"/walls/{wid}/tiles/{tile}/packets/latest", headers=headers)
+        assert r.status_code in (401, 404, 422), (headers, r.status_code, r.text)
+        r = client.post(f"/walls/{wid}/tiles/{tile}/ack", json={"frame": 0}, headers=headers)
+        assert r.status_code in (401, 404, 422), (headers, r.status_code, r.text)
+    token = node(wall, 0)["Authorization"][7:]
+    for query in (f"?token={token}", f"?token={TOKEN}"):
+        with pytest.raises((WebSocketDenialResponse, WebSocketDisconnect)) as denied:
+            with client.websocket_connect(f"/walls/{wid}/tiles/{tile}/stream{query}") as ws:
+                ws.receive_bytes()
+        exc = denied.value
+        assert getattr(exc, "status_code", None) in (404, 422) or \
+            getattr(exc, "code", None) == 1008, exc
+
+
+@pytest.mark.parametrize("headers, query", [
+    ({"Authorization": "Bearer garbage"}, "good"),
+    ({"Authorization": "garbage"}, "good"),
+    ({"Authorization": "Basic Zm9vOmJhcg=="}, "good"),
+    ({"Authorization": "Bearer good"}, "other"),
+    ({}, "good&token=other"),
+])
+def test_a_stream_whose_credentials_disagree_is_refused(client, wall, headers, query):
+    """One request, one credential: a valid ``?token=`` beside a garbage or different
+    ``Authorization`` is a 401, whichever a check would have read."""
+    good = node(wall, 0)["Authorization"][7:]
+    other = node(wall, 1)["Authorization"][7:]
+    fill = lambda text: text.replace("good", good).replace("other", other)  # noqa: E731
+    headers = {k: fill(v) for k, v in headers.items()}
+    for path in (f"/walls/{wall['id']}/tiles/0/stream", f"/walls/{wall['id']}/nodes/stream",
+                 f"/walls/{wall['id']}/console/stream"):
+        with pytest.raises(WebSocketDenialResponse) as denied:
+            with client.websocket_connect(f"{path}?token={fill(query)}", headers=headers):
+                pass
+        assert denied.value.status_code == 401, (path, denied.value.json())
+    # the same credential twice, or once, is fine
+    with client.websocket_connect(f"/walls/{wall['id']}/tiles/0/stream?token={good}",
+                                  headers={"Authorization": f"Bearer {good}"}) as ws:
+        assert msgpack.unpackb(ws.receive_bytes())["frame"] == 0

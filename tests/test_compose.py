@@ -219,7 +219,10 @@ def test_compose_commands_run_on_loopback(tmp_path):
     """server (until healthy, by its own health check), then nodes, then the driver: 60 frames
     of the default 4 x 4 wall with the barrier, every frame acknowledged by every tile."""
     port = free_port()
-    env = {**ENV, "WALLCULL_FRAMES": "60", "WALLCULL_IDLE_TIMEOUT": "3"}
+    # generous timeouts (tests, not the product): on a loaded machine a barrier or a node's
+    # next packet can take longer than the defaults allow
+    env = {**ENV, "WALLCULL_FRAMES": "60", "WALLCULL_IDLE_TIMEOUT": "10",
+           "WALLCULL_BARRIER_TIMEOUT": "10"}
 
     def proc_env(service):  # the server's volume, mapped to a folder here as its network is
         out = {**os.environ, **environment(service, env)}
@@ -252,7 +255,7 @@ def test_compose_commands_run_on_loopback(tmp_path):
                                 env=proc_env("driver"), capture_output=True, text=True,
                                 cwd=ROOT, timeout=180)
         assert driver.returncode == 0, driver.stderr[-2000:]
-        out, err = nodes.communicate(timeout=60)
+        out, err = nodes.communicate(timeout=120)
         assert nodes.returncode == 0, err[-2000:]
     finally:
         for p in procs:
@@ -265,3 +268,23 @@ def test_compose_commands_run_on_loopback(tmp_path):
     assert summary["frames"] == 60 and summary["barrier_incomplete"] == 0
     ready = json.loads(out.splitlines()[0])
     assert ready["ready"] and ready["tiles"] == list(range(16))
+
+
+def test_the_image_compiles_the_kernels_at_build_as_the_server_user():
+    """A fresh container must not compile for a minute before its health check answers: the
+    kernels are compiled at build (wallcull.warm), by the user that runs the server, into the
+    NUMBA_CACHE_DIR it runs with."""
+    lines = (ROOT / "Dockerfile").read_text().replace("\\\n", " ").splitlines()
+    instructions = [ln.split(None, 1) for ln in lines if ln.strip() and not ln.startswith("#")]
+    ops = [op for op, _ in instructions]
+    runs = [rest for op, rest in instructions if op == "RUN"]
+    warm = next(k for k, (op, rest) in enumerate(instructions)
+                if op == "RUN" and "wallcull.warm" in rest)
+    user = max(k for k, op in enumerate(ops) if op == "USER")
+    assert user < warm and instructions[user][1].strip() == "wallcull"
+    env = " ".join(rest for op, rest in instructions if op == "ENV")
+    cache = env.split("NUMBA_CACHE_DIR=")[1].split()[0]
+    assert any(cache in r and "chown wallcull" in r for r in runs)  # writable by the user
+    import importlib
+
+    assert hasattr(importlib.import_module("wallcull.warm"), "main")

@@ -128,14 +128,14 @@ def test_msgpack_nested_1000_deep_is_a_400_on_a_real_server():
 
 
 def test_big_bodies_and_big_answers_leave_the_event_loop_free():
-    """A 1 MiB body of empty updates (issue 10: the loop blocked 0.45 s) and the node list of
-    a 50,000-node scene (0.8 s at 100,000): a probe keeps being answered. The bound is loose
-    (the machine is shared); ``python -m wallcull_clients.hostile loop`` measures it."""
+    """A 1 MiB body of empty updates (issue 10: the loop blocked 0.45 s) is refused before
+    any is validated; the node list of a 50,000-node scene (0.8 s on the loop at 100,000) is
+    encoded off it: the probe's slowest answer meanwhile is a fraction of the request's time,
+    however busy the machine (``python -m wallcull_clients.hostile loop`` measures both)."""
     r = run(hostile.loop(1.0, 50_000))
     assert r["updates"]["status"] == 422  # more than 10,000 updates, refused unvalidated
     assert r["nodes"]["upload_status"] == 201 and r["nodes"]["status"] == 200
-    assert r["updates"]["worst_ms"] < 200, r
-    assert r["nodes"]["worst_ms"] < 200, r
+    assert r["nodes"]["worst_ms"] < 0.5 * r["nodes"]["ms"], r
 
 
 def _check_restart(r, tiles):
@@ -166,3 +166,73 @@ def test_a_server_killed_mid_run_of_64_nodes_resumes_them_within_2_s():
 
 
 WALL_4x4 = "examples/wall-4x4.json"
+
+
+# --------------------------------------------------------------------------- issue 20, each class
+# beside a running wall (hostile.measured): nothing refused with a 500, every health poll
+# answered, the wall's frames go on. Its numbers at full size: docs/hardening.md.
+
+
+def _beside(r):
+    assert r["responses_500"] == 0, r
+    assert r["health_failed"] == 0 and r["health_polls"] > 10, r
+    assert r["frames_per_s_during"] > 0, r
+    return r
+
+
+def test_deep_messages_are_refused_on_every_stream_and_a_flood_is_paced():
+    r = _beside(run(hostile.messages(count=5000, seconds=2)))
+    for what in ("node_json", "node_msgpack"):  # 100 kB: over a node message's size
+        assert "at most 65536 bytes" in r[f"deep_{what}"]["answer"], r
+    for what in ("frames_json", "frames_msgpack"):
+        answer = r[f"deep_{what}"]["answer"]
+        assert "recursion" in answer or "StackError" in answer, r
+
+
+def test_slow_headers_cannot_hold_every_descriptor():
+    """300 half-sent headers against a server of 256 descriptors: the oldest give way to
+    new connections, all are closed by the header deadline, a fresh connection's health
+    request is always answered."""
+    r = _beside(run(hostile.headers(connections=300, nofile=256, hold=7, seconds=2)))
+    assert r["closed_by_server"] == 300, r
+
+
+def test_bounds_that_take_long_are_fitted_in_a_child_within_a_budget():
+    r = _beside(run(hostile.prepare(("obb-hull",), seconds=2)))
+    assert r["obb-hull"]["status"] == 201, r
+    r = _beside(run(hostile.prepare(("obb-min",), seconds=2,
+                                    args=["--limit", "parse_seconds=0.5"])))
+    assert r["obb-min"]["status"] == 422, r
+
+
+def test_degenerate_stereo_is_culled():
+    r = _beside(run(hostile.stereo(seconds=2)))
+    assert all(f["status"] == 200 for wall in ("wall-8x8", "wall-cave") for f in r[wall]), r
+
+
+def test_a_256x256_wall_and_its_consoles_stay_off_the_event_loop():
+    """Made in a worker thread; ``packets=true`` refused at once; eight consoles without a
+    credential share ``limits.open_bytes`` (4 MiB) a second."""
+    r = _beside(run(hostile.huge(consoles=8, hold=3, seconds=2)))
+    assert r["create"]["status"] == 201 and r["frame"]["status"] == 200, r
+    assert r["frame_packets"]["status"] == 422 and "1024" in r["frame_packets"]["detail"], r
+    consoles = r["consoles"]
+    assert consoles["failed"] == 0 and consoles["mb_received"] > 0, r
+    assert consoles["mb_received"] <= 4 * (consoles["seconds"] + 2), r  # the budget, and a burst
+
+
+def test_wrong_answers_are_4xx():
+    r = _beside(run(hostile.answers(seconds=2)))
+    assert r["unicode_tile_http"] == 422 and r["unicode_tile_ws"] == 422, r
+    assert r["disagreeing_credentials_ws"] == 401, r
+    assert r["same_name_uploads"] == [201, 409, 409, 409, 409, 409], r
+    assert r["replace_a_scene_a_wall_uses"] == 409, r
+    assert r["replace_once_no_wall_uses_it"] == 201, r
+
+
+def test_damaged_state_is_refused_in_one_line_and_kept():
+    r = run(hostile.state())
+    for case in ("not_a_database", "truncated", "spec_not_json"):
+        c = r[case]
+        assert c["exit"] == 2 and c["lines"] == 1, r
+        assert c["names_the_file"] and c["file_unchanged"], r

@@ -5,7 +5,12 @@ folder; one server per folder. And what the scene cache lets go of."""
 from __future__ import annotations
 
 import asyncio
+import errno
+import os
 import sqlite3
+import subprocess
+import sys
+import time
 
 import pytest
 from fastapi.testclient import TestClient
@@ -69,16 +74,182 @@ def test_only_digests_of_credentials_are_at_rest(tmp_path):
 def test_uploads_and_the_walls_on_them_survive(tmp_path):
     with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
         assert c.post("/scenes?name=two", content=boxes_glb(), headers=OPERATOR).status_code == 201
-        wid = c.post("/walls", json={"wall": WALL, "scene": "two.glb"},
-                     headers=OPERATOR).json()["id"]
+        info = c.post("/walls", json={"wall": WALL, "scene": "two.glb"}, headers=OPERATOR).json()
+        wid = info["id"]
     assert (tmp_path / "scenes" / "two.glb").read_bytes() == boxes_glb()
     with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
         assert c.get(f"/walls/{wid}").json()["scene"] == "two.glb"
-    (tmp_path / "scenes" / "two.glb").unlink()  # a wall whose scene is gone is dropped
+    (tmp_path / "scenes" / "two.glb").unlink()
+    driver = bearer(info["credentials"]["driver"])
     with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
-        assert c.get("/walls").json()["walls"] == []
+        # the wall whose scene is gone stays, unavailable (503: retry), and health says why
+        r = c.get(f"/walls/{wid}")
+        assert r.status_code == 503 and "two.glb" in r.json()["detail"], r.text
+        assert r.headers["retry-after"]
+        health = c.get("/health").json()
+        assert health["status"] == "degraded" and health["walls_unavailable"] == [wid]
+        assert "wallcull_walls_unavailable 1.0" in c.get("/metrics").text
+        assert c.post(f"/walls/{wid}/frames", json={"frame": FRAME},
+                      headers=driver).status_code == 503  # its credentials still hold
+        # the scene comes back (uploaded again): so does the wall, with its credentials
+        assert c.post("/scenes?name=two", content=boxes_glb(),
+                      headers=OPERATOR).status_code == 201
+        assert c.get(f"/walls/{wid}").status_code == 200
+        assert c.post(f"/walls/{wid}/frames", json={"frame": FRAME},
+                      headers=driver).status_code == 200
+        assert c.get("/health").json()["status"] == "ok"
     assert sqlite3.connect(tmp_path / "walls.sqlite3").execute(
-        "SELECT COUNT(*) FROM credentials").fetchone() == (0,)
+        "SELECT COUNT(*) FROM credentials").fetchone() == (5,)
+
+
+def test_a_wall_comes_back_when_its_scene_file_does(tmp_path, monkeypatch):
+    """The file put back by hand (not uploaded): the server finds it on its own."""
+    import wallcull.server as srv
+
+    monkeypatch.setattr(srv, "RETRY_PERIOD", 0.05)
+    scenes = tmp_path / "scenes"
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.post("/scenes?name=two", content=boxes_glb(), headers=OPERATOR).status_code == 201
+        wid = c.post("/walls", json={"wall": WALL, "scene": "two.glb"},
+                     headers=OPERATOR).json()["id"]
+    (scenes / "two.glb").rename(tmp_path / "away.glb")
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.get(f"/walls/{wid}").status_code == 503
+        assert c.delete(f"/walls/{wid}", headers=OPERATOR).status_code != 500
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.get(f"/walls/{wid}").status_code == 404  # deleted while unavailable: gone
+        c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR)
+    (tmp_path / "away.glb").rename(scenes / "two.glb")
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert [w["scene"] for w in c.get("/walls").json()["walls"]] == ["fatehpur"]
+    # and one that was unavailable at start comes back by itself once the file is there
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        wid = c.post("/walls", json={"wall": WALL, "scene": "two.glb"},
+                     headers=OPERATOR).json()["id"]
+    (scenes / "two.glb").rename(tmp_path / "away.glb")
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.get(f"/walls/{wid}").status_code == 503
+        (tmp_path / "away.glb").rename(scenes / "two.glb")
+        deadline = time.monotonic() + 60
+        while c.get(f"/walls/{wid}").status_code != 200:
+            assert time.monotonic() < deadline, c.get("/health").json()
+            time.sleep(0.05)
+
+
+def _damaged(tmp_path, damage) -> str:
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR)
+    db = tmp_path / "walls.sqlite3"
+    damage(db)
+    before = db.read_bytes()
+    with pytest.raises(InputError) as exc:
+        create_app(None, token=TOKEN, state=tmp_path)
+    assert db.read_bytes() == before  # never written to: kept for inspection
+    message = str(exc.value)
+    assert str(db) in message and "\n" not in message and "move" in message
+    StateFolder(tmp_path / "other").close()
+    return message
+
+
+def test_a_truncated_state_database_is_refused_naming_it(tmp_path):
+    def truncate(db):
+        data = db.read_bytes()
+        db.write_bytes(data[:len(data) // 2 + 100])
+    assert "cannot be used" in _damaged(tmp_path, truncate)
+
+
+def test_a_state_database_that_is_not_one_is_refused_naming_it(tmp_path):
+    assert "not a database" in _damaged(tmp_path, lambda db: db.write_bytes(b"x" * 8192))
+
+
+def test_a_wall_spec_that_is_not_json_is_refused_naming_the_wall(tmp_path):
+    def garble(db):
+        with sqlite3.connect(db) as con:
+            con.execute("UPDATE walls SET spec = '{\"wall\": [1, 2'")
+        con.close()
+    assert "spec" in _damaged(tmp_path, garble)
+
+
+def test_a_wall_spec_this_server_cannot_read_is_refused(tmp_path):
+    def garble(db):
+        with sqlite3.connect(db) as con:
+            con.execute("""UPDATE walls SET spec = json_set(spec, '$.wall.cols', -3)""")
+        con.close()
+    assert "cols" in _damaged(tmp_path, garble)
+
+
+def test_the_cli_says_it_in_one_line_with_status_2(tmp_path):
+    (tmp_path / "walls.sqlite3").write_bytes(b"SQLite format 3\0" + b"\xff" * 4000)
+    proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "serve", "--state",
+                           str(tmp_path), "--port", "1"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "walls.sqlite3" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("pragma, status", [("max_page_count", 507), ("query_only", 503)])
+def test_failed_state_writes_are_507_or_503_and_frames_go_on(tmp_path, pragma, status):
+    """A full disk (SQLite's page limit stands in for it) or a read-only database: writes
+    are refused with the reason, frames are served from memory, health and metrics say so;
+    all is well again once writes succeed."""
+    app = create_app(None, token=TOKEN, state=tmp_path)
+    with TestClient(app) as c:
+        info = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR).json()
+        driver = bearer(info["credentials"]["driver"])
+        node0 = bearer(info["credentials"]["nodes"][0]["token"])
+        db = app.state.server.walls.state._db
+        pages = db.execute("PRAGMA page_count").fetchone()[0]
+        db.execute(f"PRAGMA {pragma} = {pages if pragma == 'max_page_count' else 1}")
+        r = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR)
+        if pragma == "max_page_count" and r.status_code == 201:  # the page had room left
+            for _ in range(50):
+                r = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR)
+                if r.status_code != 201:
+                    break
+        assert r.status_code == status, r.text
+        assert "walls.sqlite3" in r.json()["detail"]
+        health = c.get("/health").json()
+        assert health["status"] == "degraded" and "walls.sqlite3" in health["problems"][0]
+        assert "wallcull_state_write_failing 1.0" in c.get("/metrics").text
+        for _ in range(3):  # frames are still culled and served
+            assert c.post(f"/walls/{info['id']}/frames", json={"frame": FRAME},
+                          headers=driver).status_code == 200
+        assert c.get(f"/walls/{info['id']}/tiles/0/packets/latest",
+                     headers=node0).status_code == 200
+        if pragma == "query_only":  # (a full disk still lets a wall be deleted)
+            walls = len(c.get("/walls").json()["walls"])
+            assert c.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == status
+            assert len(c.get("/walls").json()["walls"]) == walls  # a failed delete keeps it
+        db.execute("PRAGMA max_page_count = 1000000" if pragma == "max_page_count"
+                   else "PRAGMA query_only = 0")
+        assert c.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == 204
+        assert c.get("/health").json()["status"] == "ok"
+
+
+def test_idle_walls_expire_with_wall_ttl_and_not_without(tmp_path, monkeypatch):
+    import wallcull.server as srv
+
+    monkeypatch.setattr(srv, "RETRY_PERIOD", 0.05)
+    # a TTL far above a frame's round trip, even on a loaded machine
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path, wall_ttl=3.0)) as c:
+        info = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR).json()
+        driver = bearer(info["credentials"]["driver"])
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 4.0:  # kept while frames come
+            assert c.post(f"/walls/{info['id']}/frames", json={"frame": FRAME},
+                          headers=driver).status_code == 200
+            time.sleep(0.05)
+        deadline = time.monotonic() + 60
+        while c.get(f"/walls/{info['id']}").status_code != 404:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        assert "wallcull_walls_expired_total 1.0" in c.get("/metrics").text
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.get("/walls").json()["walls"] == []  # gone from the state folder too
+        wid = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
+                     headers=OPERATOR).json()["id"]
+        time.sleep(3.5)
+        assert c.get(f"/walls/{wid}").status_code == 200  # off by default
 
 
 def test_one_server_per_state_folder(tmp_path):
@@ -105,3 +276,18 @@ def test_the_scene_cache_keeps_walls_scenes_and_evicts_the_rest():
         assert store.evict() == ["fatehpur", "powerplant"] and not store.cache
 
     asyncio.run(go())
+
+
+@pytest.mark.parametrize("code, status", [(errno.ENOSPC, 507), (errno.EROFS, 503)])
+def test_an_upload_the_scene_folder_cannot_take_is_507_or_503(tmp_path, monkeypatch, code,
+                                                              status):
+    def cannot(self):
+        raise OSError(code, os.strerror(code))
+
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        monkeypatch.setattr(SceneStore, "spool", cannot)
+        r = c.post("/scenes?name=two", content=boxes_glb(), headers=OPERATOR)
+        assert r.status_code == status and os.strerror(code) in r.json()["detail"], r.text
+        monkeypatch.undo()
+        assert c.post("/scenes?name=two", content=boxes_glb(),
+                      headers=OPERATOR).status_code == 201  # the name was let go

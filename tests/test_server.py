@@ -725,8 +725,12 @@ def test_websocket_streams_need_a_node_credential(client, wid):
         for bad in ({"ack": "zero"}, {"ack": 99}, [1, 2], {"ack": True}):
             node.send(bad)
             assert "error" in node.message()
-        node.ws.send_text("[" * 200_000)  # deeper than any parser's recursion
+        node.ws.send_text("[" * 200_000)  # deeper than any parser's recursion: too long too
+        assert "at most 65536 bytes" in node.message()["error"]
+        node.ws.send_text("[" * 20_000)  # within the size, beyond any parser's recursion
         assert "malformed JSON" in node.message()["error"]
+        node.ws.send_text("[" * 40 + "]" * 40)  # parses, but deeper than bodies may be
+        assert "deeper than 32" in node.message()["error"]
         node.ws.send_bytes(b"\xc1")
         assert "malformed msgpack" in node.message()["error"]
         post_frame(client, wid)

@@ -5,6 +5,7 @@
     wallcull walk SCENE [--wall WALL.json]      # the README's main job: a walkthrough, per tile
     wallcull prepare SCENE [--force]            # a prepared file: the scene loads in seconds
     wallcull serve [--host 127.0.0.1] [--port 8000] [--scenes DIR] [--token T] [--state DIR]
+                   [--wall-ttl SECONDS]
                    [--cors-origin ORIGIN ...] [--limit NAME=VALUE ...] [--nats URL]
     wallcull scenes
 """
@@ -241,7 +242,7 @@ def describe_wall(wall) -> str:
 
 
 def cmd_serve(args) -> int:
-    from .server import serve, settings_from_env
+    from .server import seconds_setting, serve, settings_from_env
 
     settings = settings_from_env()
     if args.scenes:
@@ -256,6 +257,8 @@ def cmd_serve(args) -> int:
         settings["nats"] = args.nats
     if args.nats_prefix:
         settings["nats_prefix"] = args.nats_prefix
+    if args.wall_ttl is not None:
+        settings["wall_ttl"] = seconds_setting(args.wall_ttl, "--wall-ttl")
     for text in args.limit:
         settings["limits"] = settings["limits"].with_text(text)
     serve(args.host, args.port, args.log_level, **settings)
@@ -505,6 +508,10 @@ def parser() -> argparse.ArgumentParser:
                         "$WALLCULL_NATS)")
     q.add_argument("--nats-prefix", metavar="PREFIX",
                    help="first token of the NATS subjects (default: wallcull)")
+    q.add_argument("--wall-ttl", metavar="SECONDS",
+                   help="delete a wall once it has had no frame, acknowledgement or stream for "
+                        "this long (default: $WALLCULL_WALL_TTL, else never; see "
+                        "docs/hardening.md)")
     q.add_argument("--log-level", default="info")
     q.set_defaults(func=cmd_serve)
 

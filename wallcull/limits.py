@@ -34,12 +34,18 @@ class Limits:
     parse_seconds: float = 120.0  #: seconds before it is killed
     # scenes held in memory
     scene_cache: int = 2 * GiB  #: bytes of scenes kept loaded; walls' scenes always stay
+    # connections (wallcull.server.guard)
+    connections: int = 4096  #: connections at once (always below the file-descriptor limit)
+    header_seconds: float = 10.0  #: seconds a request's header may take to arrive
     # walls and streams
     walls: int = 32  #: walls at once
     streams: int = 16384  #: WebSocket streams at once, in all
     streams_per_wall: int = 8192  #: ... on one wall
     streams_per_tile: int = 4  #: ... on one tile
     stream_idle: float = 30.0  #: seconds a stream may wait for an acknowledgement before it is closed
+    messages: int = 200  #: WebSocket messages a connection may send per second (a burst of as many)
+    message_bytes: int = 64 * KiB  #: bytes of a message on a node's stream (a frame stream's: ``body``)
+    open_bytes: int = 4 * MiB  #: bytes per second the server sends to console streams opened without a credential, all together
 
     def with_text(self, text: str) -> "Limits":
         """These limits with ``NAME=VALUE[,NAME=VALUE...]`` applied."""

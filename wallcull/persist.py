@@ -6,6 +6,13 @@ folder) and ``lock``, which one server at a time holds. SQLite runs in WAL mode 
 ``synchronous=NORMAL``: a commit is an append to the log, durable when the process is killed
 (not when the machine loses power), about 20 µs; so every frame's number is written before the
 frame is published, and a restarted server never numbers a frame at or below one a client saw.
+
+What is found at start is checked before anything is served: a database that is not one,
+truncated, corrupt or whose walls' specs do not parse stops the server with one line naming the
+file, what is wrong and what to do; the file is never written to. A write that fails later
+(disk full, a read-only folder) raises :class:`StateWriteFailed` for the request that asked for
+it (507 or 503), and :attr:`StateFolder.failure` says why until a write succeeds again; frames
+go on from memory meanwhile.
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ import os
 import sqlite3
 import threading
 from dataclasses import dataclass
+from typing import Callable
 from pathlib import Path
 
 from .credentials import Grant
@@ -46,6 +54,15 @@ def default_folder() -> Path:
     return Path(base) / "wallcull"
 
 
+class StateWriteFailed(RuntimeError):
+    """The state folder could not be written: ``status`` 507 when the disk is full, 503
+    otherwise (a read-only folder, an I/O error)."""
+
+    def __init__(self, status: int, reason: str):
+        super().__init__(reason)
+        self.status = status
+
+
 @dataclass
 class WallRow:
     id: str
@@ -72,56 +89,117 @@ class StateFolder:
             raise InputError(f"state folder {self.path} is in use by another wallcull server; "
                              "give this one its own (--state DIR)") from None
         self.scenes = self.path / "scenes"
-        # frames are culled in worker threads: one connection, one lock
-        self._db = sqlite3.connect(self.path / "walls.sqlite3", check_same_thread=False,
-                                   isolation_level=None)
-        self._mutex = threading.Lock()
-        with self._mutex:
+        self.file = self.path / "walls.sqlite3"
+        #: why the last write failed, until one succeeds again (health and metrics show it)
+        self.failure: str | None = None
+        self._mutex = threading.Lock()  # frames are culled in worker threads: one connection
+        try:
+            self._open()
+            self.rows = self._read()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> None:
+        """Open and check the database (creating it when there is none), or refuse to start."""
+        fresh = not self.file.exists() or self.file.stat().st_size == 0
+        try:
+            self._db = sqlite3.connect(self.file, check_same_thread=False, isolation_level=None)
+            if not fresh:  # reads every page: a truncated or damaged file is found here
+                problems = [r[0] for r in self._db.execute("PRAGMA quick_check").fetchall()]
+                if problems != ["ok"]:
+                    raise self._corrupt("; ".join(problems[:3]))
+            version = self._db.execute("PRAGMA user_version").fetchone()[0]
+            if version > VERSION:
+                raise InputError(f"{self.file} was written by a newer wallcull (schema "
+                                 f"{version}; this one knows {VERSION}): run that version, or "
+                                 "move the file aside to start with no walls")
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.execute("PRAGMA foreign_keys=ON")
-            version = self._db.execute("PRAGMA user_version").fetchone()[0]
-            if version > VERSION:
-                raise InputError(f"{self.path / 'walls.sqlite3'} was written by a newer "
-                                 f"wallcull (schema {version}; this one knows {VERSION})")
-            self._db.executescript(SCHEMA)
-            self._db.execute(f"PRAGMA user_version={VERSION}")
+            if fresh or version < VERSION:
+                self._db.executescript(SCHEMA)
+                self._db.execute(f"PRAGMA user_version={VERSION}")
+        except sqlite3.DatabaseError as exc:
+            raise self._corrupt(str(exc)) from None
 
-    def add_wall(self, wid: str, created: float, spec: dict, grants: dict[str, Grant]) -> None:
-        with self._mutex:  # one transaction: the wall with its credentials, or nothing
-            self._db.execute("BEGIN")
-            try:
-                self._db.execute("INSERT INTO walls (id, created, spec) VALUES (?, ?, ?)",
-                                 (wid, created, json.dumps(spec)))
-                self._db.executemany(
-                    "INSERT INTO credentials (digest, wall, role, tiles) VALUES (?, ?, ?, ?)",
-                    [(d, wid, g.role, json.dumps(sorted(g.tiles))) for d, g in grants.items()])
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
+    def _corrupt(self, what: str) -> InputError:
+        return InputError(f"state database {self.file} cannot be used ({what}); it is left "
+                          "untouched: move it aside to start with no walls, or restore it from "
+                          "a backup")
 
-    def remove_wall(self, wid: str) -> None:
-        with self._mutex:
-            self._db.execute("DELETE FROM walls WHERE id = ?", (wid,))
-
-    def set_last_frame(self, wid: str, number: int) -> None:
-        with self._mutex:
-            self._db.execute("UPDATE walls SET last_frame = ? WHERE id = ? AND last_frame < ?",
-                             (number, wid, number))
-
-    def walls(self) -> list[WallRow]:
-        with self._mutex:
+    def _read(self) -> list["WallRow"]:
+        """Every wall row, its spec parsed (refused at start, naming the wall, when one is
+        not a JSON object)."""
+        try:
             rows = self._db.execute(
                 "SELECT id, created, spec, last_frame FROM walls ORDER BY created").fetchall()
-            creds = self._db.execute("SELECT digest, wall, role, tiles FROM credentials").fetchall()
+            creds = self._db.execute("SELECT digest, wall, role, tiles FROM credentials"
+                                     ).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise self._corrupt(str(exc)) from None
         grants: dict[str, dict[str, Grant]] = {}
-        for d, wall, role, tiles in creds:
-            grants.setdefault(wall, {})[d] = Grant(wall, role, frozenset(json.loads(tiles)))
-        return [WallRow(wid, created, json.loads(spec), last, grants.get(wid, {}))
-                for wid, created, spec, last in rows]
+        out = []
+        try:
+            for d, wall, role, tiles in creds:
+                grants.setdefault(wall, {})[d] = Grant(wall, role, frozenset(json.loads(tiles)))
+        except (TypeError, ValueError) as exc:
+            raise self._corrupt(f"a credential's tiles do not parse: {exc}") from None
+        for wid, created, spec, last in rows:
+            try:
+                spec = json.loads(spec)
+            except (TypeError, ValueError) as exc:
+                spec = exc
+            if not isinstance(spec, dict):
+                raise self._corrupt(f"the spec of wall {wid} is not a JSON object: {spec}")
+            out.append(WallRow(wid, created, spec, last, grants.get(wid, {})))
+        return out
+
+    def _write(self, work: Callable[[sqlite3.Connection], None]) -> None:
+        """Run ``work`` in one transaction, or raise :class:`StateWriteFailed` (and remember
+        why) when the folder cannot take it."""
+        with self._mutex:
+            try:
+                self._db.execute("BEGIN IMMEDIATE")
+                try:
+                    work(self._db)
+                    self._db.execute("COMMIT")
+                finally:
+                    if self._db.in_transaction:  # (SQLite ends it itself on a full disk)
+                        self._db.execute("ROLLBACK")
+            except sqlite3.OperationalError as exc:
+                text = str(exc)
+                full = "full" in text
+                self.failure = (f"cannot write the state database {self.file}: {text}"
+                                + (" (free some space)" if full else
+                                   " (is the folder read-only?)" if "readonly" in text else ""))
+                raise StateWriteFailed(507 if full else 503, self.failure) from None
+        self.failure = None
+
+    def add_wall(self, wid: str, created: float, spec: dict, grants: dict[str, Grant]) -> None:
+        def add(db):  # one transaction: the wall with its credentials, or nothing
+            db.execute("INSERT INTO walls (id, created, spec) VALUES (?, ?, ?)",
+                       (wid, created, json.dumps(spec)))
+            db.executemany(
+                "INSERT INTO credentials (digest, wall, role, tiles) VALUES (?, ?, ?, ?)",
+                [(d, wid, g.role, json.dumps(sorted(g.tiles))) for d, g in grants.items()])
+        self._write(add)
+
+    def remove_wall(self, wid: str) -> None:
+        self._write(lambda db: db.execute("DELETE FROM walls WHERE id = ?", (wid,)))
+
+    def set_last_frame(self, wid: str, number: int) -> None:
+        self._write(lambda db: db.execute(
+            "UPDATE walls SET last_frame = ? WHERE id = ? AND last_frame < ?",
+            (number, wid, number)))
+
+    def walls(self) -> list[WallRow]:
+        """The walls found at start (checked then)."""
+        return self.rows
 
     def close(self) -> None:
-        with self._mutex:
-            self._db.close()
+        db = self.__dict__.get("_db")
+        if db is not None:
+            with self._mutex:
+                db.close()
         self._lock.close()  # releases the lock

@@ -632,7 +632,7 @@ class Source:
 
 #: How :func:`load` uses prepared files: ``read`` a current one, also ``write`` one when there
 #: is none, or leave them ``off``.
-CACHE_MODES = ("read", "write", "off")
+CACHE_MODES = ("read", "write", "off", "map")
 
 
 def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
@@ -645,8 +645,9 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
     the file's sidecar ``<file>.wallcull.json``.
 
     With ``cache="read"`` a current prepared file of the source (:func:`prepare`) is mapped
-    instead of building the scene; ``"write"`` also writes one when there is none (the server
-    does); ``"off"`` ignores them. A stale or corrupt prepared file is never used: it is
+    instead of building the scene; ``"write"`` also writes one when there is none; ``"off"``
+    ignores them; ``"map"`` only maps, returning None where there is no current file (the
+    server, which prepares scenes in a child process: :mod:`wallcull.sandbox`). A stale or corrupt prepared file is never used: it is
     rebuilt, with a one-line warning on the ``wallcull`` logger."""
     from . import settings as cfg
 
@@ -661,6 +662,8 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
     else:
         path, key = source.prepared(hierarchy, branching, clusters)
         scene, problem = _map_current(path, key, source.name)
+        if scene is None and cache == "map":
+            return None
         if scene is None:
             scene = source.build(hierarchy, branching, clusters)
             if problem or cache == "write":
@@ -685,6 +688,18 @@ def prepare(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
     scene = source.build(hierarchy, branching, clusters)
     _write_prepared(scene, path, key, quiet=False)
     return path, scene
+
+
+def prepare_path(spec: str) -> str:
+    """:func:`prepare` with the default options, answering the file's path only (what a child
+    process hands back: :mod:`wallcull.sandbox`)."""
+    return str(prepare(spec)[0])
+
+
+def bounds_of(spec: str, kind: str) -> bnd.Bounds:
+    """The bounds of kind ``kind`` of the scene ``spec`` names, loaded as :func:`load` does
+    (what a child process computes for the server: :mod:`wallcull.sandbox`)."""
+    return load(spec).bounds(kind)
 
 
 # --------------------------------------------------------------------------- prepared scenes

@@ -1,9 +1,10 @@
 """What a culling server holds: scenes, wall sessions, frame history, acknowledgements.
 
 No HTTP here: :mod:`wallcull.server` maps routes onto these objects. Everything runs on the
-server's event loop; the culling of a frame (a millisecond or two) runs inline, scene loading
-(seconds) in a worker thread, and an upload's parse in a child process
-(:mod:`wallcull.uploads`).
+server's event loop but what can take long: a frame's culling and fitting and the making of a
+wall run in a worker thread; an upload's parse, the preparing of a scene not seen before and
+the fitting of bounds other than OBBs in a child process with a time and memory budget
+(:mod:`wallcull.sandbox`).
 """
 
 from __future__ import annotations
@@ -19,23 +20,26 @@ import tempfile
 import threading
 import time
 from collections import Counter, OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from . import credentials, encode, protocol
+from . import bounds as bnd
+from . import credentials, encode, protocol, sandbox
 from .credentials import Grant
 from .errors import InputError
 from .fit import FitOptions
 from .limits import Limits
 from .occlude import OcclusionOptions
-from .persist import StateFolder
+from .persist import StateFolder, StateWriteFailed, WallRow
 from .pipeline import Session
-from .scene import Scene, load
+from .scene import Scene, bounds_of, load, prepare_path
 from .uploads import parse_sandboxed, usable
 from .wall import Frame, Wall
+from .workers import background
 
 log = logging.getLogger("wallcull")
 
@@ -61,6 +65,10 @@ class Gone(LookupError):
     """A frame that has left the history."""
 
 
+class Unavailable(LookupError):
+    """A wall of the state folder whose scene cannot be loaded now (503: retry later)."""
+
+
 # --------------------------------------------------------------------------- scenes
 
 
@@ -73,14 +81,15 @@ class SceneStore:
     """
 
     def __init__(self, folder: str | os.PathLike | None = None, limits: Limits = Limits(),
-                 in_use: Callable[[], set] = set):
+                 in_use: Callable[[], dict] = dict):
         self.folder = Path(folder).resolve() if folder else None
         self.limits = limits
         self.max_upload = limits.upload
-        self.in_use = in_use  # names of the scenes walls use: never evicted
+        self.in_use = in_use  # scene name -> ids of the walls using it: never evicted
         self.cache: OrderedDict[str, Scene] = OrderedDict()  # least recently used first
         self.uploaded: dict[str, Scene] = {}  # uploads kept in memory when there is no folder
         self._locks: dict[str, asyncio.Lock] = {}
+        self.receiving: set[str] = set()  # names of uploads in progress
 
     def names(self) -> list[dict]:
         from wallcull import bundled
@@ -121,14 +130,44 @@ class SceneStore:
         lock = self._locks.setdefault(name, asyncio.Lock())
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
-                spec = name if builtin else str(self.path(name))
-                # mapped from its prepared file, which the first load writes
-                scene = await asyncio.to_thread(
-                    lambda: settled(usable(load(spec, cache="write"))))
+                spec = self.spec(name)
+                # mapped from its prepared file, which a child process writes first when
+                # there is none (building a scene takes seconds to minutes)
+                scene = await background(load, spec, cache="map")
+                if scene is None:
+                    await background(
+                        sandbox.run, prepare_path, (spec,), seconds=self.limits.parse_seconds,
+                        memory=self.limits.parse_memory, what=f"preparing scene {name!r}")
+                    scene = await background(load, spec, cache="write")
+                scene = await background(lambda: settled(usable(scene)))
                 scene.name = name
                 self.remember(name, scene)
                 return scene
         return self.cache[name]
+
+    def spec(self, name: str) -> str:
+        """What :func:`wallcull.scene.load` takes for scene ``name`` (bundled or a file)."""
+        from wallcull import bundled
+
+        return name if bundled.is_bundled(name) else str(self.path(name))
+
+    async def bounds(self, scene: Scene, kind: str) -> None:
+        """Make sure ``scene`` holds bounds of ``kind``: fitted in a child process
+        (:mod:`wallcull.sandbox`, ``limits.parse_seconds``) for every kind but the OBBs its
+        prepared file holds. Minimum-volume boxes of a large scene take minutes."""
+        cache = scene.__dict__.setdefault("_bounds", {})
+        if kind not in bnd.KINDS:
+            raise InputError(f"unknown bound type {kind!r}; choose from {', '.join(bnd.KINDS)}")
+        async with self._locks.setdefault(f"{scene.name}\0{kind}", asyncio.Lock()):
+            if kind in cache or kind == "obb":
+                return
+            if scene.name in self.uploaded:  # no file to load it from in a child: a thread
+                await background(scene.bounds, kind)
+                return
+            cache[kind] = await background(
+                sandbox.run, bounds_of, (self.spec(scene.name), kind),
+                seconds=self.limits.parse_seconds, memory=self.limits.parse_memory,
+                what=f"fitting {kind} bounds to scene {scene.name!r}")
 
     # ------------------------------------------------------------------ uploads
 
@@ -143,10 +182,26 @@ class SceneStore:
             raise InputError(f"invalid scene name {name!r}: letters, digits, '_', '-', '.' only")
         if name in bundled.BUNDLED:
             raise Conflict(f"{name!r} is a bundled scene")
+        if name in self.receiving:
+            raise Conflict(f"scene {name!r} is being uploaded by another request")
         exists = name in self.uploaded or (self.folder and (self.folder / name).exists())
         if exists and not replace:
             raise Conflict(f"scene {name!r} exists; pass replace=true to overwrite it")
+        self._not_in_use(name)
+        self.receiving.add(name)  # until release(): a second upload of the name is a 409
         return name
+
+    def release(self, name: str) -> None:
+        """The upload of ``name`` (from :meth:`upload_name`) has ended, stored or not."""
+        self.receiving.discard(name)
+
+    def _not_in_use(self, name: str) -> None:
+        """Refuse to replace a scene a wall culls: its nodes would fetch meshes the wall does
+        not cull, and the wall would switch geometry at its next restart."""
+        users = self.in_use().get(name)
+        if users:
+            raise Conflict(f"scene {name!r} is used by wall(s) {', '.join(sorted(users))}; "
+                           "delete them first, or upload under another name")
 
     def spool(self):
         """A temporary file for an upload's body, beside its destination (so that moving it
@@ -160,8 +215,9 @@ class SceneStore:
         """Store the GLB at ``path`` (an upload's spooled body, see :meth:`spool`) as scene
         ``name`` (from :meth:`upload_name`): checked and parsed in a sandbox
         (:mod:`wallcull.uploads`), then moved into the folder atomically."""
-        scene = await asyncio.to_thread(lambda: settled(parse_sandboxed(path, name,
+        scene = await background(lambda: settled(parse_sandboxed(path, name,
                                                                         self.limits)))
+        self._not_in_use(name)  # a wall may have been created on it meanwhile
         if self.folder is not None:
             os.replace(path, self.folder / name)
         else:
@@ -337,7 +393,8 @@ class WallSession:
     created: float = field(default_factory=time.time)
     acks: np.ndarray = None  # per tile, last acknowledged frame (-1: none)
     acked_at: np.ndarray = None  # per tile, server clock when its newest ack came (0: never)
-    subscribers: int = 0
+    subscribers: int = 0  # node and tile streams open
+    consoles: int = 0  # console streams open
     closed: bool = False
     #: the newest frame number handed out before a restart: numbers continue after it
     floor: int = -1
@@ -349,6 +406,8 @@ class WallSession:
     nodes: list = field(default_factory=list)  # the tiles of each node credential
     credentials: dict | None = None  # as issued, to be shown once (never kept on disk)
     gone: asyncio.Event = field(default_factory=asyncio.Event)  # set when it is deleted
+    #: time.monotonic() of its newest frame, acknowledgement or stream (``--wall-ttl``)
+    active: float = field(default_factory=time.monotonic)
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
     _new_ack: asyncio.Event = field(default_factory=asyncio.Event)
     _frame_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
@@ -430,6 +489,7 @@ class WallSession:
         if record.number <= self.latest:
             raise Conflict(f"frame {record.number} is out of order: frame {self.latest} is in")
         self.history.add(record)
+        self.active = time.monotonic()
         old, self._new_frame = self._new_frame, asyncio.Event()
         old.set()
         return record.number
@@ -561,6 +621,7 @@ class WallSession:
             self.check_tile(int(tiles))
         if number > self.latest:
             raise Conflict(f"cannot acknowledge frame {number}: latest is {self.latest}")
+        self.active = time.monotonic()
         if (self.acks[tiles] < number).any():
             self.acks[tiles] = np.maximum(self.acks[tiles], number)
             self.acked_at[tiles] = time.time()
@@ -581,9 +642,10 @@ class WallSession:
         tiles = self.wall.tiles
         counts = np.diff(record.start) if record is not None else np.zeros(tiles, np.int64)
         acks, streams = self.acks, np.zeros(tiles, np.int64)
-        for t, n in self.streams.items():
+        # copied first (one C call each): a console computes this in a worker thread
+        for t, n in dict(self.streams).items():
             streams[t] = n
-        posted = {n: r.time for n, r in self.history.frames.items()}
+        posted = {n: r.time for n, r in dict(self.history.frames).items()}
         latency = [round((at - posted[a]) * 1e3, 2) if a in posted and at > 0 else None
                    for a, at in zip(acks.tolist(), self.acked_at.tolist())]
         live = (streams > 0) | (now - self.acked_at < LIVE)
@@ -609,6 +671,20 @@ class WallSession:
         return self.barrier_state(number)
 
 
+def _describe_grants(session: WallSession, grants: dict[str, Grant]) -> None:
+    """What a wall keeps of its credentials: their digests, and each node's tiles."""
+    session.digests = set(grants)
+    session.nodes = sorted(sorted(g.tiles) for g in grants.values()
+                           if g.role == credentials.NODE)
+
+
+def check_history(wall, history: int) -> None:
+    if history * wall.tiles > MAX_TILE_FRAMES:
+        raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
+                         f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
+                         f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
+
+
 def spec_of(session: WallSession) -> dict:
     """What a restart needs to make ``session`` again (the state folder keeps it as JSON)."""
     s = session.session
@@ -621,13 +697,19 @@ def spec_of(session: WallSession) -> dict:
 
 class Walls:
     """The wall sessions of a server, by id, with a cap on how many exist at once, the grants
-    of their credentials, and (with a state folder) what a restart needs to bring them back."""
+    of their credentials, and (with a state folder) what a restart needs to bring them back.
+    A wall of the state folder whose scene cannot be loaded (its file is missing) is kept,
+    *unavailable* (:class:`Unavailable`, 503), and comes back when its scene does
+    (:meth:`retry`)."""
 
     def __init__(self, limit: int = 32, state: StateFolder | None = None):
         self.limit = limit
         self.state = state
         self.sessions: dict[str, WallSession] = {}
         self.grants: dict[str, Grant] = {}  # credential digest -> what it holds, every wall's
+        #: walls of the state folder waiting for their scene: id -> (row, why)
+        self.unavailable: dict[str, tuple[WallRow, str]] = {}
+        self.reserved = 0  # walls being made
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
                history: int, fit: FitOptions = FitOptions(), nodes=None,
@@ -637,27 +719,52 @@ class Walls:
         ``{"driver": token, "nodes": [{"tiles", "token"}, ...]}`` (``nodes`` groups tiles
         under one node credential; by default a node per tile). ``settings``: lights and
         mirrors for this wall instead of the scene's own. With a state folder, the wall is
-        written down before it is returned."""
-        if len(self.sessions) >= self.limit:
-            raise Conflict(f"the server already holds {self.limit} walls; delete one first")
-        wid = secrets.token_hex(6)
-        session = self._session(wid, scene, wall, method, bounds, pseudo_groups, history, fit,
-                                settings, occlusion)
-        session.credentials, grants = credentials.issue(wid, wall.tiles, nodes)
-        if self.state is not None:
-            self.state.add_wall(wid, session.created, spec_of(session), grants)
-        self._add(session, grants)
+        written down before it is returned. (The server does the same in steps: the slow ones
+        in a worker thread, :meth:`reservation`, :meth:`build`, :meth:`register`.)"""
+        with self.reservation():
+            session, grants = self.build(scene, wall, method, bounds, pseudo_groups, history,
+                                         fit, nodes, settings, occlusion)
+            self.register(session, grants)
         return session
 
+    @contextmanager
+    def reservation(self):
+        """Hold a place for a wall being made (refused when there is none: 409)."""
+        self.check_room()
+        self.reserved += 1
+        try:
+            yield
+        finally:
+            self.reserved -= 1
+
+    def check_room(self) -> None:
+        if len(self.sessions) + len(self.unavailable) + self.reserved >= self.limit:
+            raise Conflict(f"the server already holds {self.limit} walls; delete one first")
+
+    def build(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
+              history: int, fit: FitOptions = FitOptions(), nodes=None,
+              settings: Mapping[str, Any] | None = None,
+              occlusion: str = "off") -> tuple[WallSession, dict]:
+        """Make a wall, issue its credentials and write it to the state folder: seconds for a
+        256 x 256 wall (65,536 credentials), so the server runs it in a worker thread. The
+        wall is the server's once :meth:`register` is called (on the event loop)."""
+        session = self.make(secrets.token_hex(6), scene, wall, method, bounds, pseudo_groups,
+                            history, fit, settings, occlusion)
+        session.credentials, grants = credentials.issue(session.id, wall.tiles, nodes)
+        _describe_grants(session, grants)
+        if self.state is not None:
+            self.state.add_wall(session.id, session.created, spec_of(session), grants)
+        return session, grants
+
+    def register(self, session: WallSession, grants: dict[str, Grant]) -> None:
+        self._add(session, grants)
+
     @staticmethod
-    def _session(wid: str, scene: Scene, wall, method: str, bounds: str,
+    def make(wid: str, scene: Scene, wall, method: str, bounds: str,
                  pseudo_groups: bool, history: int, fit: FitOptions,
                  settings: Mapping[str, Any] | None = None, occlusion: str = "off"
                  ) -> WallSession:
-        if history * wall.tiles > MAX_TILE_FRAMES:
-            raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
-                             f"{MAX_TILE_FRAMES:,} tile-frames; ask for at most "
-                             f"{max(2, MAX_TILE_FRAMES // wall.tiles)} frames")
+        check_history(wall, history)
         session = Session(scene, wall, method, bounds, pseudo_groups, fit, settings,
                           occlusion=OcclusionOptions.parse(occlusion))
         return WallSession(wid, session, protocol.History(history))
@@ -665,34 +772,79 @@ class Walls:
     def _add(self, session: WallSession, grants: dict[str, Grant]) -> None:
         if self.state is not None:
             state, wid = self.state, session.id
-            session.on_number = lambda number: state.set_last_frame(wid, number)
-        session.digests = set(grants)
-        session.nodes = sorted(sorted(g.tiles) for g in grants.values()
-                               if g.role == credentials.NODE)
+
+            def written(number: int) -> None:
+                # A frame is served even when its number cannot be written down (a full
+                # disk): health and metrics report the failure, and a restart before it is
+                # fixed may number frames again from the last one written.
+                try:
+                    state.set_last_frame(wid, number)
+                except StateWriteFailed as exc:
+                    log.warning("%s", exc)
+
+            session.on_number = written
+        if not session.digests:  # (build() does this in its thread)
+            _describe_grants(session, grants)
         self.grants.update(grants)
         self.sessions[session.id] = session
+
+    def check_specs(self) -> None:
+        """Refuse to start (one line naming the state database and the wall) when a wall
+        of the state folder cannot be made whatever its scene: its spec is not one this
+        server reads. Nothing is changed on disk."""
+        if self.state is None:
+            return
+        for row in self.state.walls():
+            try:
+                spec = row.spec
+                Wall.from_dict(spec["wall"])
+                FitOptions(spec["depth"], spec["reversed_z"], spec.get("shadow_fit", "refined"))
+                OcclusionOptions.parse(spec.get("occlusion", "off"))
+                for key in ("scene", "method", "bounds", "pseudo_groups", "history"):
+                    spec[key]
+            except (InputError, KeyError, TypeError, ValueError) as exc:
+                what = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+                raise InputError(f"state database {self.state.file}: wall {row.id} has a spec "
+                                 f"this server cannot read ({what}); the file is left "
+                                 "untouched: run the wallcull that wrote it, or move the file "
+                                 "aside to start with no walls") from None
 
     async def restore(self, store: SceneStore) -> list[str]:
         """Bring back the walls of the state folder, under their ids, with their credentials,
         numbering frames after the last one handed out. A wall whose scene cannot be loaded
-        any more is dropped, with a warning. Returns the ids restored."""
+        now is kept unavailable (with a warning) until :meth:`retry` finds it. Returns the
+        ids restored."""
         if self.state is None:
             return []
-        out = []
         for row in self.state.walls():
+            self.unavailable[row.id] = (row, "not restored yet")
+            self.grants.update(row.grants)
+        return await self.retry(store)
+
+    async def retry(self, store: SceneStore) -> list[str]:
+        """Restore the unavailable walls whose scenes load now; the ids restored."""
+        out = []
+        for wid, (row, _) in list(self.unavailable.items()):
+            spec = row.spec
             try:
-                spec = row.spec
                 scene = await store.get(spec["scene"])
                 fit = FitOptions(spec["depth"], spec["reversed_z"],
                                  spec.get("shadow_fit", "refined"))
-                session = self._session(row.id, scene, Wall.from_dict(spec["wall"]),
-                                        spec["method"], spec["bounds"], spec["pseudo_groups"],
-                                        spec["history"], fit, spec.get("settings"),
-                                        spec.get("occlusion", "off"))
-            except (InputError, NotFound, KeyError, ValueError) as exc:
-                log.warning("wall %s cannot be restored and is dropped: %s", row.id, exc)
-                self.state.remove_wall(row.id)
+                await store.bounds(scene, spec["bounds"])
+                session = await background(
+                    self.make, row.id, scene, Wall.from_dict(spec["wall"]), spec["method"],
+                    spec["bounds"], spec["pseudo_groups"], spec["history"], fit,
+                    spec.get("settings"), spec.get("occlusion", "off"))
+            except (InputError, NotFound, OSError) as exc:
+                reason = f"its scene {spec['scene']!r} cannot be loaded: {exc}"
+                if self.unavailable.get(wid, (None, ""))[1] != reason:
+                    log.warning("wall %s is unavailable until %s comes back: %s", wid,
+                                spec["scene"], exc)
+                if wid in self.unavailable:  # not deleted meanwhile
+                    self.unavailable[wid] = (row, reason)
                 continue
+            if self.unavailable.pop(wid, None) is None:
+                continue  # deleted while its scene loaded
             session.created, session.floor = row.created, row.last_frame
             self._add(session, row.grants)
             out.append(row.id)
@@ -701,23 +853,52 @@ class Walls:
     def grant(self, token: str) -> Grant | None:
         """What an issued credential holds, or None."""
         found = self.grants.get(credentials.digest(token))
-        return found if found is not None and found.wall in self.sessions else None
+        return found if found is not None and (found.wall in self.sessions or
+                                               found.wall in self.unavailable) else None
 
     def get(self, wid: str) -> WallSession:
         try:
             return self.sessions[wid]
         except KeyError:
+            if wid in self.unavailable:
+                raise Unavailable(f"wall {wid} is unavailable: "
+                                  f"{self.unavailable[wid][1]}; it comes back when its scene "
+                                  "does") from None
             raise NotFound(f"no wall {wid!r}") from None
 
     def delete(self, wid: str) -> None:
+        """Delete a wall (an unavailable one too): on disk first, so that a failed write
+        leaves it whole."""
+        if wid in self.unavailable:
+            if self.state is not None:
+                self.state.remove_wall(wid)
+            row, _ = self.unavailable.pop(wid)
+            for d in row.grants:
+                self.grants.pop(d, None)
+            return
+        session = self.get(wid)
+        if self.state is not None:
+            self.state.remove_wall(wid)
+        self.forget(wid)
+
+    def forget(self, wid: str) -> None:
+        """Delete a wall from memory (once :meth:`StateFolder.remove_wall` has, from disk)."""
         session = self.get(wid)
         session.close()
         del self.sessions[wid]
         for d in session.digests:
             self.grants.pop(d, None)
-        if self.state is not None:
-            self.state.remove_wall(wid)
 
-    def scene_names(self) -> set[str]:
-        """The scenes walls use (the scene cache keeps them)."""
-        return {w.scene.name for w in self.sessions.values()}
+    def idle(self, ttl: float) -> list[str]:
+        """The walls with no stream open and no frame or acknowledgement for ``ttl`` s."""
+        now = time.monotonic()
+        return [wid for wid, w in self.sessions.items()
+                if w.subscribers + w.consoles == 0 and now - w.active > ttl]
+
+    def scene_names(self) -> dict[str, set[str]]:
+        """The scenes walls use, with the walls' ids (the scene cache keeps them; an upload
+        may not replace them; an unavailable wall's scene may be uploaded again)."""
+        out: dict[str, set[str]] = {}
+        for w in self.sessions.values():
+            out.setdefault(w.scene.name, set()).add(w.id)
+        return out

@@ -16,22 +16,17 @@ turns into gigabytes of zeros (and trimesh into more). So before any reader sees
   once per node that draws them, and the bytes every accessor declares.
 
 Whatever a check misses, the parse itself (trimesh, then :meth:`Scene.from_trimesh` and the
-bounds) runs in a child process forked from a small server process that has the parser
-already imported (multiprocessing's ``forkserver``), with ``RLIMIT_AS`` (address space) and
-``RLIMIT_CPU`` set, and a wall-clock deadline: a file that makes the parser allocate too much,
-loop, or crash costs a 422 and a dead child, never the server. The scene comes back pickled.
-Materials and textures are never decoded (``skip_materials``): culling needs none. (The child
-runs as the same user: it contains memory, time and crashes, not code execution.)
+bounds) runs in a child process with a memory limit and a deadline (:mod:`wallcull.sandbox`):
+a file that makes the parser allocate too much, loop, or crash costs a 422 and a dead child,
+never the server. The scene comes back pickled. Materials and textures are never decoded
+(``skip_materials``): culling needs none.
 """
 
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import struct
-import threading
-from multiprocessing import spawn
 from pathlib import Path
 
 from .errors import InputError
@@ -295,83 +290,12 @@ def parse_glb(path: str, name: str, limits: Limits):
         raise InputError(f"cannot use the uploaded GLB: {type(exc).__name__}: {exc}") from None
 
 
-def _child(conn, path: str, name: str, limits: Limits) -> None:
-    """The child's side: limits first, then the parse; the answer goes back on ``conn``."""
-    import resource
-
-    with open("/proc/self/status") as f:
-        vm = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
-    resource.setrlimit(resource.RLIMIT_AS, (vm + limits.parse_memory, vm + limits.parse_memory))
-    cpu = int(limits.parse_seconds) + 1
-    resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
-    try:
-        answer = ("scene", parse_glb(path, name, limits))
-    except InputError as exc:
-        answer = ("refused", str(exc))
-    except MemoryError:
-        answer = ("refused", f"parsing the uploaded GLB needs more than "
-                             f"{limits.parse_memory:,} bytes of memory")
-    except RecursionError:
-        answer = ("refused", "the uploaded GLB nests too deeply to parse")
-    try:
-        conn.send(answer)
-    except MemoryError:
-        conn.send(("refused", "the uploaded GLB's scene is too large to hand back"))
-    conn.close()
-
-
-_context_lock = threading.Lock()
-_context = None
-CHILD = "wallcull-parse"
-
-
-def _forkserver():
-    """The forkserver context, with the parser imported once in its server process."""
-    global _context
-    with _context_lock:
-        if _context is None:
-            ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(["numpy", "trimesh", "wallcull.scene", "wallcull.uploads"])
-            spawn.get_preparation_data = _without_main
-            _context = ctx
-    return _context
-
-
-def _without_main(name, _original=spawn.get_preparation_data):
-    """multiprocessing's data for a new child, less ``__main__`` for a parse child: it needs
-    nothing from it, and importing it again there would run a script without a main guard
-    (or fail on ``python - < script``)."""
-    data = _original(name)
-    if name.startswith(CHILD):
-        data.pop("init_main_from_name", None)
-        data.pop("init_main_from_path", None)
-    return data
-
-
 def parse_sandboxed(path: str | os.PathLike, name: str, limits: Limits):
-    """:func:`parse_glb` in a child process with ``limits.parse_memory`` bytes of address space
-    and ``limits.parse_seconds`` of time. Blocking: call it from a worker thread. Whatever goes
-    wrong in the child is an :class:`InputError`."""
-    ctx = _forkserver()
-    receive, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, str(path), name, limits), daemon=True,
-                       name=f"{CHILD}-{name}")
-    proc.start()
-    send.close()
-    try:
-        if not receive.poll(limits.parse_seconds):
-            raise InputError(f"parsing the uploaded GLB took over {limits.parse_seconds:g} s")
-        try:
-            kind, value = receive.recv()
-        except (EOFError, OSError):
-            proc.join(5)
-            raise InputError(f"the parser died on the uploaded GLB (exit status "
-                             f"{proc.exitcode}): the file is refused") from None
-    finally:
-        receive.close()
-        if proc.is_alive():
-            proc.kill()
-        proc.join(5)
-    if kind == "refused":
-        raise InputError(value)
-    return value
+    """:func:`parse_glb` in a child process (:mod:`wallcull.sandbox`) with
+    ``limits.parse_memory`` bytes of address space and ``limits.parse_seconds`` of time.
+    Blocking: call it from a worker thread. Whatever goes wrong in the child is an
+    :class:`InputError`."""
+    from . import sandbox
+
+    return sandbox.run(parse_glb, (str(path), name, limits), seconds=limits.parse_seconds,
+                       memory=limits.parse_memory, what="parsing the uploaded GLB")

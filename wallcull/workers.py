@@ -58,3 +58,23 @@ def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int
         _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="wallcull-kernel")
     futures = [_pool.submit(task, k, *r) for k, r in enumerate(ranges) if k]
     return [task(0, *ranges[0])] + [f.result() for f in futures]
+
+
+_background: ThreadPoolExecutor | None = None
+
+
+async def background(task: Callable, *args, **kwargs):
+    """``task(*args, **kwargs)`` in a pool of its own, for work that takes long but that
+    nobody waits on to the millisecond (making a 256 x 256 wall, loading a scene, encoding a
+    large answer, a console's status, loading the kernels), so that frames, which use the
+    event loop's default pool, never queue behind it. (Not at a lower priority: a thread the
+    system runs less often would hold the interpreter's lock, or numba's compiler lock, for
+    longer, and the event loop would wait on it.)"""
+    import asyncio
+    import functools
+
+    global _background
+    if _background is None:
+        _background = ThreadPoolExecutor(4, thread_name_prefix="wallcull-background")
+    return await asyncio.get_running_loop().run_in_executor(
+        _background, functools.partial(task, *args, **kwargs))

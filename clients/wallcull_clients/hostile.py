@@ -73,9 +73,13 @@ class RSS:
 
 
 @asynccontextmanager
-async def server(token: str | None = TOKEN, args=(), state: str | None = None, port=None):
-    s = Server(token, port=port, state=state, args=args)
+async def server(token: str | None = TOKEN, args=(), state: str | None = None, port=None,
+                 prefix=()):
+    s = Server(token, port=port, state=state, args=args, prefix=prefix)
     await s.start()
+    async with Connection(s.url) as conn:  # memory is measured once the kernels are in
+        while (await conn.call("GET", "/health")).get("kernels") == "loading":
+            await asyncio.sleep(0.05)
     try:
         yield s
     finally:
@@ -83,11 +87,16 @@ async def server(token: str | None = TOKEN, args=(), state: str | None = None, p
 
 
 class Probe:
-    """Requests ``GET /health`` back to back on one connection and keeps the slowest answer:
-    how long the server's event loop could not answer."""
+    """Polls ``GET /health`` every ``period`` seconds (on one keep-alive connection, or on a
+    new connection each time with ``fresh``) and keeps every answer's latency and every poll
+    that got none: how long the server's event loop could not answer, and whether it ever
+    did not."""
 
-    def __init__(self, url: str):
-        self.url, self.latencies = url, []
+    def __init__(self, url: str, period: float = 0.05, fresh: bool = False,
+                 timeout: float = 10.0):
+        self.url, self.period, self.fresh, self.timeout = url, period, fresh, timeout
+        self.latencies: list[float] = []
+        self.failures: list[str] = []
 
     async def __aenter__(self):
         self._stop = False
@@ -96,12 +105,27 @@ class Probe:
         return self
 
     async def _run(self):
-        async with Connection(self.url) as conn:
-            while not self._stop:
-                t = time.perf_counter()
-                await conn.request("GET", "/health", accept="application/json")
+        conn = None
+        while not self._stop:
+            t = time.perf_counter()
+            try:
+                if conn is None:
+                    conn = Connection(self.url, timeout=self.timeout)
+                r = await conn.request("GET", "/health", accept="application/json")
+                if r.status != 200:
+                    self.failures.append(f"HTTP {r.status}")
                 self.latencies.append(time.perf_counter() - t)
-                await asyncio.sleep(0.005)
+            except (ConnectionError, OSError, asyncio.TimeoutError,
+                    asyncio.IncompleteReadError) as exc:
+                self.failures.append(type(exc).__name__)
+                await conn.close()
+                conn = None
+            if self.fresh and conn is not None:
+                await conn.close()
+                conn = None
+            await asyncio.sleep(max(0.0, self.period - (time.perf_counter() - t)))
+        if conn is not None:
+            await conn.close()
 
     async def __aexit__(self, *exc):
         self._stop = True
@@ -109,6 +133,13 @@ class Probe:
 
     def worst_ms(self) -> float:
         return 1e3 * max(self.latencies) if self.latencies else float("nan")
+
+    def report(self) -> dict:
+        lat = np.asarray(self.latencies) * 1e3
+        return {"health_polls": len(self.latencies) + len(self.failures),
+                "health_failed": len(self.failures),
+                "health_worst_ms": float(lat.max()) if len(lat) else None,
+                "health_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None}
 
 
 # --------------------------------------------------------------------------- hostile files
@@ -214,7 +245,7 @@ async def raw_post(url: str, target: str, size: int, token: str | None = None,
 
 
 async def open_stream(url: str, path: str, token: str | None = None, origin: str | None = None,
-                      hold: asyncio.Event | None = None):
+                      hold: asyncio.Event | None = None, headers: dict | None = None):
     """Try to open a stream; the HTTP status of a refused handshake, or 101. An accepted
     stream is closed at once, or held until ``hold`` is set: idle, never acknowledging (and
     reading only what the client library buffers, 16 messages)."""
@@ -222,7 +253,7 @@ async def open_stream(url: str, path: str, token: str | None = None, origin: str
     from websockets.exceptions import InvalidStatus
 
     query = f"?token={token}" if token else ""
-    headers = {"Origin": origin} if origin else None
+    headers = {**({"Origin": origin} if origin else {}), **(headers or {})} or None
     try:
         async with connect("ws" + url[4:] + path + query, open_timeout=30,
                            additional_headers=headers, compression=None, max_queue=16):
@@ -323,8 +354,12 @@ async def streams(opens: int = 1000, wall: str = "examples/wall-8x8.json", secon
 
 
 class _Running:
-    def __init__(self, url, wid, tiles):
-        self.url, self.wid, self.tiles = url, wid, tiles
+    def __init__(self, url, wid, tiles, credentials=None):
+        self.url, self.wid, self.tiles, self.credentials = url, wid, tiles, credentials
+
+    async def latest(self) -> tuple[int, float]:
+        async with Connection(self.url) as conn:
+            return (await conn.call("GET", f"/walls/{self.wid}"))["latest"], time.monotonic()
 
     async def rate(self, seconds: float) -> float:
         """Frames per second the wall got over ``seconds``."""
@@ -337,9 +372,11 @@ class _Running:
 
 
 @asynccontextmanager
-async def _wall_running(s: Server, wall: dict, rate: float = 0.0, scene: str = "powerplant"):
+async def _wall_running(s: Server, wall: dict, rate: float = 0.0, scene: str = "powerplant",
+                        barrier: bool = False):
     """A wall of streaming node processes and a driver process posting at ``rate`` (0: flat
-    out) for as long as the block runs."""
+    out; with ``barrier``, each frame once every node has drawn the one before, so the rate
+    is the nodes') for as long as the block runs."""
     tmp = tempfile.TemporaryDirectory()
     async with Driver(s.url, TOKEN) as d:
         info = await d.create_wall(scene, wall)
@@ -357,13 +394,13 @@ async def _wall_running(s: Server, wall: dict, rate: float = 0.0, scene: str = "
     driver = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "wallcull_clients.driver", "--server", s.url, "--wall-id",
         info["id"], "--token", info["credentials"]["driver"], "--rate", str(rate), "--frames",
-        "20000", cwd=str(ROOT), env=env, stdout=asyncio.subprocess.DEVNULL,
-        stderr=asyncio.subprocess.PIPE)
+        "100000", *(["--barrier", "--barrier-timeout", "1"] if barrier else []), cwd=str(ROOT),
+        env=env, stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE)
     try:
         await asyncio.sleep(6.0)  # every node has its meshes, the frame rate has settled
         if driver.returncode is not None:
             raise RuntimeError(f"the driver failed: {(await driver.stderr.read()).decode()}")
-        yield _Running(s.url, info["id"], info["tiles"])
+        yield _Running(s.url, info["id"], info["tiles"], info["credentials"])
     finally:
         for p in (driver, nodes):
             if p.returncode is None:
@@ -397,20 +434,22 @@ async def loop(updates_mb: float = 1.0, nodes: int = 100_000) -> dict:
                                     "model/gltf-binary", auth=True)
             await conn.request("GET", "/scenes/many.glb")
             async with Probe(s.url) as p2:
+                t2 = time.perf_counter()
                 r2 = await conn.request("GET", "/scenes/many.glb?nodes=true")
+                t2 = time.perf_counter() - t2
     return {"scenario": "loop", "idle_worst_ms": idle.worst_ms(),
             "updates": {"bytes": len(data), "entries": k, "status": r1.status,
                         "worst_ms": p1.worst_ms()},
             "nodes": {"nodes": nodes, "upload_status": up.status, "status": r2.status,
-                      "bytes": len(r2.body), "worst_ms": p2.worst_ms()}}
+                      "bytes": len(r2.body), "worst_ms": p2.worst_ms(), "ms": 1e3 * t2}}
 
 
 async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
                   seconds: float = 12.0, kill_at: float = 5.0, scene: str = "powerplant",
                   mode: str = "ws") -> dict:
     """A wall of nodes (streaming, or pulling with ``mode="pull"``) and a driver walking the
-    scene; the server is killed (SIGKILL) ``kill_at`` seconds in and started again on the same
-    port and state folder. Reports the wall id before and after, how long after the restarted server
+    scene; the server is killed (SIGKILL) once the driver has posted ``kill_at`` seconds'
+    worth of frames, and started again on the same port and state folder. Reports the wall id before and after, how long after the restarted server
     answered its health check every node had a frame again, and whether any node ever saw a
     frame number go backwards."""
     spec = _wall_spec(wall)
@@ -444,7 +483,15 @@ async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
             "--frames", str(frames), "--out", str(out / "driver.json"), cwd=str(ROOT), env=env,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         procs.append(driver)
-        await asyncio.sleep(kill_at)
+        # killed mid-run: once the driver has posted ``kill_at`` seconds' worth of frames
+        # (however long a busy machine takes to get there), never before its first
+        kill_frame = max(1, int(rate * kill_at))
+        async with Connection(s.url) as conn:
+            while (await conn.call("GET", f"/walls/{info['id']}"))["latest"] < kill_frame:
+                if driver.returncode is not None:
+                    raise RuntimeError(f"the driver exited early: "
+                                       f"{(await driver.stderr.read()).decode()[-500:]}")
+                await asyncio.sleep(0.05)
         killed = time.time()
         s.proc.send_signal(signal.SIGKILL)
         await s.proc.wait()
@@ -488,8 +535,302 @@ async def restart(wall: str = "examples/wall-8x8.json", rate: float = 30.0,
             "nodes_stderr": node_err.decode(errors="replace")[-500:]}
 
 
+# --------------------------------------------------------------------------- issue 20: an attack
+# beside a running wall, measured
+
+#: The legitimate wall every attack runs beside: 16 streaming nodes, frames at 30 a second, each
+#: posted once every node has drawn the one before (the swap barrier), so its frame rate is the
+#: nodes'.
+BESIDE, BESIDE_RATE = "examples/wall-4x4.json", 30.0
+
+
+async def measured(name: str, attack, token: str | None = TOKEN, args=(), seconds: float = 5.0,
+                   fresh_polls: bool = False, prefix=()) -> dict:
+    """Run ``attack(server, running_wall)`` beside a legitimate wall, against a server of its
+    own, with health polled every 50 ms: the attack's own report, plus the wall's frame rate
+    before and during it (kept: during / before), the server's memory growth, the health
+    polls' worst latency and failures, and the responses 500 the server counted."""
+    async with server(token, args, prefix=prefix) as s, \
+            _wall_running(s, _wall_spec(BESIDE), BESIDE_RATE, barrier=True) as run:
+        first = await run.latest()
+        await asyncio.sleep(seconds)
+        settled = await run.latest()
+        before = (settled[0] - first[0]) / (settled[1] - first[1])
+        async with RSS(s.proc.pid) as rss, Probe(s.url, fresh=fresh_polls) as probe:
+            t0 = time.monotonic()
+            result = await attack(s, run)
+            left = seconds - (time.monotonic() - t0)
+            if left > 0:  # a short attack: measure the frame rate over at least ``seconds``
+                await asyncio.sleep(left)
+            end = await run.latest()
+        during = (end[0] - settled[0]) / (end[1] - settled[1])
+        async with Connection(s.url) as conn:
+            text = (await conn.request("GET", "/metrics")).body.decode()
+        errors_500 = sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+                         if line.startswith('wallcull_errors_total{status="500"}'))
+    return {"scenario": name, **result, "frames_per_s_before": before,
+            "frames_per_s_during": during, "kept": during / before if before else None,
+            "responses_500": int(errors_500), **probe.report(), **rss.report()}
+
+
+async def _stream_answer(url: str, path: str, payload, timeout: float = 120.0):
+    """Send one message on a new stream; the answer that names an error (packets pushed
+    meanwhile are skipped), or how the stream ended, and the time it took."""
+    from websockets.asyncio.client import connect
+
+    t = time.perf_counter()
+    async with connect("ws" + url[4:] + path, max_size=None, open_timeout=30,
+                       compression=None) as ws:
+        await ws.send(payload)
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                answer = await asyncio.wait_for(ws.recv(), max(0.0, deadline - time.monotonic()))
+            except Exception as exc:  # noqa: BLE001 - how it ended is the answer
+                answer = type(exc).__name__
+                break
+            if (b"error" if isinstance(answer, bytes) else "error") in answer:
+                break
+    text = answer if isinstance(answer, str) else answer[:200].decode("latin-1")
+    return {"answer": text[:160], "seconds": time.perf_counter() - t}
+
+
+async def messages(count: int = 50_000, seconds: float = 5.0) -> dict:
+    """A 100,000-deep JSON array and msgpack array on a node stream and on the frame stream,
+    then ``count`` small messages as fast as one socket takes them on a node stream."""
+    async def attack(s, run):
+        from websockets.asyncio.client import connect
+
+        node = run.credentials["nodes"][0]["token"]
+        driver = run.credentials["driver"]
+        out = {}
+        for what, path, payload in (
+                ("node_json", f"/walls/{run.wid}/nodes/stream?format=json&token={node}",
+                 "[" * 100_000),
+                ("node_msgpack", f"/walls/{run.wid}/nodes/stream?token={node}",
+                 b"\x91" * 100_000 + b"\xc0"),
+                ("frames_json", f"/walls/{run.wid}/frames/stream?format=json&token={driver}",
+                 "[" * 100_000),
+                ("frames_msgpack", f"/walls/{run.wid}/frames/stream?token={driver}",
+                 b"\x91" * 100_000 + b"\xc0")):
+            out[f"deep_{what}"] = await _stream_answer(s.url, path, payload)
+        t = time.perf_counter()
+        async with connect("ws" + s.url[4:] + f"/walls/{run.wid}/tiles/0/stream?token={node}",
+                           compression=None, max_queue=None) as ws:
+            for _ in range(count):
+                await ws.send(b"\x81\xa3ack\x00")  # {"ack": 0}, msgpack
+        out["flood"] = {"messages": count, "seconds": time.perf_counter() - t}
+        return out
+
+    return await measured("messages", attack, seconds=seconds)
+
+
+async def headers(connections: int = 1100, nofile: int = 1024, hold: float = 12.0,
+                  seconds: float = 5.0) -> dict:
+    """``connections`` connections that each send half a request header and wait, against a
+    server limited to ``nofile`` file descriptors (``prlimit``); health is polled on a new
+    connection each time, as a load balancer does."""
+    async def attack(s, run):
+        from urllib.parse import urlsplit
+
+        parts = urlsplit(s.url)
+        writers, failed = [], 0
+        for _ in range(connections):
+            try:
+                reader, writer = await asyncio.open_connection(parts.hostname, parts.port)
+                writer.write(b"GET /health HTTP/1.1\r\nhost: x\r\nx-slow: ")
+                writers.append((reader, writer))
+            except OSError:
+                failed += 1
+        await asyncio.sleep(hold)
+        closed = sum(r.at_eof() or w.is_closing() for r, w in writers)
+        for _, w in writers:
+            w.close()
+        return {"connections": connections, "nofile": nofile, "open_failed": failed,
+                "closed_by_server": closed}
+
+    return await measured("headers", attack, fresh_polls=True,
+                          prefix=["prlimit", f"--nofile={nofile}:{nofile}", "--"],
+                          args=["--limit", "header_seconds=5"], seconds=seconds)
+
+
+async def prepare(kinds=("obb-hull", "obb-min"), seconds: float = 5.0, args=()) -> dict:
+    """Walls asking for bounds that take long to fit (minimum-volume boxes of every leaf):
+    fitted in a child process, the server keeps serving."""
+    async def attack(s, run):
+        out = {}
+        async with Connection(s.url, TOKEN, timeout=600) as conn:
+            for kind in kinds:
+                t = time.perf_counter()
+                r = await conn.request("POST", "/walls", json.dumps(
+                    {"wall": _wall_spec("examples/wall-8x8.json"), "scene": "powerplant",
+                     "bounds": kind}).encode(), "application/json", auth=True,
+                    accept="application/json")
+                out[kind] = {"status": r.status, "seconds": time.perf_counter() - t}
+                if r.status == 201:
+                    await conn.request("DELETE", f"/walls/{r.data()['id']}", auth=True)
+        return out
+
+    return await measured("prepare", attack, seconds=seconds, args=args)
+
+
+#: Degenerate stereo: eyes a hair apart, or at the smallest doubles.
+IPDS = (1e-300, 5e-324, 1e-15, 1e-9)
+
+
+async def stereo(seconds: float = 5.0) -> dict:
+    """Frames whose stereo is degenerate (``IPDS``) on a grid and on a CAVE, each timed."""
+    async def attack(s, run):
+        out = {}
+        async with Driver(s.url, TOKEN) as d:
+            for wall in ("examples/wall-8x8.json", "examples/wall-cave.json"):
+                spec = _wall_spec(wall)
+                info = await d.create_wall("fatehpur", spec)
+                frame = (await d.frames("fatehpur", spec, "orbit", 1))[0]
+                times = []
+                async with Connection(s.url, TOKEN, timeout=300) as conn:
+                    for ipd in IPDS:
+                        body = {"frame": {**frame, "stereo": {"ipd": ipd}}}
+                        t = time.perf_counter()
+                        r = await conn.request("POST", f"/walls/{info['id']}/frames",
+                                               json.dumps(body).encode(), "application/json",
+                                               auth=True)
+                        times.append({"ipd": ipd, "status": r.status,
+                                      "seconds": time.perf_counter() - t})
+                    await conn.request("DELETE", f"/walls/{info['id']}", auth=True)
+                out[Path(wall).stem] = times
+        return out
+
+    return await measured("stereo", attack, seconds=seconds)
+
+
+HUGE = {"cols": 256, "rows": 256, "tile_size": [0.1, 0.1], "distance": 2.0}
+
+
+async def huge(consoles: int = 32, hold: float = 12.0, seconds: float = 5.0) -> dict:
+    """A 256 x 256 wall: made, a frame posted, every tile's packets asked for in one answer,
+    then ``consoles`` console streams opened without a credential and read for ``seconds``."""
+    async def attack(s, run):
+        from websockets.asyncio.client import connect
+
+        out = {}
+        async with Connection(s.url, TOKEN, timeout=600) as conn:
+            t, rss = time.perf_counter(), s.ps.memory_info().rss
+            r = await conn.request("POST", "/walls", json.dumps(
+                {"wall": HUGE, "scene": "powerplant", "history": 4}).encode(),
+                "application/json", auth=True, accept="application/json")
+            out["create"] = {"status": r.status, "seconds": time.perf_counter() - t,
+                             "rss_mb": (s.ps.memory_info().rss - rss) / MiB}
+            wid = r.data()["id"]
+            async with Driver(s.url, TOKEN) as d:
+                frame = (await d.frames("powerplant", HUGE, "orbit", 1))[0]
+            for packets in (False, True):
+                t = time.perf_counter()
+                r = await conn.request("POST", f"/walls/{wid}/frames", json.dumps(
+                    {"frame": frame, "packets": packets}).encode(), "application/json",
+                    auth=True)
+                out["frame_packets" if packets else "frame"] = {
+                    "status": r.status, "seconds": time.perf_counter() - t,
+                    "detail": r.detail()[:120] if r.status >= 400 else None}
+        received = [0] * consoles
+        stop = asyncio.Event()
+
+        async def console(k):
+            async with connect("ws" + s.url[4:] + f"/walls/{wid}/console/stream",
+                               max_size=None, compression=None) as ws:
+                while not stop.is_set():
+                    try:
+                        received[k] += len(await asyncio.wait_for(ws.recv(), 0.5))
+                    except asyncio.TimeoutError:
+                        pass
+
+        tasks = [asyncio.ensure_future(console(k)) for k in range(consoles)]
+        await asyncio.sleep(hold)
+        stop.set()
+        results = await asyncio.gather(*tasks, return_exceptions=True)
+        out["consoles"] = {"opened": consoles, "seconds": hold,
+                           "failed": sum(isinstance(r, Exception) for r in results),
+                           "mb_received": sum(received) / MiB}
+        async with Connection(s.url, TOKEN) as conn:
+            await conn.request("DELETE", f"/walls/{wid}", auth=True)
+        return out
+
+    return await measured("huge", attack, seconds=seconds)
+
+
+async def answers(seconds: float = 5.0) -> dict:
+    """The wrong answers issue 20 found, each asked again: statuses only."""
+    async def attack(s, run):
+        out = {}
+        node = run.credentials["nodes"][0]["token"]
+        async with Connection(s.url, node) as conn:
+            r = await conn.request("GET", f"/walls/{run.wid}/tiles/%C2%B2/packets/latest",
+                                   auth=True)
+            out["unicode_tile_http"] = r.status
+        out["unicode_tile_ws"] = await open_stream(s.url, f"/walls/{run.wid}/tiles/%C2%B2/stream",
+                                                   node)
+        out["disagreeing_credentials_ws"] = await open_stream(
+            s.url, f"/walls/{run.wid}/tiles/0/stream", node,
+            headers={"Authorization": "Bearer garbage"})
+        glb_ = many_nodes(200)
+
+        async def upload(k, replace=False):
+            async with Connection(s.url, TOKEN, timeout=300) as conn:
+                r = await conn.request("POST", f"/scenes?name=same{'&replace=true' * replace}",
+                                       glb_, "model/gltf-binary", auth=True)
+                return r.status
+
+        out["same_name_uploads"] = sorted(await asyncio.gather(*(upload(k) for k in range(6))))
+        async with Driver(s.url, TOKEN) as d:
+            used = await d.create_wall("same.glb", _wall_spec("examples/wall-4x4.json"))
+        out["replace_a_scene_a_wall_uses"] = await upload(0, replace=True)
+        async with Connection(s.url, TOKEN) as conn:
+            await conn.request("DELETE", f"/walls/{used['id']}", auth=True)
+        out["replace_once_no_wall_uses_it"] = await upload(0, replace=True)
+        return out
+
+    return await measured("answers", attack, seconds=seconds)
+
+
+async def state() -> dict:
+    """Start a server on a state database that is not one, on a truncated one and on one
+    with a wall spec that is not JSON: each start must fail in one line naming the file,
+    leaving it as it was."""
+    import sqlite3
+    import subprocess
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        async with server(state=tmp) as s:
+            async with Driver(s.url, TOKEN) as d:
+                await d.create_wall("fatehpur", _wall_spec("examples/wall-4x4.json"))
+        db = Path(tmp) / "walls.sqlite3"
+        good = db.read_bytes()
+        for case in ("not_a_database", "truncated", "spec_not_json"):
+            if case == "not_a_database":
+                db.write_bytes(b"\0" * 4096)
+            elif case == "truncated":
+                db.write_bytes(good[:len(good) // 2 + 100])
+            else:
+                db.write_bytes(good)
+                con = sqlite3.connect(db)
+                con.execute("UPDATE walls SET spec = '{\"wall\":'")
+                con.commit()
+                con.close()
+            before = db.read_bytes()
+            proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "serve", "--state", tmp,
+                                   "--port", "1"], capture_output=True, text=True, timeout=120)
+            out[case] = {"exit": proc.returncode, "lines": proc.stderr.count("\n"),
+                         "names_the_file": str(db) in proc.stderr,
+                         "file_unchanged": db.read_bytes() == before,
+                         "message": proc.stderr.strip()[:300]}
+    return {"scenario": "state", **out}
+
+
 SCENARIOS = {"glb-bomb": glb_bomb, "uploads": uploads, "streams": streams, "acks": acks,
-             "loop": loop, "restart": restart}
+             "loop": loop, "restart": restart, "messages": messages, "headers": headers,
+             "prepare": prepare, "stereo": stereo, "huge": huge, "answers": answers,
+             "state": state}
 
 
 def main(argv=None) -> int:

@@ -95,7 +95,7 @@ class Server:
     own (a temporary one unless ``state`` is given) and ``args`` added to its command line."""
 
     def __init__(self, token: str | None = None, port: int | None = None,
-                 log_level: str = "warning", state: str | None = None, args=()):
+                 log_level: str = "warning", state: str | None = None, args=(), prefix=()):
         self.token = token
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -104,6 +104,7 @@ class Server:
             else None
         self.state = state or self._state.name
         self.args = list(args)
+        self.prefix = list(prefix)  # a command the server runs under (``prlimit ... --``)
         self.proc = None
         self.log = tempfile.TemporaryFile()
 
@@ -112,7 +113,7 @@ class Server:
 
         from wallcull_clients.rawhttp import Connection
 
-        cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1",
+        cmd = [*self.prefix, sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1",
                "--port", str(self.port), "--log-level", self.log_level, "--state", self.state,
                *self.args]
         if self.token:
@@ -385,7 +386,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                       render: bool = False, draw_time: float = 0.0,
                       settings: dict | None = None, shadow_fit: str = "refined",
                       tiles_per_node: int = 1, transport: str = "ws",
-                      nats: str | None = None, prefetch: bool = False) -> dict:
+                      nats: str | None = None, prefetch: bool = False,
+                      barrier_timeout: float = 1.0) -> dict:
     """Run one walkthrough load test (see the module docstring) and return its report.
     ``transport`` "nats": the nodes take their messages from a NATS broker (``nats``, or one
     started here), the server publishing there. ``prefetch``: every node fetches the scene's
@@ -449,7 +451,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                "--path-frames", str(path_frames or PATH_FRAMES),
                "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
         if barrier:
-            cmd += ["--barrier"]
+            cmd += ["--barrier", "--barrier-timeout", str(barrier_timeout)]
         cpu0 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
                 "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
                 "clients": sum(cpu_seconds(p) for p in client_ps),
@@ -867,6 +869,9 @@ def register(sub) -> None:
                    help="nodes fetch every mesh before the first frame (as a render PC loads "
                         "its scene), instead of as they come into view")
     q.add_argument("--barrier", action="store_true", help="the driver waits on the swap barrier")
+    q.add_argument("--barrier-timeout", type=float, default=1.0, metavar="SECONDS",
+                   help="how long the driver waits on the barrier before posting the next "
+                        "frame anyway (at most 10)")
     q.add_argument("--path", choices=("orbit", "fly"), default="orbit")
     q.add_argument("--path-frames", type=int, help="frames per loop of the path (default 600)")
     q.add_argument("--warmup", type=float, default=0.5,
@@ -918,7 +923,8 @@ def cmd_loadtest(args) -> int:
             render=args.render, draw_time=args.draw_time,
             settings=read_settings(args.settings) if args.settings else None,
             shadow_fit=args.shadow_fit, tiles_per_node=args.tiles_per_node,
-            transport=args.transport, nats=args.nats, prefetch=args.prefetch))
+            transport=args.transport, nats=args.nats, prefetch=args.prefetch,
+            barrier_timeout=args.barrier_timeout))
     write(report, args.out)
     if args.json:
         print(json.dumps(report))

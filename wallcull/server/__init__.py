@@ -35,7 +35,10 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from ..errors import InputError, optional
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
-from ..service import Conflict, Gone, NotFound, SceneStore, Walls, settled
+from .. import warm
+from ..workers import background
+from ..persist import StateWriteFailed
+from ..service import Conflict, Gone, NotFound, SceneStore, Unavailable, Walls, settled
 from . import asyncapi, openapi, pages, scenes, streams, walls
 from .deps import ServerState
 from .gate import Gate
@@ -63,12 +66,13 @@ class App(FastAPI):
 def create_app(scene_folder=None, token: str | None = None, max_body: int | None = None,
                max_upload: int | None = None, max_walls: int | None = None, *,
                limits: Limits | None = None, state=None, origins=(), nats: str | None = None,
-               nats_prefix: str = "wallcull") -> FastAPI:
+               nats_prefix: str = "wallcull", wall_ttl: float | None = None) -> FastAPI:
     """The app. ``state``: a folder where walls persist (None: they live in memory only), and
     where uploads go when there is no ``scene_folder``. ``origins``: browser origins allowed
     to call the API and open streams (``"*"``: any). ``nats``: a NATS broker's URL, to publish
-    node messages there too (:mod:`.nats`). ``max_body``, ``max_upload`` and ``max_walls``
-    override ``limits``."""
+    node messages there too (:mod:`.nats`). ``wall_ttl``: delete a wall once it has had no
+    frame and no stream for that many seconds (None: never). ``max_body``, ``max_upload`` and
+    ``max_walls`` override ``limits``."""
     limits = limits or Limits()
     overrides = {"body": max_body, "upload": max_upload, "walls": max_walls}
     limits = replace(limits, **{k: v for k, v in overrides.items() if v is not None})
@@ -76,6 +80,11 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     if scene_folder is None and folder is not None:
         scene_folder = folder.scenes
     walls_ = Walls(limits.walls, folder)
+    try:
+        walls_.check_specs()  # a start with walls it cannot read is refused, in one line
+    except InputError:
+        folder.close()
+        raise
     store = SceneStore(scene_folder, limits, in_use=walls_.scene_names)
     server = ServerState(store, walls_, Metrics(), token, limits, tuple(origins))
     metrics = server.metrics
@@ -85,15 +94,23 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
 
     @asynccontextmanager
     async def lifespan(app):
-        # compile (or load) the culling kernels once, while the walls of the state folder
-        # come back (their scenes load in another thread): clients wait for both
-        _, restored = await asyncio.gather(asyncio.to_thread(_warm_up), walls_.restore(store))
+        # the kernels (compiled once and cached: wallcull.warm) load in a worker thread while
+        # the walls of the state folder come back and the server answers: a frame that needs
+        # a kernel before it is loaded waits for it (numba's lock), and health answers within
+        # seconds of a restart
+        kernels = asyncio.ensure_future(background(warm.everything))
+        kernels.add_done_callback(lambda done: _kernels_loaded(server, done))
+        chores = [kernels]
+        restored = await walls_.restore(store)
         if restored:
             log.info("restored %d wall(s): %s", len(restored), ", ".join(restored))
         await asyncio.to_thread(settled)
         if server.bridge is not None:
             await server.bridge.start()
+        chores.append(asyncio.ensure_future(_keep(server, wall_ttl)))
         yield
+        for chore in chores:
+            chore.cancel()
         if server.bridge is not None:
             await server.bridge.close()
         if folder is not None:
@@ -119,6 +136,16 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     for exc_type, status in ((InputError, 422), (NotFound, 404), (Conflict, 409), (Gone, 410)):
         app.add_exception_handler(exc_type, status_handler(status, metrics))
 
+    @app.exception_handler(Unavailable)
+    async def unavailable(request, exc: Unavailable):
+        metrics.errors.labels("503").inc()
+        return JSONResponse({"detail": str(exc)}, 503, {"Retry-After": str(RETRY_PERIOD)})
+
+    @app.exception_handler(StateWriteFailed)
+    async def unwritten(request, exc: StateWriteFailed):
+        metrics.errors.labels(str(exc.status)).inc()
+        return JSONResponse({"detail": str(exc)}, exc.status, {"Retry-After": "10"})
+
     @app.exception_handler(RequestValidationError)
     async def invalid(request, exc: RequestValidationError):
         metrics.errors.labels("422").inc()
@@ -128,8 +155,23 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
 
     @app.get("/health", tags=["service"], operation_id="health")
     async def health():
-        return {"status": "ok", "walls": len(server.walls.sessions),
-                "scenes_loaded": sorted(server.store.cache)}
+        """``ok``, or ``degraded`` with the ``problems`` an operator should fix (the state
+        folder cannot be written; walls wait for their scenes). Frames are served either way,
+        so the answer is 200. ``kernels``: ``loading`` for a second or two after a start
+        (frames wait for them meanwhile), then ``ready``."""
+        problems = []
+        failure = folder.failure if folder is not None else None
+        if failure:
+            problems.append(failure)
+        for wid, (_, why) in server.walls.unavailable.items():
+            problems.append(f"wall {wid} is unavailable: {why}")
+        metrics.state_failing.set(failure is not None)
+        metrics.unavailable.set(len(server.walls.unavailable))
+        return {"status": "degraded" if problems else "ok",
+                "kernels": "ready" if server.kernels_ready else "loading",
+                "walls": len(server.walls.sessions),
+                "walls_unavailable": sorted(server.walls.unavailable),
+                "scenes_loaded": sorted(server.store.cache), "problems": problems[:20]}
 
     @app.get("/asyncapi.json", tags=["service"], operation_id="asyncapi")
     async def streams_document():
@@ -140,6 +182,8 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
              responses={200: {"description": "Prometheus text format",
                               "content": {"text/plain": {}}}})
     async def prometheus():
+        metrics.state_failing.set(folder is not None and folder.failure is not None)
+        metrics.unavailable.set(len(server.walls.unavailable))
         return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
     for module in (scenes, walls, streams, pages):
@@ -152,34 +196,43 @@ def _document(app: FastAPI, secured: bool) -> dict:
     return app.openapi_schema
 
 
-def _warm_up() -> None:
-    """Cull one frame of a tiny scene so that the kernels are compiled before the first client."""
-    import numpy as np
-    import trimesh
+def _kernels_loaded(server: ServerState, done: asyncio.Future) -> None:
+    server.kernels_ready = True
+    if not done.cancelled() and done.exception() is not None:  # frames compile them instead
+        log.warning("loading the kernels ahead of frames failed: %r", done.exception())
 
-    from ..cull import METHODS
-    from ..pipeline import Session
-    from ..scene import Scene
-    from ..wall import Wall
 
-    scene = trimesh.Scene()
-    for k in range(3):
-        m = np.eye(4)
-        m[:3, 3] = [k, 0, -5]
-        scene.add_geometry(trimesh.creation.box(), node_name=f"b{k}", transform=m)
-    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [1, 1], "distance": 1})
-    frame = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
-    for method in METHODS:
-        for pseudo in (False, True):
-            Session(Scene.from_trimesh(scene), wall, method, pseudo_groups=pseudo).frame(frame)
+#: Seconds between two tries at the walls waiting for their scenes, and between two looks
+#: for walls idle longer than ``--wall-ttl``.
+RETRY_PERIOD = 5
+
+
+async def _keep(server: ServerState, wall_ttl: float | None) -> None:
+    """Chores while the server runs: bring back walls whose scenes came back, and delete
+    walls idle longer than ``wall_ttl`` seconds (no frame posted, no stream open)."""
+    period = RETRY_PERIOD if not wall_ttl else min(RETRY_PERIOD, max(wall_ttl / 4, 0.1))
+    while True:
+        await asyncio.sleep(period)
+        try:
+            if server.walls.unavailable:
+                restored = await server.walls.retry(server.store)
+                if restored:
+                    log.info("wall(s) back with their scenes: %s", ", ".join(restored))
+            if wall_ttl:
+                for wid in server.walls.idle(wall_ttl):
+                    server.walls.delete(wid)
+                    server.metrics.expired.inc()
+                    log.info("wall %s deleted: idle for over %g s (--wall-ttl)", wid, wall_ttl)
+        except Exception:  # noqa: BLE001 - a chore that fails now is tried again later
+            log.exception("a background chore failed; trying again in %g s", period)
 
 
 def settings_from_env(environ=os.environ) -> dict:
     """``create_app`` keywords from the environment: ``WALLCULL_SCENES``, ``WALLCULL_TOKEN``,
     ``WALLCULL_STATE`` (a folder; ``none`` keeps walls in memory only; default
     :func:`wallcull.persist.default_folder`), ``WALLCULL_LIMITS`` (``NAME=VALUE,...``),
-    ``WALLCULL_CORS_ORIGINS`` (comma-separated), ``WALLCULL_NATS`` and
-    ``WALLCULL_NATS_PREFIX``."""
+    ``WALLCULL_CORS_ORIGINS`` (comma-separated), ``WALLCULL_NATS``,
+    ``WALLCULL_NATS_PREFIX`` and ``WALLCULL_WALL_TTL`` (seconds)."""
     state = environ.get("WALLCULL_STATE") or str(default_folder())
     return {"scene_folder": environ.get("WALLCULL_SCENES") or None,
             "token": environ.get("WALLCULL_TOKEN") or None,
@@ -188,7 +241,21 @@ def settings_from_env(environ=os.environ) -> dict:
             "origins": tuple(o.strip() for o in environ.get("WALLCULL_CORS_ORIGINS", "").split(",")
                              if o.strip()),
             "nats": environ.get("WALLCULL_NATS") or None,
-            "nats_prefix": environ.get("WALLCULL_NATS_PREFIX") or "wallcull"}
+            "nats_prefix": environ.get("WALLCULL_NATS_PREFIX") or "wallcull",
+            "wall_ttl": seconds_setting(environ.get("WALLCULL_WALL_TTL"), "WALLCULL_WALL_TTL")}
+
+
+def seconds_setting(text: str | None, what: str) -> float | None:
+    """A positive number of seconds, or None for nothing (or ``0``, ``off``)."""
+    if not text or text.strip().lower() in ("0", "off", "none"):
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise InputError(f"{what} must be a number of seconds, got {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise InputError(f"{what} must be a positive number of seconds, got {text!r}")
+    return value
 
 
 def make_app_from_env() -> FastAPI:
@@ -197,8 +264,13 @@ def make_app_from_env() -> FastAPI:
 
 
 def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info", **settings) -> None:
-    """Run the server (``settings``: :func:`create_app` keywords)."""
+    """Run the server (``settings``: :func:`create_app` keywords), with connections capped
+    and header deadlines (:mod:`.guard`)."""
     import uvicorn
 
-    uvicorn.run(create_app(**settings), host=host, port=port, log_level=log_level,
-                access_log=False, ws_max_size=1 << 20)
+    from .guard import protocol
+
+    app = create_app(**settings)
+    limits = app.state.server.limits
+    uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False,
+                ws_max_size=max(limits.body, limits.message_bytes), http=protocol(limits))

@@ -96,7 +96,11 @@ def check(state: ServerState, role: str, token: str | None, params: Mapping[str,
             raise Refused(403, "this needs a node credential of the wall")
         if "tile" in params:
             tile = params["tile"]
-            wanted = [int(tile)] if tile.isdigit() else [-1]
+            # str.isdigit is true of "²" and "٣", which int() refuses or reads as another
+            # number: a tile is written in ASCII digits
+            if not (tile.isascii() and tile.isdigit()):
+                raise Refused(422, f"tile must be a whole number in ASCII digits, got {tile!r}")
+            wanted = [int(tile)]
         else:  # a node's stream: the tiles it asks for, or by default all its credential holds
             try:
                 wanted = parse_tiles(params["tiles"], MAX_TILES) if params.get("tiles") else []

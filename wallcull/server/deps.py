@@ -28,10 +28,16 @@ class ServerState:
     uploads: int = 0  # uploads being received or parsed
     consoles: int = 0  # operator consoles open (wallcull.server.pages)
     warming: set = field(default_factory=set)  # meshes being encoded for new walls
+    #: bytes a second sent to consoles opened without a credential, all together
+    open_budget: Any = None
+    kernels_ready: bool = False  # every numba kernel loaded (wallcull.warm)
     operator: str | None = field(init=False, default=None)
 
     def __post_init__(self, token):
+        from .http import Budget
+
         self.operator = None if token is None else digest(token)
+        self.open_budget = Budget(self.limits.open_bytes)
 
     @property
     def open(self) -> bool:

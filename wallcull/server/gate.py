@@ -10,9 +10,9 @@ request costs least:
 3. the caller's token is checked against the route's role (:mod:`.access`): 401 or 403,
    **before a byte of the body is read**; then a query parameter the route does not declare
    is refused (422), as an unknown key of a body is;
-4. a body is capped (``Content-Length`` first, then as it arrives: 413), must keep arriving
-   (``limits.body_idle`` seconds between chunks, ``limits.body_seconds`` in all: 408), and
-   uploads are limited to ``limits.uploads`` at once (503 with ``Retry-After``).
+4. a body is capped (``Content-Length`` first, then as it arrives: 413) and must keep arriving
+   (``limits.body_idle`` seconds between chunks, ``limits.body_seconds`` in all: 408).
+   Uploads at once are capped by their route, once their name is known to be free (503).
 
 The route reads the body itself, through the capped ``receive``; nothing is buffered here.
 """
@@ -57,29 +57,27 @@ class Gate:
             await send({"type": "http.response.start", "status": 204,
                         "headers": [(b"allow", _allow(admitted | {"OPTIONS"}).encode())]})
             return await send({"type": "http.response.body", "body": b""})
-        receive, upload = admitted
-        if not upload:
-            return await self.app(scope, receive, send)
-        self.state.uploads += 1
         try:
-            await self.app(scope, receive, send)
-        finally:
-            self.state.uploads -= 1
+            await self.app(scope, admitted, send)
+        except Exception:
+            # a bug, answered 500 by the server: counted, so that a soak sees every one
+            self.state.metrics.errors.labels("500").inc()
+            raise
 
     def _admit(self, scope, receive):
-        """``(receive, is_upload)`` for a request that may go on to its route, the path's
+        """The ``receive`` of a request that may go on to its route, the path's
         methods for an ``OPTIONS`` to answer here; raises :class:`Refused` for the others."""
         route, params, methods = _route(scope)
         headers = _headers(scope)
         if scope["type"] == "websocket":
             if route is None:
-                return receive, False  # the router refuses it
+                return receive  # the router refuses it
             origin = headers.get("origin")
             if origin is not None and not origin_allowed(origin, headers.get("host"),
                                                          self.state.origins):
                 raise Refused(403, f"origin {origin!r} is not allowed (--cors-origin)")
             query = parse_qs(scope.get("query_string", b"").decode("latin-1"))
-            token = query.get("token", [None])[0] or bearer(headers.get("authorization"))
+            token = stream_token(query.get("token", []), headers.get("authorization"))
             if "tiles" in query:  # a node's stream: the tiles its credential must hold
                 params = {**params, "tiles": query["tiles"][0]}
         else:
@@ -91,7 +89,7 @@ class Gate:
                 if methods:
                     raise Refused(405, f"{scope['method']} is not a method of this path",
                                   {"Allow": _allow(methods)})
-                return receive, False  # the router's 404
+                return receive  # the router's 404
             token = bearer(headers.get("authorization"))
         check(self.state, role_of(route.endpoint), token, params)
         query = scope.get("query_string", b"")
@@ -101,17 +99,31 @@ class Gate:
             if unknown:
                 raise Refused(422, f"unknown query parameter(s): {', '.join(sorted(unknown))}")
         if scope["type"] == "websocket" or scope["method"] not in BODY_METHODS:
-            return receive, False
+            return receive
         upload = getattr(route.endpoint, "wallcull_upload", False)
         limits = self.state.limits
         limit = limits.upload if upload else limits.body
         declared = headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+        if declared is not None and (not (declared.isascii() and declared.isdigit())
+                                     or int(declared) > limit):
             raise Refused(413, f"request body over {limit} bytes")
-        if upload and self.state.uploads >= limits.uploads:
-            raise Refused(503, f"{limits.uploads} uploads are in progress; retry",
-                          {"Retry-After": "2"})
-        return _capped(receive, limit, limits), upload
+        return _capped(receive, limit, limits)
+
+
+def stream_token(query: list[str], authorization: str | None) -> str | None:
+    """The one credential a WebSocket handshake carries (``?token=`` or ``Authorization:
+    Bearer``; a browser can only send the first). Two that disagree, an ``Authorization``
+    that is not a bearer token, or ``token`` given twice are refused (401): a request is
+    judged by one credential, never by whichever of two a check happens to read."""
+    header = bearer(authorization) if authorization is not None else None
+    if authorization is not None and header is None:
+        raise Refused(401, "the Authorization header must be 'Bearer <token>'")
+    if len(set(query)) > 1:
+        raise Refused(401, "the query gives more than one token")
+    if query and header is not None and query[0] != header:
+        raise Refused(401, "the ?token= and the Authorization header carry different "
+                           "credentials: send one")
+    return query[0] if query else header
 
 
 def _route(scope):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import time
 from typing import Any, Callable
 
 from fastapi import Depends, Request
@@ -14,6 +15,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 
 from .. import protocol
+from ..workers import background
 from ..errors import InputError
 from .metrics import Metrics
 
@@ -38,7 +40,7 @@ def reply(request: Request, payload: Any, status: int = 200, headers=None) -> Re
 async def reply_large(request: Request, build: Callable[[], Any]) -> Response:
     """:func:`reply` with ``build()`` and its encoding done in a worker thread, in pieces."""
     binary = protocol.wants_msgpack(request.headers.get("accept"))
-    body = await asyncio.to_thread(lambda: encode_in_pieces(build(), binary))
+    body = await background(lambda: encode_in_pieces(build(), binary))
     return Response(body, 200, media_type=protocol.MSGPACK if binary else protocol.JSON)
 
 
@@ -143,6 +145,38 @@ def decode_body(model, raw: bytes, ctype: str):
     except ValidationError as exc:
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])}
                                       for e in exc.errors()]) from None
+
+
+def decode_message(raw: bytes | None, text: str | None, limit: int) -> Any:
+    """A WebSocket message (msgpack ``raw`` bytes or JSON ``text``) of at most ``limit``
+    bytes, with the depth limit of request bodies: an :class:`InputError` otherwise."""
+    data = raw if raw is not None else (text or "").encode()
+    if len(data) > limit:
+        raise InputError(f"a message may have at most {limit} bytes, this one has {len(data)}")
+    value = protocol.decode(data, raw is not None)
+    try:
+        _json_like(value)
+    except Refused as exc:
+        raise InputError(exc.detail.replace("msgpack body", "message")) from None
+    return value
+
+
+class Budget:
+    """``rate`` units a second (messages, bytes), in bursts of as many: :meth:`spend` sleeps
+    while the budget is overdrawn. A stream that sends faster than its budget of messages is
+    read more slowly, so that its socket fills and the client's own sends block; streams that
+    share a budget of bytes are sent to less often. Either way the cost to the server stays
+    within ``rate`` a second, and other connections keep theirs."""
+
+    def __init__(self, rate: float):
+        self.rate, self.level, self.at = rate, rate, time.monotonic()
+
+    async def spend(self, amount: float = 1) -> None:
+        now = time.monotonic()
+        self.level = min(self.rate, self.level + (now - self.at) * self.rate) - amount
+        self.at = now
+        if self.level < 0:
+            await asyncio.sleep(-self.level / self.rate)
 
 
 def _json_like(data: Any) -> None:

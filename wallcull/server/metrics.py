@@ -19,6 +19,14 @@ class Metrics:
         self.clients = Gauge("wallcull_clients_connected", "Streaming render nodes", registry=r)
         self._bound: dict = {}
         self.errors = Counter("wallcull_errors", "Requests refused", ["status"], registry=r)
+        self.state_failing = Gauge(
+            "wallcull_state_write_failing",
+            "1 while the state folder cannot be written (disk full, read-only): see /health",
+            registry=r)
+        self.unavailable = Gauge("wallcull_walls_unavailable",
+                                 "Walls of the state folder waiting for their scene", registry=r)
+        self.expired = Counter("wallcull_walls_expired", "Walls deleted after --wall-ttl idle",
+                               registry=r)
 
     def packet(self, delta: bool, size: int, transport: str):
         key = ("delta" if delta else "full", transport)

@@ -29,17 +29,21 @@ from pathlib import Path as FilePath
 from typing import Annotated
 
 import fastapi_offline
+import numpy as np
 from fastapi import APIRouter, Path, Query, Request, WebSocket
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from ..errors import InputError
-from ..service import LAG, LAG_FRAMES, LIVE, NotFound
+from ..service import LAG, LAG_FRAMES, LIVE, NotFound, Unavailable
 from ..validate import parse_tiles, tiles_text
+from ..workers import background
+from .access import bearer
 from .deps import ServerState, State
+from .http import Budget, Refused, encode_in_pieces
 from .models import WALL_ID, refusals
-from .streams import GONE
+from .streams import GONE, count, deny, room
 
 router = APIRouter(tags=["pages"])
 
@@ -250,32 +254,42 @@ def _file(path: FilePath, cache: str) -> FileResponse:
 async def console_stream(ws: WebSocket, wid: str):
     """The console's status of a wall (JSON, see ``WallSession.status``) whenever it changes,
     looked at every ``CONSOLE_PERIOD`` seconds; closed with code 4404 when the wall is
-    deleted. Open, like ``GET /walls/{wid}`` (it carries no pose)."""
+    deleted. Open, like ``GET /walls/{wid}`` (it carries no pose), but counted against the
+    caps of streams (the server's, the wall's: 429), and a console opened without a credential
+    of the wall (``?token=``: the operator's or one of the wall's) shares with every other
+    such console ``limits.open_bytes`` a second: on a 256 x 256 wall it is sent a status
+    (2 MB) less often."""
     state: ServerState = ws.app.state.server
     try:
         session = state.walls.get(wid)
-    except NotFound as exc:
-        await ws.send_denial_response(JSONResponse({"detail": str(exc)}, 404))
-        return
-    if state.consoles >= MAX_CONSOLES:
-        await ws.send_denial_response(JSONResponse(
-            {"detail": f"the server already has {MAX_CONSOLES} consoles open"}, 429))
-        return
+        if state.consoles >= MAX_CONSOLES:
+            raise Refused(429, f"the server already has {MAX_CONSOLES} consoles open")
+        room(state, session, NO_TILES)
+    except (NotFound, Refused, Unavailable) as exc:
+        return await deny(ws, state, exc)
+    token = ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
+    grant = state.walls.grant(token) if token else None
+    trusted = token is not None and (state.is_operator(token) or
+                                     (grant is not None and grant.wall == wid))
     await ws.accept()
     state.consoles += 1
+    count(state, session, NO_TILES, +1)
+
+    pace = Budget(state.limits.messages)
 
     async def left():  # a console sends nothing: its receive ends when it goes
         while (await ws.receive())["type"] != "websocket.disconnect":
-            pass
+            await pace.spend()  # (what it does send is read no faster than a stream's)
 
     waits = [asyncio.ensure_future(left()), asyncio.ensure_future(session.gone.wait())]
     try:
         sent, sent_at = None, 0.0
         while not any(w.done() for w in waits):
-            status = session.status()
-            same = {k: v for k, v in status.items() if k != "time"}
+            text, same = await _status(session)
             if same != sent or time.monotonic() - sent_at > CONSOLE_QUIET:
-                await ws.send_text(json.dumps(status, separators=(",", ":")))
+                if not trusted:
+                    await state.open_budget.spend(len(text))
+                await ws.send_text(text)
                 sent, sent_at = same, time.monotonic()
             await asyncio.wait(waits, timeout=CONSOLE_PERIOD,
                                return_when=asyncio.FIRST_COMPLETED)
@@ -285,5 +299,32 @@ async def console_stream(ws: WebSocket, wid: str):
         pass  # the console went away
     finally:
         state.consoles -= 1
+        count(state, session, NO_TILES, -1)
         for w in waits:
             w.cancel()
+
+
+NO_TILES = np.zeros(0, np.int64)
+
+
+async def _status(session) -> tuple[str, str]:
+    """A wall's console status as JSON, and the same without its time (to see whether it
+    changed): computed at most once per ``CONSOLE_PERIOD`` for all of the wall's consoles,
+    in a worker thread (a 256 x 256 wall's is 2 MB)."""
+    cached = session.__dict__.get("_console")
+    if cached is None or time.monotonic() - cached[0] >= CONSOLE_PERIOD:
+        async with session.__dict__.setdefault("_console_lock", asyncio.Lock()):
+            cached = session.__dict__.get("_console")
+            if cached is None or time.monotonic() - cached[0] >= CONSOLE_PERIOD:
+                cached = session.__dict__["_console"] = (
+                    time.monotonic(), *await background(_status_texts, session))
+    return cached[1], cached[2]
+
+
+def _status_texts(session) -> tuple[str, str]:
+    """The status as JSON, and the same without its time; encoded a piece at a time, so that
+    the worker thread lets the event loop run between pieces."""
+    status = session.status()
+    now = status.pop("time")
+    same = encode_in_pieces(status, binary=False).decode()
+    return f'{same[:-1]},"time":{json.dumps(now)}}}', same

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path as FilePath
 from typing import Annotated
@@ -10,10 +11,11 @@ from fastapi import APIRouter, Path, Query, Request
 
 from ..credentials import OPERATOR
 from ..errors import InputError
+from ..persist import StateWriteFailed
 from ..service import NotFound, describe, mesh_blob
 from .access import needs
 from .deps import State
-from .http import mesh_reply, reply, reply_large
+from .http import Refused, mesh_reply, reply, reply_large
 from .models import SCENE_NAME, refusals
 
 router = APIRouter(tags=["scenes"])
@@ -44,7 +46,29 @@ async def upload_scene(request: Request, state: State, name: UploadName, replace
     """Upload a GLB into the scene folder (or memory, without one). Its body is spooled to a
     file as it arrives, checked and parsed in a child process with a memory limit
     (:mod:`wallcull.uploads`), then moved into the folder atomically."""
-    name = state.store.upload_name(name, replace)
+    name = state.store.upload_name(name, replace)  # 409 first: the name is taken
+    try:
+        limit = state.limits.uploads
+        if state.uploads >= limit:
+            raise Refused(503, f"{limit} uploads are in progress; retry", {"Retry-After": "2"})
+        state.uploads += 1
+        try:
+            scene = await _receive(request, state, name)
+        except OSError as exc:  # the scene folder: a full disk (507), read-only (503)
+            full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+            raise StateWriteFailed(507 if full else 503, f"cannot store the upload in "
+                                   f"{state.store.folder}: {exc.strerror}") from None
+        finally:
+            state.uploads -= 1
+    finally:
+        state.store.release(name)
+    if any(row.spec.get("scene") == name for row, _ in state.walls.unavailable.values()):
+        await state.walls.retry(state.store)  # the walls that waited for it come back now
+    return reply(request, describe(scene, nodes=False), 201)
+
+
+async def _receive(request: Request, state, name: str):
+    """An upload's body, spooled, checked, parsed and stored as scene ``name``."""
     spool = state.store.spool()
     path = FilePath(spool.name)
     try:
@@ -54,11 +78,10 @@ async def upload_scene(request: Request, state: State, name: UploadName, replace
         with open(path, "rb") as f:
             if f.read(4) != b"glTF":
                 raise InputError("an upload must be a binary glTF (.glb) file")
-        scene = await state.store.upload(name, path)
+        return await state.store.upload(name, path)
     finally:
         if path.exists():
             os.unlink(path)
-    return reply(request, describe(scene, nodes=False), 201)
 
 
 @router.get("/scenes/{name}", operation_id="getScene", responses=refusals(404))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import numpy as np
 from fastapi import APIRouter, WebSocket
@@ -15,11 +16,11 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from .. import protocol
 from ..credentials import DRIVER, NODE
 from ..errors import InputError
-from ..service import Conflict, NotFound, WallSession
+from ..service import Conflict, NotFound, Unavailable, WallSession
 from ..validate import parse_tiles
 from .access import bearer, needs
 from .deps import ServerState
-from .http import Refused, decode_body, refusal_detail
+from .http import Budget, Refused, decode_body, decode_message, refusal_detail
 from .models import FramePost
 from .walls import take_frame
 
@@ -85,14 +86,12 @@ async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
     state: ServerState = ws.app.state.server
     try:
         session = state.walls.get(wid)
-    except NotFound as exc:
-        state.metrics.errors.labels("404").inc()
-        await ws.send_denial_response(JSONResponse({"detail": str(exc)}, 404))
-        return
+    except (NotFound, Unavailable) as exc:
+        return await deny(ws, state, exc)
     binary = format != "json"
     await ws.accept()
     try:
-        while not session.closed:
+        while not session.closed:  # one message at a time: each is answered before the next
             message = await ws.receive()
             if message["type"] == "websocket.disconnect":
                 return
@@ -119,6 +118,17 @@ async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
         await ws.close(code=GONE, reason="the wall was deleted")
 
 
+async def deny(ws: WebSocket, state: ServerState, exc: Exception) -> None:
+    """Refuse a stream's handshake: 404 (no such wall), 503 (the wall waits for its scene:
+    retry) or a :class:`Refused`'s status."""
+    status = exc.status if isinstance(exc, Refused) else 503 if isinstance(exc, Unavailable) \
+        else 404
+    state.metrics.errors.labels(str(status)).inc()
+    headers = {"Retry-After": "5"} if status == 503 else None
+    await ws.send_denial_response(JSONResponse({"detail": getattr(exc, "detail", str(exc))},
+                                               status, headers))
+
+
 def writer(ws: WebSocket, binary: bool):
     """``write(data)`` for an accepted stream's messages (msgpack bytes, or JSON text given as
     UTF-8 bytes): straight to the server's own ``send`` when :class:`~wallcull.server.App`
@@ -142,19 +152,15 @@ async def _open(ws: WebSocket, wid: str, tiles_of, node: bool, binary: bool) -> 
     try:
         session = state.walls.get(wid)
         tiles = tiles_of(session)
-        _room(state, session, tiles)
-    except (NotFound, Refused) as exc:
-        status = exc.status if isinstance(exc, Refused) else 404
-        state.metrics.errors.labels(str(status)).inc()
-        await ws.send_denial_response(JSONResponse({"detail": getattr(exc, "detail", str(exc))},
-                                                   status))
-        return
+        room(state, session, tiles)
+    except (NotFound, Refused, Unavailable) as exc:
+        return await deny(ws, state, exc)
     await ws.accept()
-    _count(state, session, tiles, +1)
+    count(state, session, tiles, +1)
     try:
         reason = await _serve(ws, state, session, tiles, node, binary)
     finally:
-        _count(state, session, tiles, -1)
+        count(state, session, tiles, -1)
     code = GONE if session.closed else IDLE if reason == "idle" else None
     if code is not None and ws.application_state == WebSocketState.CONNECTED \
             and ws.client_state == WebSocketState.CONNECTED:
@@ -165,18 +171,26 @@ async def _open(ws: WebSocket, wid: str, tiles_of, node: bool, binary: bool) -> 
             pass  # the node left at the same moment
 
 
-def _room(state: ServerState, session: WallSession, tiles: np.ndarray) -> None:
+def room(state: ServerState, session: WallSession, tiles: np.ndarray) -> None:
+    """Refuse (429) a stream that would pass the caps: the server's, the wall's, a tile's
+    (consoles, which hold no tile, count against the first two)."""
     limits = state.limits
-    busiest = max(session.streams[t] for t in tiles.tolist())
+    busiest = max((session.streams[t] for t in tiles.tolist()), default=0)
+    on_wall = session.subscribers + session.consoles
     for open_, cap, where in ((state.streams, limits.streams, "the server"),
-                              (session.subscribers, limits.streams_per_wall, f"wall {session.id}"),
+                              (on_wall, limits.streams_per_wall, f"wall {session.id}"),
                               (busiest, limits.streams_per_tile, "a tile")):
         if open_ >= cap:
             raise Refused(429, f"{where} already has {cap} streams open")
 
 
-def _count(state: ServerState, session: WallSession, tiles: np.ndarray, step: int) -> None:
+def count(state: ServerState, session: WallSession, tiles: np.ndarray, step: int) -> None:
+    """Count a stream opening (+1) or closing (-1) against the caps of :func:`room`."""
     state.streams += step
+    session.active = time.monotonic()
+    if not len(tiles):  # a console
+        session.consoles += step
+        return
     session.subscribers += step
     for t in tiles.tolist():
         session.streams[t] += step
@@ -239,15 +253,17 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
             metrics.packet(delta, len(data), "ws")
             last = number
 
+    pace = Budget(state.limits.messages)
+
     async def receiver():
         while True:
+            await pace.spend()
             message = await ws.receive()
             if message["type"] == "websocket.disconnect":
                 return "left"
-            raw = message.get("bytes")
             try:
-                msg = protocol.decode(raw, True) if raw is not None else \
-                    protocol.decode(message.get("text", "").encode(), False)
+                msg = decode_message(message.get("bytes"), message.get("text"),
+                                     state.limits.message_bytes)
                 if not isinstance(msg, dict):
                     raise InputError("a message must be an object")
                 if msg.get("full"):

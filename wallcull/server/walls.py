@@ -10,12 +10,14 @@ from fastapi.responses import Response
 
 from .. import settings as cfg
 from ..credentials import DRIVER, NODE, OPERATOR
+from ..errors import InputError
 from ..fit import FitOptions
 from ..service import NotFound, warm_meshes
 from ..wall import Wall
+from ..workers import background
 from .access import needs
 from .deps import State
-from .http import body_of, reply
+from .http import body_of, reply, reply_large
 from .messages import FrameAnswer, Packet
 from .models import (WALL_ID, Ack, Barrier, FramePost, WallCreate, WallCreated, WallInfo,
                      WallList, refusals)
@@ -25,6 +27,9 @@ from .openapi import FRAME_LINKS, WALL_LINKS
 MAX_WAIT = 10.0
 #: Updates converted on the event loop at most; more go to a worker thread.
 INLINE_UPDATES = 2000
+#: Tiles of a wall whose answers are encoded off the event loop; and the most tiles a frame's
+#: answer may carry every packet of (``packets=true``: 1.9 s on the loop at 256 x 256).
+LARGE_WALL = MAX_PACKETS = 1024
 
 router = APIRouter(tags=["walls"])
 
@@ -46,37 +51,63 @@ async def create_wall(request: Request, state: State,
     settings = None if body.settings is None else body.settings.model_dump(exclude_unset=True, exclude_none=True)
     if settings is not None:
         cfg.parse(settings)  # refused here, with its reason, not at the first frame
-    scene = await state.store.get(body.scene)
-    session = state.walls.create(scene, wall, body.method, body.bounds, body.pseudo_groups,
-                                 body.history,
-                                 FitOptions(body.depth, body.reversed_z, body.shadow_fit),
-                                 body.nodes, settings, body.occlusion)
+    with state.walls.reservation():  # a place for it, before any work
+        scene = await state.store.get(body.scene)
+        await state.store.bounds(scene, body.bounds)  # in a child process, with a time budget
+        fit = FitOptions(body.depth, body.reversed_z, body.shadow_fit)
+        # a 256 x 256 wall takes seconds to make: a worker thread, the loop keeps serving
+        session, grants = await background(
+            state.walls.build, scene, wall, body.method, body.bounds, body.pseudo_groups,
+            body.history, fit, body.nodes, settings, body.occlusion)
+        state.walls.register(session, grants)
     if state.bridge is not None:
         state.bridge.watch(session)
     # the nodes' first mesh requests find them encoded (a thread: the loop keeps serving)
-    warming = asyncio.ensure_future(asyncio.to_thread(warm_meshes, scene))
+    warming = asyncio.ensure_future(background(warm_meshes, scene))
     state.warming.add(warming)
     warming.add_done_callback(state.warming.discard)
-    credentials, session.credentials = session.credentials, None  # shown once
-    return reply(request, {**session.info(), "credentials": credentials}, 201)
+    issued, session.credentials = session.credentials, None  # shown once
+    return await _reply(request, session, lambda: {**session.info(), "credentials": issued},
+                        201)
+
+
+async def _reply(request: Request, session, build, status: int = 200):
+    """A wall's answer: encoded off the event loop for a large wall (its node lists, and
+    its credentials when it is created, are megabytes at 256 x 256)."""
+    if session.wall.tiles <= LARGE_WALL:
+        return reply(request, build(), status)
+    response = await reply_large(request, build)
+    response.status_code = status
+    return response
 
 
 @router.get("/walls", operation_id="listWalls", response_model=WallList)
 async def list_walls(request: Request, state: State):
-    return reply(request, {"walls": [w.info() for w in state.walls.sessions.values()]})
+    walls = list(state.walls.sessions.values())
+    if sum(w.wall.tiles for w in walls) <= LARGE_WALL:
+        return reply(request, {"walls": [w.info() for w in walls]})
+    return await reply_large(request, lambda: {"walls": [w.info() for w in walls]})
 
 
 @router.get("/walls/{wid}", operation_id="getWall", response_model=WallInfo,
             responses=refusals(404))
 async def wall_info(request: Request, state: State, wid: WallId):
-    return reply(request, state.walls.get(wid).info())
+    session = state.walls.get(wid)
+    return await _reply(request, session, session.info)
 
 
 @router.delete("/walls/{wid}", status_code=204, operation_id="deleteWall",
                responses=refusals(401, 403, 404))
 @needs(OPERATOR)
 async def delete_wall(state: State, wid: WallId):
-    state.walls.delete(wid)
+    if wid in state.walls.sessions and state.walls.state is not None:
+        # on disk first (a 256 x 256 wall's 65,536 credentials: a worker thread), so that a
+        # failed write leaves the wall whole
+        await background(state.walls.state.remove_wall, wid)
+        if wid in state.walls.sessions:
+            state.walls.forget(wid)
+    else:
+        state.walls.delete(wid)
     state.store.evict()  # its scene may be one no wall uses now
     return Response(status_code=204)
 
@@ -99,6 +130,7 @@ async def take_frame(state, session, body: FramePost) -> dict[str, Any]:
     def moves():
         return {name: u.value() for name, u in body.updates.items()}
 
+    check_packets(session, body)
     updates = moves() if len(body.updates) <= INLINE_UPDATES else await asyncio.to_thread(moves)
     number, timings = await session.post_frame_async(body.frame.model_dump(exclude_none=True),
                                                      updates, body.number, body.refit)
@@ -110,6 +142,15 @@ async def take_frame(state, session, body: FramePost) -> dict[str, Any]:
     if body.packets:
         out["packets"] = [session.packet(t, number, body.full) for t in range(session.wall.tiles)]
     return out
+
+
+def check_packets(session, body: FramePost) -> None:
+    """Refuse, before any work, a frame that asks for every packet of a wall too large to
+    answer that way."""
+    if body.packets and session.wall.tiles > MAX_PACKETS:
+        raise InputError(f"packets=true answers every tile's packet at once, for walls of at "
+                         f"most {MAX_PACKETS} tiles; this one has {session.wall.tiles}: read "
+                         "each tile's packet, or open streams")
 
 
 @router.get("/walls/{wid}/tiles/{tile}/packets/{frame}", operation_id="getPacket",
