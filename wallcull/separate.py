@@ -65,9 +65,8 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
 def _large(box, i, eye, small) -> bool:
     """Whether bound ``i`` is not small as seen from ``eye``: a small one can reach past a
     frustum's edges only a little, and is seldom worth the test."""
-    d = math.sqrt((box[i, 0] - eye[0]) ** 2 + (box[i, 1] - eye[1]) ** 2
-                  + (box[i, 2] - eye[2]) ** 2)
-    return box[i, 13] >= small * d
+    d2 = (box[i, 0] - eye[0]) ** 2 + (box[i, 1] - eye[1]) ** 2 + (box[i, 2] - eye[2]) ** 2
+    return box[i, 13] ** 2 >= small * small * d2
 
 
 @njit(cache=True, inline="always")
