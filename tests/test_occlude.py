@@ -62,7 +62,9 @@ def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=Non
                        occlude._outward(table), np.eye(3, 4)[None], rect[None],
                        np.array([[w, h]]), near, buf, np.array([0]),
                        np.zeros(len(table.faces), np.int64),
-                       np.zeros(len(table.vertices), np.int64), 0, gain)
+                       np.zeros(len(table.vertices), np.int64), 0, gain,
+                       np.zeros(len(table.faces), np.int64),
+                       np.zeros(len(table.vertices), np.int64))
     return buf, rect
 
 
