@@ -38,12 +38,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .cull import Visibility
+from . import workers
+from .cull import Visibility, packed
 from .errors import InputError
 from .scene import SceneState
 from .wall import Frame
 
-CHOICES = ("size", "last")
 #: ``on``: every frame; ``auto``: the frames whose camera is inside the scene's box (grown by a
 #: tenth), where most of what a tile's frustum holds lies behind something (docs/occlusion.md).
 MODES = ("on", "auto")
@@ -52,10 +52,8 @@ SETTINGS = ("off", *MODES)
 
 #: Nodes are hidden only this far (relative) beyond the occluders' depth.
 DEPTH_MARGIN = 1e-3
-#: An occluder never rasterized is expected to bring this share of its box's image nearer.
-PRIOR = 0.5
-#: Frames for which what an occluder brought nearer ranks it (``choice="last"``).
-MEMORY = 8
+#: Rows of texels a thread rasterizes at least.
+BAND = 8
 #: The most texels on a side of one buffer.
 MAX_TEXELS = 1024
 
@@ -69,7 +67,6 @@ class OcclusionOptions:
     mode: str = "on"
     budget: int = 20_000
     texels: int = 32
-    choice: str = "size"
 
     @classmethod
     def parse(cls, setting: str) -> "OcclusionOptions | None":
@@ -81,9 +78,6 @@ class OcclusionOptions:
     def __post_init__(self):
         if self.mode not in MODES:
             raise InputError(f"occlusion mode must be {' or '.join(MODES)}, got {self.mode!r}")
-        if self.choice not in CHOICES:
-            raise InputError(f"occluders must be chosen by {' or '.join(CHOICES)}, "
-                             f"got {self.choice!r}")
         if not 0 <= self.budget <= 10_000_000 or not 2 <= self.texels <= 512:
             raise InputError("occlusion budget must be 0 to 10 million triangles and texels "
                              "2 to 512 per tile")
@@ -160,20 +154,13 @@ class Occluder:
     def __init__(self, state: SceneState, wall, options: OcclusionOptions = OcclusionOptions()):
         self.state, self.wall, self.options = state, wall, options
         scene = state.scene
-        self._occluding = _occluding(scene)
-        self._last: np.ndarray | None = None
+        self._outward = _outward(scene.meshes)
+        # per node: the share of its box its faces fill (see _solid); 0: it never occludes
+        self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
-        self._face_mark = np.zeros(len(scene.meshes.faces), np.int64)  # see _rasterize
-        self._vertex_mark = np.zeros(len(scene.meshes.vertices), np.int64)
-        self._face_slot = np.zeros(len(scene.meshes.faces), np.int64)
-        self._vertex_slot = np.zeros(len(scene.meshes.vertices), np.int64)
-        self._slot = np.zeros((len(scene), 3), np.int64)  # see _prune
-        self._rec = np.empty((1024, 1, _R_SIZE))
-        self._face_stamp = 0
-        self._outward = _outward(scene.meshes)
-        self._gain = np.zeros(len(scene))  # per unit: texels it brought nearer, and when
-        self._when = np.full(len(scene), -MEMORY - 1, np.int64)
+        self._scratch: list = []  # per thread: _rasterize's marks, slots and stamp
+        self._buffers: list = []  # per thread: _prune's slot and records
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
@@ -191,41 +178,49 @@ class Occluder:
         d = self.depth(vis, frame)
         views = d.views
         eyes = views.tile_view.shape[0]
-        if self._rec.shape[1] != eyes:
-            self._rec = np.empty((1024, eyes, _R_SIZE))
-        start, nodes, hidden, self._rec = _prune(
-            vis.start, vis.nodes, d.box, scene.child_start, scene.child_count, scene.children,
-            views.affine, views.rect, views.size, views.tile_view, views.tile_texels,
-            self.wall.near, d.izlo, d.izhi, d.offsets, self._slot, self._frame, self._rec)
+        ranges = workers.chunks(vis.tiles, vis.start)  # tiles in threads, of equal lists
+        while len(self._buffers) < len(ranges):
+            self._buffers.append([np.zeros((len(scene), 3), np.int64), None])
+        stamp = self._frame
+
+        def chunk(k, a, b):
+            buf = self._buffers[k]
+            if buf[1] is None or buf[1].shape[1] != eyes:
+                buf[1] = np.empty((1024, eyes, _R_SIZE))
+            lo, hi = vis.start[a], vis.start[b]
+            start, nodes, hidden, buf[1] = _prune(
+                vis.start[a:b + 1] - lo, vis.nodes[lo:hi], a, d.box, scene.child_start,
+                scene.child_count, scene.children, views.affine, views.rect, views.size,
+                views.tile_view, views.tile_texels, self.wall.near, d.izlo, d.izhi, d.offsets,
+                buf[0], stamp, buf[1])
+            return start, nodes, hidden
+
+        parts = workers.run(chunk, ranges)
+        base = np.cumsum([0] + [len(p[1]) for p in parts])
+        start = np.concatenate([[0]] + [p[0][1:] + b for p, b in zip(parts, base)])
+        nodes = np.concatenate([p[1] for p in parts])
+        hidden = sum(p[2] for p in parts)
         out = Visibility(vis.scene, start, nodes, {
             **vis.stats, "pairs": len(nodes), "occluded": int(hidden),
             "occluder_units": len(d.units),
             "occluder_triangles": int(scene.cluster_faces[1][d.units].sum()),
             "occlude_ms": (time.perf_counter() - t0) * 1e3})
-        self._last = np.unique(nodes)
         return out
 
     def depth(self, vis: Visibility, frame: Frame) -> "Depth":
         """The frame's occluders (chosen from ``vis``, or last frame's lists) rasterized."""
-        from .cull import packed
-
         box = packed(self.state)
         views = Views.of(self.wall, frame, self.options.texels)
         return self.rasterize(self.choose(vis, views, box), views, box)
 
     def choose(self, vis: Visibility, views: Views, box: np.ndarray) -> np.ndarray:
         """The units (clusters, or leaves) to rasterize as occluders this frame, within the
-        budget: by the image their box covers per triangle or, with ``choice="last"``, by the
-        texels they brought nearer per triangle when last rasterized (within ``MEMORY``
-        frames)."""
-        scene, o = self.state.scene, self.options
+        budget, the most image per triangle first (see :func:`_pick`)."""
+        scene = self.state.scene
         self._frame += 1
-        texel = (views.rect[0, 1] - views.rect[0, 0]) / views.size[0, 0]
-        memory = MEMORY if o.choice == "last" else -1
         return _pick(vis.nodes, box, scene.child_start, scene.child_count, scene.children,
-                     self._occluding, views.affine, self.wall.near, self._stamp, self._frame,
-                     scene.cluster_faces[1], PRIOR / texel ** 2, self._gain, self._when,
-                     memory, o.budget)
+                     self._solid, views.affine, self.wall.near, self._stamp, self._frame,
+                     scene.cluster_faces[1], self.options.budget)
 
     def rasterize(self, units: np.ndarray, views: Views, box: np.ndarray) -> "Depth":
         """``units`` rasterized into ``views``' buffers, and their pyramids."""
@@ -239,18 +234,24 @@ class Occluder:
         # gather first in the texels they cover in part)
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
         units, owner = units[order], owner[order]
-        gain = np.zeros(len(units))
-        self._face_stamp = _rasterize(
-            units, owner, first, count, scene.mesh_of, state.world,
-            m.vertex_start, m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
-            views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
-            self._face_mark, self._vertex_mark, self._face_stamp, gain, self._face_slot,
-            self._vertex_slot)
+        bands = min(workers.count(), max(1, int(views.size[:, 1].min()) // BAND))
+        while len(self._scratch) < bands:
+            self._scratch.append([np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
+                                  np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
+                                  0])
+
+        def band(k, *_):  # rows of every view, in threads
+            faces, vertices, face_slot, vertex_slot, stamp = self._scratch[k]
+            self._scratch[k][4] = _rasterize(
+                units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
+                m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
+                views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
+                faces, vertices, stamp, face_slot, vertex_slot, k, bands)
+
+        workers.run(band, [(k, k + 1) for k in range(bands)])
         izhi = izlo.copy()
         _pyramids(izlo, izhi, views.size, offsets)
-        self._gain[units] = gain
-        self._when[units] = self._frame
-        return Depth(views, box, units, offsets, izlo, izhi, gain)
+        return Depth(views, box, units, offsets, izlo, izhi)
 
 
 @dataclass
@@ -265,7 +266,6 @@ class Depth:
     offsets: np.ndarray
     izlo: np.ndarray
     izhi: np.ndarray
-    gain: np.ndarray  # per unit: the texels its patches brought nearer
 
 
 def _occluding(scene) -> np.ndarray:
@@ -278,6 +278,33 @@ def _occluding(scene) -> np.ndarray:
             raise InputError(f"occlusion exclude names no node {name!r}")
         flag[node:node + scene.size[node]] = 0
     return flag
+
+
+def _solid(scene, box: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """Per node: about the share of its box its faces fill, from 0 to 1 (0 for nodes without
+    faces): their area over the box's, twice for an open mesh (seen from one side only, a
+    closed one from two). A solid box fills its box, a cylinder about 0.8 of it, a grating of
+    bars a third or less: the image it covers is its box's times this."""
+    m = scene.meshes
+    f = np.asarray(m.faces, np.int64)
+    mesh = np.repeat(np.arange(len(m)), np.diff(m.face_start))
+    p = np.asarray(m.vertices)[f + m.vertex_start[mesh][:, None]]
+    area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1) / 2
+    cum = np.concatenate([[0.0], np.cumsum(area)])
+    first, count = scene.cluster_faces
+    leaf = np.where(scene.cluster_leaf >= 0, scene.cluster_leaf, np.arange(len(scene)))
+    template = scene.mesh_of[leaf]
+    out = np.zeros(len(scene))
+    has = (template >= 0) & (count > 0)
+    at = m.face_start[template[has]] + first[has]
+    faces = cum[at + count[has]] - cum[at]  # in the template's units
+    scale = np.abs(np.linalg.det(scene.world[leaf[has]][:, :3, :3])) ** (2 / 3)
+    halves = np.linalg.norm(box[has, 4:13].reshape(-1, 3, 3), axis=2) + box[has, 3:4]
+    surface = 8 * (halves[:, 0] * halves[:, 1] + halves[:, 1] * halves[:, 2]
+                   + halves[:, 2] * halves[:, 0])
+    sides = np.where(outward[template[has]] != 0, 1.0, 2.0)
+    out[has] = np.minimum(1.0, sides * faces * scale / np.maximum(surface, 1e-300))
+    return out
 
 
 def _outward(meshes) -> np.ndarray:
@@ -383,14 +410,15 @@ def _depths(units, box, affine):
 
 
 @njit(cache=True)
-def _pick(seeds, box, child_start, child_count, children, occluding, affine, near, stamp, frame,
-          count, prior, gain, when, memory, budget):
+def _pick(seeds, box, child_start, child_count, children, solid, affine, near, stamp, frame,
+          count, budget):
     """The units to rasterize: the childless nodes under ``seeds`` that may occlude (``stamp``
     marks those seen this ``frame``), the best first within ``budget`` triangles. A unit's
-    worth per triangle: ``prior`` times the image its box covers, or what it brought nearer
-    (``gain``) when last rasterized within ``memory`` frames (``when``). Only nodes spanning at
-    least a 500th of a radian are opened (what is smaller hides little). The order is by
-    worth within a factor of 1.02 (buckets of its logarithm: linear time)."""
+    worth: the image its box covers (:func:`_image`) times the share of the box its faces
+    fill (``solid``; 0 where it must not occlude), per triangle: a wall's two triangles before
+    a pipe's forty, and a floor before a grating. Only nodes spanning at least a 500th of a
+    radian are opened (what is smaller hides little). The order is by worth within a factor of
+    1.02 (buckets of its logarithm: linear time)."""
     stack = np.empty(64, np.int64)
     found = np.empty(seeds.shape[0] + 64, np.int64)
     worth = np.empty(found.shape[0])
@@ -402,7 +430,7 @@ def _pick(seeds, box, child_start, child_count, children, occluding, affine, nea
         while sp > 0:
             sp -= 1
             i = stack[sp]
-            if stamp[i] == frame or not occluding[i]:
+            if stamp[i] == frame or not solid[i] > 0:
                 continue
             stamp[i] = frame
             if _angle(box, i, affine, near) < 0.002:
@@ -412,10 +440,7 @@ def _pick(seeds, box, child_start, child_count, children, occluding, affine, nea
                     found = np.concatenate((found, np.empty(found.shape[0], np.int64)))
                     worth = np.concatenate((worth, np.empty(worth.shape[0])))
                 found[k] = i
-                if when[i] >= frame - memory:
-                    worth[k] = gain[i] / max(count[i], 1)
-                else:
-                    worth[k] = prior * _image(box, i, affine, near) / max(count[i], 1)
+                worth[k] = solid[i] * _image(box, i, affine, near) / max(count[i], 1)
                 k += 1
                 continue
             while sp + child_count[i] > stack.shape[0]:
@@ -453,15 +478,14 @@ def _pick(seeds, box, child_start, child_count, children, occluding, affine, nea
     return out[:n]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
                faces, neighbors, outward, affine, rect, size, near, buf, at, mark, vmark, stamp,
-               gain, slot_of, vslot):
+               slot_of, vslot, band, bands):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]``; a leaf's units next to each other, the nearest leaves first) into level 0 of
     each view's buffer ``buf`` (view ``v``'s texels from ``at[v]``, row-major),
-    conservatively (see :func:`_commit`); ``gain[u]``: the texels unit ``u``'s patches brought
-    nearer (each patch's shared by its faces).
+    conservatively (see :func:`_commit`).
 
     A leaf's chosen faces that face the same way form *patches*: faces joined across edges
     whose two faces lie on either side of the edge as seen from the eye. Every other edge of
@@ -473,7 +497,8 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     (clockwise) seen from outside, 0 when it is not closed: a closed mesh's back faces lie
     behind its front faces and are skipped. ``mark`` and ``slot_of`` (per face of the table),
     ``vmark`` and ``vslot`` (per vertex) and ``stamp``: scratch kept between frames; returns
-    the next stamp."""
+    the next stamp. Only the rows of band ``band`` of ``bands`` of each view are written (one
+    thread per band)."""
     views = affine.shape[0]
     texels = buf.shape[0]
     seen = np.zeros(texels, np.int64)  # per texel: the last patch that touched it
@@ -498,7 +523,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     sides = np.empty(cap, np.int64)  # how many corners
     facing = np.empty(cap, np.int64)  # +1: counter-clockwise on the image, -1, 0: skipped
     face_of = np.empty(cap, np.int64)
-    unit_of = np.empty(cap, np.int64)
     inner = np.empty(cap, np.int64)  # which of its edges lie inside its patch (bits)
     done = np.empty(cap, np.bool_)
     queue = np.empty(cap, np.int64)
@@ -525,7 +549,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
             sides = np.empty(cap, np.int64)
             facing = np.empty(cap, np.int64)
             face_of = np.empty(cap, np.int64)
-            unit_of = np.empty(cap, np.int64)
             inner = np.empty(cap, np.int64)
             done = np.empty(cap, np.bool_)
             queue = np.empty(cap, np.int64)
@@ -541,7 +564,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                 mark[f] = stamp
                 slot_of[f] = n
                 face_of[n] = f
-                unit_of[n] = r
                 for c in range(3):
                     x = v0 + faces[f, c]
                     if vmark[x] != stamp:
@@ -563,6 +585,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                     m_[r, c] = a[r, 0] * w[0, c] + a[r, 1] * w[1, c] + a[r, 2] * w[2, c] \
                         + (a[r, 3] if c == 3 else 0.0)
             wv, hv = size[v, 0], size[v, 1]
+            j0, j1 = hv * band // bands, hv * (band + 1) // bands  # its rows [j0, j1)
             sx = wv / (rect[v, 1] - rect[v, 0])
             sy = hv / (rect[v, 3] - rect[v, 2])
             for x in range(nv):  # the vertices, once each
@@ -627,7 +650,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                                 queue[size_] = t
                                 size_ += 1
                 patch += 1
-                for r in range(size_):
+                for r in range(size_):  # the outline's texels
                     s = queue[r]
                     ns = sides[s]
                     for e in range(ns):
@@ -635,18 +658,25 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                         if lab == 3 or not inner[s] >> lab & 1:
                             e1 = e + 1 if e + 1 < ns else 0
                             _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0],
-                                     poly[s, e1, 1], wv, hv, at[v], edge, outline_cells,
-                                     centre_cells, patch)
+                                     poly[s, e1, 1], wv, j0, j1, at[v], edge, outline_cells,
+                                     centre_cells, low, buf, patch, False)
                 k = 0
                 for r in range(size_):
                     s = queue[r]
-                    k = _fill(poly[s], sides[s], facing[s], wv, hv, at[v], seen, cover, edge,
+                    k = _fill(poly[s], sides[s], facing[s], wv, j0, j1, at[v], seen, cover, edge,
                               centre_cells, low, touched, k, patch, scratch, spans)
-                won = _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
-                              work_low, buf, patch)
-                if won:  # shared by the patch's faces
-                    for r in range(size_):
-                        gain[unit_of[queue[r]]] += won / size_
+                for r in range(size_):  # its cells, where the patch may bring texels nearer
+                    s = queue[r]
+                    ns = sides[s]
+                    for e in range(ns):
+                        lab = label[s, e]
+                        if lab == 3 or not inner[s] >> lab & 1:
+                            e1 = e + 1 if e + 1 < ns else 0
+                            _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0],
+                                     poly[s, e1, 1], wv, j0, j1, at[v], edge, outline_cells,
+                                     centre_cells, low, buf, patch, True)
+                _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
+                        work_low, buf, patch)
         q = q1
     return stamp
 
@@ -734,58 +764,84 @@ def _put(out, k, x, y, d, rect, sx, sy):
 
 
 @njit(cache=True, inline="always")
-def _outline(ax, ay, bx, by, w, h, at, edge, outline_cells, centre_cells, patch):
-    """Mark the texels, and their cells, that segment ``a b`` (texel coordinates) touches."""
-    ax, ay, bx, by = ax * SUB, ay * SUB, bx * SUB, by * SUB  # in cells
+def _outline(ax, ay, bx, by, w, j0, j1, at, edge, outline_cells, centre_cells, low, buf, patch,
+             cells):
+    """Mark the texels of rows ``[j0, j1)`` that segment ``a b`` (texel coordinates) touches,
+    or nearly; with
+    ``cells``, the cells it touches in those texels where the patch may bring the buffer
+    nearer (``low`` beyond ``buf``: elsewhere it claims nothing)."""
     if ay > by:
         ax, ay, bx, by = bx, by, ax, ay
-    t_ = TOUCH * SUB
     dy = by - ay
     slope = (bx - ax) / dy if dy > 0 else 0.0
-    last = SUB * w - 1
-    for r in range(max(0, int(math.floor(ay - t_))), min(SUB * h - 1, int(math.floor(by + t_))) + 1):
-        if dy > 0:  # the segment's x within the cell row, give or take
-            x0 = ax + slope * (min(max(r - t_, ay), by) - ay)
-            x1 = ax + slope * (min(max(r + 1 + t_, ay), by) - ay)
-            lo, hi = min(x0, x1), max(x0, x1)
-        else:
-            lo, hi = min(ax, bx), max(ax, bx)
-        if hi < -t_ or lo > last + 1 + t_:
+    for J in range(max(j0, int(math.floor(max(ay - TOUCH, -1.0)))),
+                   min(j1 - 1, int(math.floor(min(by + TOUCH, j1 + 1.0)))) + 1):
+        lo, hi = _along(ax, ay, bx, by, slope, J - TOUCH, J + 1 + TOUCH)
+        if hi < -TOUCH or lo > w + TOUCH:
             continue
-        c0 = max(0, int(math.floor(lo - t_)))
-        c1 = min(last, int(math.floor(hi + t_)))
-        J, k = r // SUB, r % SUB
+        i0 = max(0, int(math.floor(lo - TOUCH)))
+        i1 = min(w - 1, int(math.floor(hi + TOUCH)))
         row = at + J * w
-        for I in range(c0 // SUB, c1 // SUB + 1):
-            t = row + I
-            if edge[t] != patch:
-                edge[t] = patch
-                outline_cells[t] = 0
-                centre_cells[t] = 0
-            l_, h_ = max(c0 - I * SUB, 0), min(c1 - I * SUB, SUB - 1)
-            run = (np.uint64(1) << np.uint64(h_ - l_ + 1)) - np.uint64(1)
-            outline_cells[t] |= run << np.uint64(k * SUB + l_)
+        if not cells:
+            for t in range(row + i0, row + i1 + 1):
+                if edge[t] != patch:
+                    edge[t] = patch
+                    outline_cells[t] = 0
+                    centre_cells[t] = 0
+            continue
+        worth = False
+        for t in range(row + i0, row + i1 + 1):
+            worth = worth or low[t] > buf[t]
+        if not worth:
+            continue
+        for k in range(SUB):  # the cell rows of this texel row
+            y0 = J + k / SUB
+            if y0 > by + TOUCH or y0 + 1.0 / SUB < ay - TOUCH:
+                continue
+            lo, hi = _along(ax, ay, bx, by, slope, y0 - TOUCH, y0 + 1.0 / SUB + TOUCH)
+            c0 = max(SUB * i0, int(math.floor((lo - TOUCH) * SUB)))
+            c1 = min(SUB * i1 + SUB - 1, int(math.floor((hi + TOUCH) * SUB)))
+            for I in range(c0 // SUB, c1 // SUB + 1):
+                t = row + I
+                if low[t] > buf[t]:
+                    l_, h_ = max(c0 - I * SUB, 0), min(c1 - I * SUB, SUB - 1)
+                    run = (np.uint64(1) << np.uint64(h_ - l_ + 1)) - np.uint64(1)
+                    outline_cells[t] |= run << np.uint64(k * SUB + l_)
 
 
 @njit(cache=True, inline="always")
-def _fill(p, ns, side, w, h, at, seen, cover, edge, centre_cells, low, touched, k, patch,
+def _along(ax, ay, bx, by, slope, y0, y1):
+    """The x extent of segment ``a b`` (``ay <= by``; ``slope``: dx / dy, or 0 when level)
+    within the rows ``y0`` to ``y1``."""
+    if by > ay:
+        x0 = ax + slope * (min(max(y0, ay), by) - ay)
+        x1 = ax + slope * (min(max(y1, ay), by) - ay)
+        return min(x0, x1), max(x0, x1)
+    return min(ax, bx), max(ax, bx)
+
+
+@njit(cache=True, inline="always")
+def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touched, k, patch,
           ed, spans):
     """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
-    area) into the patch's texels: every texel it touches (or nearly) takes the least 1 / depth
+    area) into the patch's texels of rows ``[j0, j1)``: every texel it touches (or nearly) takes the least 1 / depth
     of the polygon over the texel into ``low``; the texels whose centres lie inside it are
     marked in ``cover``, and in those its outline touches, the cells whose centres do in
     ``centre_cells``. New texels of the patch are listed in ``touched`` (``k`` of them so
     far; returns the new count). ``ed (4, >= ns)`` and ``spans (2, SUB)``: scratch."""
+    y_lo, y_hi = np.inf, -np.inf
+    for c in range(ns):
+        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
+    if y_hi < j0 - 1 or y_lo > j1 + 1:
+        return k  # none of it in these rows
     area = _cross(p[0], p[1], p[2])
     # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective)
     ga = ((p[1, 2] - p[0, 2]) * (p[2, 1] - p[0, 1]) - (p[2, 2] - p[0, 2]) * (p[1, 1] - p[0, 1])) / area
     gb = ((p[1, 0] - p[0, 0]) * (p[2, 2] - p[0, 2]) - (p[2, 0] - p[0, 0]) * (p[1, 2] - p[0, 2])) / area
     gc = p[0, 2] - ga * p[0, 0] - gb * p[0, 1]
     least = np.inf
-    y_lo, y_hi = np.inf, -np.inf
     for c in range(ns):
         least = min(least, p[c, 2])
-        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
     # each side: inside where side (ex (y - ay) - ey (x - ax)) >= 0 (a centre on an edge the
     # outline holds is on a texel or cell the outline touches, by a margin: rounding claims
     # nothing there, and one on an inner edge is in both faces); as a bound on x,
@@ -806,8 +862,8 @@ def _fill(p, ns, side, w, h, at, seen, cover, edge, centre_cells, low, touched, 
             ed[0, e] = 0.0
             ed[1, e] = B
             ed[2, e] = C
-    for J in range(max(0, int(math.floor(y_lo - TOUCH))),
-                   min(h - 1, int(math.floor(y_hi + TOUCH))) + 1):
+    for J in range(max(j0, int(math.floor(y_lo - TOUCH))),
+                   min(j1 - 1, int(math.floor(y_hi + TOUCH))) + 1):
         y0, y1 = max(J - TOUCH, y_lo), min(J + 1 + TOUCH, y_hi)  # the polygon's rows in it
         lo, hi = np.inf, -np.inf
         for e in range(ns):
@@ -888,12 +944,13 @@ def _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work, wor
     a vertex all of whose edges are inside, its faces winding around it). A texel claimed
     whole hides everything behind the patch's farthest depth over it: ``buf`` keeps the
     nearest such depth (its reciprocal). Cells claimed in part gather in ``work`` with the
-    farthest depth of the patches that claimed them, until they fill the texel. Returns how
-    many texels the patch brought nearer."""
-    won = 0
+    farthest depth of the patches that claimed them, until they fill the texel (a patch no
+    nearer than the buffer over a texel adds nothing there: their depth would be no nearer)."""
     for r in range(k):
         t = touched[r]
         if edge[t] == patch:
+            if not low[t] > buf[t]:
+                continue  # its cells were not marked: nothing to gain there
             claimed = centre_cells[t] & ~outline_cells[t]
         elif cover[t] == patch:
             claimed = _FULL
@@ -902,17 +959,14 @@ def _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work, wor
         if claimed == _FULL:
             if low[t] > buf[t]:
                 buf[t] = low[t]
-                won += 1
         elif claimed:
             work[t] |= claimed
             work_low[t] = min(work_low[t], low[t])
             if work[t] == _FULL:
                 if work_low[t] > buf[t]:
                     buf[t] = work_low[t]
-                    won += 1
                 work[t] = np.uint64(0)
                 work_low[t] = np.inf
-    return won
 
 
 @njit(cache=True)
@@ -968,12 +1022,12 @@ _R_RECT, _R_NEAR, _R_FAR, _R_CENTRE, _R_HALF, _R_READY, _R_HULL, _R_ORDER, _R_CO
     _R_FACES, _R_PLANES, _R_SIZE = 0, 4, 5, 6, 9, 18, 19, 35, 43, 44, 45, 54
 
 
-@njit(cache=True)
-def _prune(start, nodes, box, child_start, child_count, children, affine, rect, size,
-           tile_view, tile_texels, near, izlo, izhi, offsets, slot, stamp, rec):
-    """Each tile's nodes without the hidden ones, partly hidden ones replaced by their children
-    (recursively): CSR ``(start, nodes)`` in preorder, how many nodes were dropped, and the
-    records. A node is projected once per frame and view (``slot (nodes, 3)``: the frame's
+@njit(cache=True, nogil=True)
+def _prune(start, nodes, first_tile, box, child_start, child_count, children, affine, rect,
+           size, tile_view, tile_texels, near, izlo, izhi, offsets, slot, stamp, rec):
+    """Each tile's nodes (CSR ``(start, nodes)``, the first tile ``first_tile``) without the
+    hidden ones, partly hidden ones replaced by their children (recursively): CSR ``(start,
+    nodes)`` in preorder, how many nodes were dropped, and the records. A node is projected once per frame and view (``slot (nodes, 3)``: the frame's
     ``stamp``, its record in ``rec`` and its first eye's view; both kept between frames,
     ``rec`` grown when full)."""
     tiles = start.shape[0] - 1
@@ -987,9 +1041,10 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
     seen = 0
     k = 0
     hidden = 0
-    for t in range(tiles):
+    for tile in range(tiles):
+        t = first_tile + tile
         sp = 0
-        for j in range(start[t + 1] - 1, start[t] - 1, -1):
+        for j in range(start[tile + 1] - 1, start[tile] - 1, -1):
             if sp == stack.shape[0]:
                 stack = np.concatenate((stack, np.empty(stack.shape[0], np.int64)))
             stack[sp] = nodes[j]
@@ -997,7 +1052,10 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
         while sp > 0:
             sp -= 1
             i = stack[sp]
-            if slot[i, 0] != stamp or slot[i, 2] != tile_view[0, t]:
+            if child_count[i] == 0 and _centre_shows(box, i, affine, rect, size, tile_view,
+                                                      tile_texels, t, near, izlo, offsets):
+                state = _CLEAR
+            elif slot[i, 0] != stamp or slot[i, 2] != tile_view[0, t]:
                 if seen == cap:
                     cap *= 2
                     rec2 = np.empty((cap, eyes, _R_SIZE))
@@ -1008,11 +1066,12 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
                 verdict[seen] = _project(box, i, affine, rect, size, near, izlo, izhi, offsets,
                                          tile_view[:, t], rec[seen], half)
                 seen += 1
-            r = slot[i, 1]
-            state = verdict[r]
+                state = verdict[slot[i, 1]]
+            else:
+                state = verdict[slot[i, 1]]
             if state == _TEST:
-                state = _judge(rec[r], rect, size, tile_view, tile_texels, t, izlo, izhi,
-                               offsets)
+                state = _judge(rec[slot[i, 1]], rect, size, tile_view, tile_texels, t, izlo,
+                               izhi, offsets)
             if state == _HIDDEN:
                 hidden += 1
                 continue
@@ -1027,8 +1086,29 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
                 out = np.concatenate((out, np.empty(out.shape[0], np.int64)))
             out[k] = i
             k += 1
-        out_start[t + 1] = k
+        out_start[tile + 1] = k
     return out_start, out[:k], hidden, rec
+
+
+@njit(cache=True, inline="always")
+def _centre_shows(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo, offsets):
+    """Whether node ``i``'s centre lies in tile ``t`` (a texel of it) from some eye, with
+    nothing nearer there in the buffer: then neither it nor any part of it can be hidden
+    there, and projecting it is not needed."""
+    for e in range(tile_view.shape[0]):
+        v = tile_view[e, t]
+        x, y, z = _to_view(affine[v], box[i, 0], box[i, 1], box[i, 2])
+        d = -z
+        if not d > near:
+            continue
+        w = size[v, 0]
+        fi = (x / d - rect[v, 0]) * w / (rect[v, 1] - rect[v, 0])
+        fj = (y / d - rect[v, 2]) * size[v, 1] / (rect[v, 3] - rect[v, 2])
+        if tile_texels[e, t, 0] <= fi < tile_texels[e, t, 1] and \
+                tile_texels[e, t, 2] <= fj < tile_texels[e, t, 3]:
+            if not d * izlo[offsets[v, 0] + int(fj) * w + int(fi)] > 1 + DEPTH_MARGIN:
+                return True
+    return False
 
 
 @njit(cache=True, inline="always")
@@ -1125,14 +1205,16 @@ def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
                                tile_texels[e, t, 2], tile_texels[e, t, 3])
         if i1 <= i0 or j1 <= j0:
             continue  # nothing of it in this tile from this eye
-        # hidden beyond 1 / iz: over every texel (the smallest iz), or over some (the largest)
-        if re[_R_NEAR] * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) \
-                > 1 + DEPTH_MARGIN:
-            continue
-        if not re[_R_FAR] * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) \
-                > 1 + DEPTH_MARGIN:
-            hidden = False  # nowhere hidden
-            continue
+        # hidden beyond 1 / iz: over every texel (the smallest iz), or over some (the largest);
+        # as over the whole view (:func:`_project`) when all of it lies in this tile
+        if (i0, i1, j0, j1) != _clip(re, 0, w, 0, h):
+            if re[_R_NEAR] * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) \
+                    > 1 + DEPTH_MARGIN:
+                continue
+            if not re[_R_FAR] * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) \
+                    > 1 + DEPTH_MARGIN:
+                hidden = False  # nowhere hidden
+                continue
         partly = True
         # texel by texel: those its outline touches, at its nearest depth there
         if hidden and not _texels_hidden(re, rect[v], w, h, i0, i1, j0, j1, izlo,
@@ -1250,17 +1332,13 @@ def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, at):
             if not bound > 0 or izlo[at + j * w + i] > (1 + DEPTH_MARGIN) * bound:
                 continue  # hidden there, or none of it there
             touched = True
-            for e in range(n):
+            for e in range(n):  # out when the texel's corner most inside is outside
                 a = int(re[_R_ORDER + e])
                 b = int(re[_R_ORDER + (e + 1) % n])
                 ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
                 ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
-                out = True
-                for cy_ in range(2):
-                    for cx_ in range(2):
-                        if ex * (j + cy_ - ay) - ey * (i + cx_ - ax) >= 0:
-                            out = False
-                if out:
+                if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
+                        - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
                     touched = False
                     break
             if touched:
