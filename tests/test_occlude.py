@@ -11,7 +11,7 @@ from hypothesis import given, settings, strategies as st
 from wallcull import occlude
 from wallcull.cull import cull
 from wallcull.fit import FitOptions
-from wallcull.occlude import Occluder, OcclusionOptions, _raster_triangle
+from wallcull.occlude import Occluder, OcclusionOptions
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, SceneState, load
 from wallcull.wall import Frame, Frusta, Wall
@@ -19,10 +19,13 @@ from wallcull.wall import Frame, Frusta, Wall
 from .drawing import Draws
 
 
-def _ray_depths(tris: np.ndarray, xy: np.ndarray) -> np.ndarray:
+NEAR = 0.05
+
+
+def _ray_depths(tris: np.ndarray, xy: np.ndarray, near: float = NEAR) -> np.ndarray:
     """Per view ray through ``xy (k, 2)`` (tangents; the view looks down -z), the nearest
-    depth at which one of ``tris (m, 3, 3)`` (view coordinates) is hit, inf if none (exact
-    Moller-Trumbore, all rays against all triangles at once, up to rounding)."""
+    depth beyond ``near`` at which one of ``tris (m, 3, 3)`` (view coordinates) is hit, inf if
+    none (exact Moller-Trumbore, all rays against all triangles at once, up to rounding)."""
     d = np.c_[xy, -np.ones(len(xy))][:, None, :]  # (k, 1, 3)
     a, b, c = tris[None, :, 0], tris[None, :, 1], tris[None, :, 2]
     e1, e2 = b - a, c - a
@@ -34,52 +37,56 @@ def _ray_depths(tris: np.ndarray, xy: np.ndarray) -> np.ndarray:
         q = np.cross(s, e1)
         v = (d * q).sum(-1) / det
         t = (e2 * q).sum(-1) / det
-    eps = 1e-9  # a ray through a shared vertex or edge hits by rounding on neither side
-    hit = (np.abs(det) > 1e-15) & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > 0)
+        eps = 1e-9  # a ray through a shared vertex or edge hits by rounding on neither side
+        hit = (np.abs(det) > 1e-15) & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps) & (t > near)
     return np.where(hit, t, np.inf).min(axis=1)  # d has unit z: t is the depth
 
 
-def raster(tris: np.ndarray, faces=None, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4)):
-    """Rasterize triangles (view coordinates) as occluders; with ``faces`` (indices into the
-    triangles' points as one mesh), each edge shared by two faces lets coverage cross it."""
-    rect = np.asarray(rect, float)
-    buf, mask, work = np.zeros(w * h), np.zeros(w * h, np.uint64), np.full(w * h, np.inf)
-    scratch, spans = np.empty((16, occlude.SUB)), np.empty((2, occlude.SUB + 6), np.int64)
-    if faces is None:
-        faces = np.arange(3 * len(tris)).reshape(-1, 3)
-        points = tris.reshape(-1, 3)
-    else:
-        points = tris
+def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=None, bands=1):
+    """Rasterize meshes ``[(points (view coordinates), faces), ...]`` as occluders, each a
+    leaf of its own (its faces sharing an edge join across it), all its faces one unit, or
+    ``units``: per mesh, runs ``(first, count)`` of its faces (its clusters chosen); in
+    ``bands`` of rows, one after the other (as threads do)."""
     from wallcull.instances import MeshTable
 
-    table = MeshTable.from_meshes({"m": (points, faces)})
-    nb = table.face_neighbors
-    for f, face in enumerate(faces):
-        far = np.full((3, 3), np.nan)
-        for e in range(3):
-            g = nb[f, e]
-            if g >= 0:
-                (x,) = [v for v in faces[g] if v not in (face[e], face[(e + 1) % 3])]
-                far[e] = points[x]
-        bw, bh = -(-w // occlude.BLOCK), -(-h // occlude.BLOCK)
-        _raster_triangle(points[face], far, np.eye(3, 4), rect, w, h, 0.05, buf, mask, work, 0,
-                         scratch, spans, np.zeros(bw * bh), np.zeros(bw * bh, np.uint8), bw)
+    rect = np.asarray(rect, float)
+    table = MeshTable.from_meshes({f"m{k}": m for k, m in enumerate(meshes)})
+    runs = units or [[(0, len(f))] for _, f in meshes]
+    owner = np.array([k for k, r in enumerate(runs) for _ in r], np.int64)
+    first = np.array([a for r in runs for a, _ in r], np.int64)
+    count = np.array([c for r in runs for _, c in r], np.int64)
+    buf = np.zeros(w * h)
+    for band in range(bands):
+        occlude._rasterize(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
+                           np.repeat(np.eye(4)[None], len(meshes), 0), table.vertex_start,
+                           table.vertices, table.face_start, table.faces, table.face_neighbors,
+                           occlude._outward(table), np.eye(3, 4)[None], rect[None],
+                           np.array([[w, h]]), near, buf, np.array([0]),
+                           np.zeros(len(table.faces), np.int64),
+                           np.zeros(len(table.vertices), np.int64), 0,
+                           np.zeros(len(table.faces), np.int64),
+                           np.zeros(len(table.vertices), np.int64), band, bands)
     return buf, rect
 
 
-def check_claims(buf, rect, tris, w=24, h=16, rng=None):
+def triangles(tris: np.ndarray):
+    """Triangles ``(m, 3, 3)`` as a mesh of unshared vertices (no edge joins two)."""
+    return tris.reshape(-1, 3), np.arange(3 * len(tris)).reshape(-1, 3)
+
+
+def check_claims(buf, rect, tris, w=24, h=16, rng=None, near=NEAR):
     """Every texel given a depth z is covered, at each sample (its corners, its centre and
-    random points), by an occluder no farther than z (exact ray casts); returns how many
-    texels were claimed."""
+    random points), by an occluder beyond the near plane no farther than z (exact ray casts);
+    returns how many texels were claimed."""
     rng = rng or np.random.default_rng(0)
     j, i = np.divmod(np.flatnonzero(buf > 0), w)
     if not len(i):
         return 0
-    samples = np.r_[[[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]], rng.random((6, 2))]
+    samples = np.r_[[[0, 0], [1, 0], [0, 1], [1, 1], [0.5, 0.5]], rng.random((11, 2))]
     dx, dy = (rect[1] - rect[0]) / w, (rect[3] - rect[2]) / h
     x = rect[0] + (i[:, None] + samples[None, :, 0]) * dx
     y = rect[2] + (j[:, None] + samples[None, :, 1]) * dy
-    depth = _ray_depths(tris, np.c_[x.ravel(), y.ravel()]).reshape(x.shape)
+    depth = _ray_depths(tris, np.c_[x.ravel(), y.ravel()], near).reshape(x.shape)
     limit = 1 / buf[j * w + i]
     bad = depth > limit[:, None] * (1 + 1e-9)
     assert not bad.any(), (i[bad.any(1)], j[bad.any(1)], depth[bad], limit[bad.any(1)])
@@ -89,44 +96,132 @@ def check_claims(buf, rect, tris, w=24, h=16, rng=None):
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 12))
 def test_the_rasterizer_claims_only_what_it_covers_and_no_nearer(seed, count):
+    """Lone triangles at random, some reaching behind the near plane (their part beyond it
+    occludes), each a leaf of its own or all of them one."""
     rng = np.random.default_rng(seed)
     tris = rng.normal(size=(count, 3, 3)) * [0.8, 0.8, 1.5]
-    tris[:, :, 2] -= rng.uniform(2, 6, size=(count, 1))  # in front, at various depths
-    buf, rect = raster(tris)
-    check_claims(buf, rect, tris, rng=rng)
+    tris[:, :, 2] -= rng.uniform(0.5, 6, size=(count, 1))  # most in front, at various depths
+    apart, rect = raster([triangles(t[None]) for t in tris])
+    check_claims(apart, rect, tris, rng=rng)
+    together, _ = raster([triangles(tris)])
+    check_claims(together, rect, tris, rng=rng)
+
+
+def grid_mesh(rng, n, fold, depth=3.0):
+    """A patch of triangles sharing edges: a grid of points jittered on the image, at depths
+    that bend it (and may fold it over itself on the image), view coordinates."""
+    u, v = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(-0.8, 0.8, n + 1))
+    xy = np.stack([u, v], -1).reshape(-1, 2) + rng.normal(size=((n + 1) ** 2, 2)) * fold / n
+    z = depth + rng.uniform(-1, 1, size=len(xy)) * fold
+    points = np.c_[xy * z[:, None], -z]
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
+    flip = rng.random(len(a)) < 0.5  # either diagonal; some faces wound the other way
+    faces = np.concatenate([np.where(flip[:, None], np.c_[a, b, d], np.c_[a, b, c]),
+                            np.where(flip[:, None], np.c_[b, c, d], np.c_[a, c, d])])
+    wind = rng.random(len(faces)) < 0.2 * fold
+    faces[wind] = faces[wind][:, ::-1]
+    return points, faces
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 7), fold=st.floats(0, 1.5))
-def test_a_mesh_covers_across_its_shared_edges_and_no_more(seed, n, fold):
-    """A patch of triangles sharing edges: a grid of points jittered on the image, at depths
-    that bend it (and may fold it over itself on the image): coverage crosses the shared
-    edges, never past what the mesh covers."""
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 7), fold=st.floats(0, 1.5),
+       clusters=st.booleans())
+def test_a_mesh_covers_across_its_shared_edges_and_no_more(seed, n, fold, clusters):
+    """A bent mesh, folded over itself on the image at random, whole or only some of its
+    clusters chosen: coverage crosses the edges its faces share, never past what it covers."""
     rng = np.random.default_rng(seed)
-    u, v = np.meshgrid(np.linspace(-1, 1, n + 1), np.linspace(-0.8, 0.8, n + 1))
-    xy = np.stack([u, v], -1).reshape(-1, 2) + rng.normal(size=((n + 1) ** 2, 2)) * fold / n
-    depth = 3 + rng.uniform(-1, 1, size=len(xy)) * fold
-    points = np.c_[xy * depth[:, None], -depth]  # view coordinates
-    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()
-    faces = np.concatenate([np.c_[a, b, c], np.c_[a, c, d]])
-    buf, rect = raster(points, faces)
-    claimed = check_claims(buf, rect, points[faces], rng=rng)
-    if fold == 0:
+    points, faces = grid_mesh(rng, n, fold)
+    units = None
+    if clusters:  # runs of faces, some left out
+        cuts = np.unique(np.r_[0, rng.integers(0, len(faces), 3), len(faces)])
+        runs = [(int(a), int(b - a)) for a, b in zip(cuts[:-1], cuts[1:]) if rng.random() < 0.7]
+        units = [runs] if runs else None
+    buf, rect = raster([(points, faces)], units=units)
+    chosen = faces if units is None else np.concatenate([faces[a:a + c] for a, c in runs])
+    claimed = check_claims(buf, rect, points[chosen], rng=rng)
+    if fold == 0 and units is None:
         assert claimed > 0.5 * buf.size  # a flat patch covers most texels, across its edges
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 6))
+def test_closed_meshes_through_the_near_plane_claim_only_what_they_cover(seed, count):
+    """Boxes, spheres and cylinders at random, some through the near plane or around the eye,
+    some mirrored (wound the other way): each claims only what its faces beyond the near plane
+    cover, at their depth or beyond (their back faces skipped)."""
+    rng = np.random.default_rng(seed)
+    meshes = []
+    for _ in range(count):
+        shape = [trimesh.creation.box(extents=rng.uniform(0.1, 3, 3)),
+                 trimesh.creation.icosphere(1, radius=rng.uniform(0.2, 1.5)),
+                 trimesh.creation.cylinder(rng.uniform(0.05, 0.8), rng.uniform(0.5, 6))][
+            rng.integers(3)]
+        m = trimesh.transformations.random_rotation_matrix(rng.random(3))
+        m[:3, 3] = rng.normal(size=3) * [1.0, 0.7, 1.0] - [0, 0, rng.uniform(0, 5)]
+        if rng.random() < 0.3:
+            m[:3, 0] *= -1  # mirrored: wound clockwise seen from outside
+        shape.apply_transform(m)
+        meshes.append((np.asarray(shape.vertices), np.asarray(shape.faces)))
+    buf, rect = raster(meshes)
+    tris = np.concatenate([p[f] for p, f in meshes])
+    check_claims(buf, rect, tris, rng=rng)
+    banded, _ = raster(meshes, bands=3)  # in bands of rows (threads): the same buffer
+    np.testing.assert_array_equal(banded, buf)
+
+
 def test_the_rasterizer_is_not_vacuous():
-    """A big near quad covers most texels, each at its farthest depth over the texel; as two
-    triangles sharing an edge, the texels along the diagonal too."""
+    """A big near quad covers every texel, each at its farthest depth over the texel; as two
+    triangles sharing an edge, the texels along the diagonal too; a box's front claims its
+    outline's inside, and so does an I-beam's (three boxes in one mesh: each claims its own);
+    a quad through the near plane claims its part beyond it."""
     quad = np.array([[-2, -2, -2.0], [2, -2, -2.0], [2, 2, -3.0], [-2, 2, -3.0]])
-    buf, rect = raster(quad, np.array([[0, 1, 2], [0, 2, 3]]), 16, 16, (-0.5, 0.5, -0.5, 0.5))
+    buf, rect = raster([(quad, np.array([[0, 1, 2], [0, 2, 3]]))], 16, 16,
+                       (-0.5, 0.5, -0.5, 0.5))
     assert (buf > 0).all()
     depth = 1 / buf.reshape(16, 16)
     assert (np.diff(depth, axis=0) > 0).all()  # farther up the quad
-    apart, _ = raster(quad[[0, 1, 2, 0, 2, 3]].reshape(2, 3, 3), None, 16, 16,
+    apart, _ = raster([triangles(quad[[0, 1, 2, 0, 2, 3]].reshape(2, 3, 3))], 16, 16,
                       (-0.5, 0.5, -0.5, 0.5))
     assert (apart > 0).sum() < 0.9 * 256  # the same triangles unjoined miss the diagonal
+    through = quad * [0.1, 0.1, 1] + [0, 0, 1.99]  # 0.01 to 1.01 deep: the near plane cuts it
+    buf, _ = raster([(through, np.array([[0, 1, 2], [0, 2, 3]]))], 16, 16,
+                    (-0.5, 0.5, -0.5, 0.5))
+    assert 0.2 * 256 < (buf > 0).sum() < 0.9 * 256
+    check_claims(buf, np.array([-0.5, 0.5, -0.5, 0.5]), through[[0, 1, 2, 0, 2, 3]].reshape(2, 3, 3), 16, 16)
+    from wallcull.bundled.meshes import ibeam
+
+    points, faces = ibeam()
+    points = np.asarray(points, float) * [0.6, 0.6, 3.0]
+    turn = trimesh.transformations.rotation_matrix(1.2, [1, 0, 0])[:3, :3]
+    points = points @ turn.T + [0, 0, -2.0]
+    beam, rect = raster([(points, np.asarray(faces))])
+    assert (beam > 0).sum() >= 30
+    check_claims(beam, rect, points[np.asarray(faces)])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(2, 6))
+def test_cells_gather_over_patches(seed, count):
+    """Squares side by side, overlapping on the image by a little more than two cells (a
+    quarter texel each), at random depths, rasterized in any order: where no single one
+    covers a texel, their cells together do, at the farthest of their depths."""
+    rng = np.random.default_rng(seed)
+    xs = np.sort(rng.uniform(-0.5, 0.5, count - 1))
+    edges = np.r_[-0.7, xs, 0.7]
+    overlap = 2.2 * 0.05 / occlude.SUB  # texels of 0.05 across
+    meshes = []
+    for x0, x1 in zip(edges[:-1], edges[1:]):
+        z = rng.uniform(1, 4)
+        x0, x1 = x0 - overlap / 2, x1 + overlap / 2
+        sq = np.array([[x0, -0.5, -1], [x1, -0.5, -1], [x1, 0.5, -1], [x0, 0.5, -1]]) * z
+        meshes.append((sq, np.array([[0, 1, 2], [0, 2, 3]])))
+    order = rng.permutation(count)
+    buf, rect = raster([meshes[k] for k in order])
+    tris = np.concatenate([p[f] for p, f in meshes])
+    check_claims(buf, rect, tris, rng=rng)
+    # every texel inside the region is claimed: 24 x 16 texels over x, y in +-0.6, +-0.4
+    assert (buf.reshape(16, 24)[3:13, 1:23] > 0).all()
 
 
 def boxes_behind_a_wall() -> Scene:

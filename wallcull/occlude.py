@@ -38,12 +38,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .cull import Visibility
+from . import workers
+from .cull import Visibility, packed
 from .errors import InputError
 from .scene import SceneState
 from .wall import Frame
 
-CHOICES = ("size", "last")
 #: ``on``: every frame; ``auto``: the frames whose camera is inside the scene's box (grown by a
 #: tenth), where most of what a tile's frustum holds lies behind something (docs/occlusion.md).
 MODES = ("on", "auto")
@@ -52,8 +52,8 @@ SETTINGS = ("off", *MODES)
 
 #: Nodes are hidden only this far (relative) beyond the occluders' depth.
 DEPTH_MARGIN = 1e-3
-#: Texel corners count inside an occluder's edge only by this share of the texel.
-EDGE_MARGIN = 1e-6
+#: Rows of texels a thread rasterizes at least.
+BAND = 8
 #: The most texels on a side of one buffer.
 MAX_TEXELS = 1024
 
@@ -67,7 +67,6 @@ class OcclusionOptions:
     mode: str = "on"
     budget: int = 20_000
     texels: int = 32
-    choice: str = "size"
 
     @classmethod
     def parse(cls, setting: str) -> "OcclusionOptions | None":
@@ -79,9 +78,6 @@ class OcclusionOptions:
     def __post_init__(self):
         if self.mode not in MODES:
             raise InputError(f"occlusion mode must be {' or '.join(MODES)}, got {self.mode!r}")
-        if self.choice not in CHOICES:
-            raise InputError(f"occluders must be chosen by {' or '.join(CHOICES)}, "
-                             f"got {self.choice!r}")
         if not 0 <= self.budget <= 10_000_000 or not 2 <= self.texels <= 512:
             raise InputError("occlusion budget must be 0 to 10 million triangles and texels "
                              "2 to 512 per tile")
@@ -105,11 +101,9 @@ class Views:
     def of(cls, wall, frame: Frame, texels: int) -> "Views":
         to_display = np.concatenate([frame.rotation.T, -(frame.rotation.T @ frame.position)[:, None]],
                                     axis=1)  # world -> display: R^T (p - t)
-        eyes = frame.eyes
         affine, rect, size, tile_view, tile_texels = [], [], [], [], []
-        for eye in eyes:
-            views, boxes = [], []
-            if wall.kind == "grid":
+        for eye in frame.eyes:
+            if wall.kind == "grid":  # one view: the wall's plane, seen from the eye
                 depth = eye[2] + wall.distance
                 a = to_display.copy()
                 a[:, 3] -= eye
@@ -118,11 +112,13 @@ class Views:
                 r = (np.array([x0, x1, y0, y1]) - eye[[0, 0, 1, 1]]) / depth
                 w = min(MAX_TEXELS, texels * wall.cols)
                 h = min(MAX_TEXELS, max(1, round(w * (r[3] - r[2]) / (r[1] - r[0]))))
-                views.append((a, r, (w, h)))
-                for t in range(wall.tiles):
-                    tx0, tx1, ty0, ty1 = (np.array(wall.tile_rect(t)) - eye[[0, 0, 1, 1]]) / depth
-                    boxes.append((0, (tx0, tx1, ty0, ty1)))
-            else:
+                views = [(a, r, (w, h))]
+                row, col = np.divmod(np.arange(wall.tiles), wall.cols)
+                boxes = (np.c_[wall.col_edges[col], wall.row_edges[row]]
+                         - eye[[0, 0, 1, 1]]) / depth
+                view = np.zeros(wall.tiles, np.int64)
+            else:  # a view per screen
+                views, boxes = [], []
                 for t in range(wall.tiles):
                     basis = wall.basis[t]
                     a = basis @ to_display
@@ -130,24 +126,23 @@ class Views:
                     quad = (wall.quads[t] - eye) @ basis.T  # the screen in view coordinates
                     xy = quad[:, :2] / -quad[:, 2:3]
                     r = np.array([xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()])
-                    w = texels
-                    h = min(MAX_TEXELS, max(1, round(w * wall.size[t, 1] / wall.size[t, 0])))
-                    views.append((a, r, (w, h)))
-                    boxes.append((t, tuple(r)))
+                    h = min(MAX_TEXELS, max(1, round(texels * wall.size[t, 1] / wall.size[t, 0])))
+                    views.append((a, r, (texels, h)))
+                    boxes.append(r)
+                boxes = np.array(boxes)
+                view = np.arange(wall.tiles)
             base = len(affine)
             for a, r, s in views:
                 affine.append(a)
                 rect.append(r)
                 size.append(s)
-            tv, tt = [], []
-            for v, (tx0, tx1, ty0, ty1) in boxes:
-                r, (w, h) = rect[base + v], size[base + v]
-                sx, sy = w / (r[1] - r[0]), h / (r[3] - r[2])
-                tv.append(base + v)
-                tt.append((max(0, math.floor((tx0 - r[0]) * sx)), min(w, math.ceil((tx1 - r[0]) * sx)),
-                           max(0, math.floor((ty0 - r[2]) * sy)), min(h, math.ceil((ty1 - r[2]) * sy))))
-            tile_view.append(tv)
-            tile_texels.append(tt)
+            r, s = np.array(rect[base:])[view], np.array(size[base:])[view]
+            scale = s / (r[:, [1, 3]] - r[:, [0, 2]])  # texels per unit, across and up
+            lo = np.floor((boxes[:, [0, 2]] - r[:, [0, 2]]) * scale).astype(np.int64)
+            hi = np.ceil((boxes[:, [1, 3]] - r[:, [0, 2]]) * scale).astype(np.int64)
+            tile_view.append(base + view)
+            tile_texels.append(np.c_[np.maximum(lo[:, 0], 0), np.minimum(hi[:, 0], s[:, 0]),
+                                     np.maximum(lo[:, 1], 0), np.minimum(hi[:, 1], s[:, 1])])
         return cls(np.array(affine), np.array(rect), np.array(size, np.int64),
                    np.array(tile_view, np.int64), np.array(tile_texels, np.int64))
 
@@ -159,10 +154,13 @@ class Occluder:
     def __init__(self, state: SceneState, wall, options: OcclusionOptions = OcclusionOptions()):
         self.state, self.wall, self.options = state, wall, options
         scene = state.scene
-        self._occluding = _occluding(scene)
-        self._last: np.ndarray | None = None
+        self._outward = _outward(scene.meshes)
+        # per node: the share of its box its faces fill (see _solid); 0: it never occludes
+        self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
+        self._scratch: list = []  # per thread: _rasterize's marks, slots and stamp
+        self._buffers: list = []  # per thread: _prune's slot and records
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
@@ -176,46 +174,98 @@ class Occluder:
     def occlude(self, vis: Visibility, frame: Frame) -> Visibility:
         """``vis`` (the frame's frustum-culled lists) without what the occluders hide."""
         t0 = time.perf_counter()
-        state, scene, o = self.state, self.state.scene, self.options
-        from .cull import packed
+        scene = self.state.scene
+        d = self.depth(vis, frame)
+        views = d.views
+        eyes = views.tile_view.shape[0]
+        ranges = workers.chunks(vis.tiles, vis.start)  # tiles in threads, of equal lists
+        while len(self._buffers) < len(ranges):
+            self._buffers.append([np.zeros((len(scene), 3), np.int64), None])
+        stamp = self._frame
 
-        box = packed(state)
-        views = Views.of(self.wall, frame, o.texels)
-        near = self.wall.near
+        def chunk(k, a, b):
+            buf = self._buffers[k]
+            if buf[1] is None or buf[1].shape[1] != eyes:
+                buf[1] = np.empty((1024, eyes, _R_SIZE))
+            lo, hi = vis.start[a], vis.start[b]
+            start, nodes, hidden, buf[1] = _prune(
+                vis.start[a:b + 1] - lo, vis.nodes[lo:hi], a, d.box, scene.child_start,
+                scene.child_count, scene.children, views.affine, views.rect, views.size,
+                views.tile_view, views.tile_texels, self.wall.near, d.izlo, d.izhi, d.offsets,
+                buf[0], stamp, buf[1])
+            return start, nodes, hidden
+
+        parts = workers.run(chunk, ranges)
+        base = np.cumsum([0] + [len(p[1]) for p in parts])
+        start = np.concatenate([[0]] + [p[0][1:] + b for p, b in zip(parts, base)])
+        nodes = np.concatenate([p[1] for p in parts])
+        hidden = sum(p[2] for p in parts)
+        out = Visibility(vis.scene, start, nodes, {
+            **vis.stats, "pairs": len(nodes), "occluded": int(hidden),
+            "occluder_units": len(d.units),
+            "occluder_triangles": int(scene.cluster_faces[1][d.units].sum()),
+            "occlude_ms": (time.perf_counter() - t0) * 1e3})
+        return out
+
+    def depth(self, vis: Visibility, frame: Frame) -> "Depth":
+        """The frame's occluders (chosen from ``vis``, or last frame's lists) rasterized."""
+        box = packed(self.state)
+        views = Views.of(self.wall, frame, self.options.texels)
+        return self.rasterize(self.choose(vis, views, box), views, box)
+
+    def choose(self, vis: Visibility, views: Views, box: np.ndarray) -> np.ndarray:
+        """The units (clusters, or leaves) to rasterize as occluders this frame, within the
+        budget, the most image per triangle first (see :func:`_pick`)."""
+        scene = self.state.scene
         self._frame += 1
-        if o.choice == "last" and self._last is not None:
-            seeds = self._last
-        else:
-            seeds = np.unique(vis.nodes)
-        units, angle = _pick(seeds, box, scene.child_start, scene.child_count, scene.children,
-                             self._occluding, views.affine, near, self._stamp, self._frame)
+        return _pick(vis.nodes, box, scene.child_start, scene.child_count, scene.children,
+                     self._solid, views.affine, self.wall.near, self._stamp, self._frame,
+                     scene.cluster_faces[1], self.options.budget)
+
+    def rasterize(self, units: np.ndarray, views: Views, box: np.ndarray) -> "Depth":
+        """``units`` rasterized into ``views``' buffers, and their pyramids."""
+        state, scene = self.state, self.state.scene
         first, count = scene.cluster_faces
-        # the most image for the triangles first: a wall's two triangles before a pipe's forty
-        units = units[np.argsort(-angle ** 2 / np.maximum(count[units], 1), kind="stable")]
         owner = np.where(scene.cluster_leaf[units] >= 0, scene.cluster_leaf[units], units)
-        take = np.cumsum(count[units]) <= o.budget
-        units, owner = units[take], owner[take]
         m = scene.meshes
         offsets, total = _levels(views.size)
         izlo = np.zeros(total)  # per texel 1 / the depth beyond which all is hidden; 0: none
-        order = np.argsort(_depths(units, box, views.affine))  # nearest first: masks fill
-        _rasterize(units[order], owner[order], first, count, scene.mesh_of, state.world,
-                   m.vertex_start, m.vertices, m.face_start, m.faces, m.face_neighbors,
-                   views.affine, views.rect,
-                   views.size, near, izlo, offsets, np.zeros(total, np.uint64),
-                   np.full(total, np.inf))
+        # a leaf's units together (its patches), the nearest leaves first (their cells
+        # gather first in the texels they cover in part)
+        order = np.lexsort((owner, _depths(owner, box, views.affine)))
+        units, owner = units[order], owner[order]
+        bands = min(workers.count(), max(1, int(views.size[:, 1].min()) // BAND))
+        while len(self._scratch) < bands:
+            self._scratch.append([np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
+                                  np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
+                                  0])
+
+        def band(k, *_):  # rows of every view, in threads
+            faces, vertices, face_slot, vertex_slot, stamp = self._scratch[k]
+            self._scratch[k][4] = _rasterize(
+                units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
+                m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
+                views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
+                faces, vertices, stamp, face_slot, vertex_slot, k, bands)
+
+        workers.run(band, [(k, k + 1) for k in range(bands)])
         izhi = izlo.copy()
         _pyramids(izlo, izhi, views.size, offsets)
-        start, nodes, hidden = _prune(vis.start, vis.nodes, box, scene.child_start,
-                                      scene.child_count, scene.children, views.affine,
-                                      views.rect, views.size, views.tile_view, views.tile_texels,
-                                      near, izlo, izhi, offsets)
-        out = Visibility(vis.scene, start, nodes, {
-            **vis.stats, "pairs": len(nodes), "occluded": int(hidden),
-            "occluder_units": len(units), "occluder_triangles": int(count[units].sum()),
-            "occlude_ms": (time.perf_counter() - t0) * 1e3})
-        self._last = np.unique(nodes)
-        return out
+        return Depth(views, box, units, offsets, izlo, izhi)
+
+
+@dataclass
+class Depth:
+    """A frame's occluders rasterized: per view, level 0 of ``izlo`` (from ``offsets[v, 0]``,
+    row-major) holds per texel the reciprocal of the depth beyond which everything is hidden
+    (0: nothing is); its levels above, the least of the level below (``izhi``: the largest)."""
+
+    views: Views
+    box: np.ndarray
+    units: np.ndarray
+    offsets: np.ndarray
+    izlo: np.ndarray
+    izhi: np.ndarray
 
 
 def _occluding(scene) -> np.ndarray:
@@ -228,6 +278,49 @@ def _occluding(scene) -> np.ndarray:
             raise InputError(f"occlusion exclude names no node {name!r}")
         flag[node:node + scene.size[node]] = 0
     return flag
+
+
+def _solid(scene, box: np.ndarray, outward: np.ndarray) -> np.ndarray:
+    """Per node: about the share of its box its faces fill, from 0 to 1 (0 for nodes without
+    faces): their area over the box's, twice for an open mesh (seen from one side only, a
+    closed one from two). A solid box fills its box, a cylinder about 0.8 of it, a grating of
+    bars a third or less: the image it covers is its box's times this."""
+    m = scene.meshes
+    f = np.asarray(m.faces, np.int64)
+    mesh = np.repeat(np.arange(len(m)), np.diff(m.face_start))
+    p = np.asarray(m.vertices)[f + m.vertex_start[mesh][:, None]]
+    area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1) / 2
+    cum = np.concatenate([[0.0], np.cumsum(area)])
+    first, count = scene.cluster_faces
+    leaf = np.where(scene.cluster_leaf >= 0, scene.cluster_leaf, np.arange(len(scene)))
+    template = scene.mesh_of[leaf]
+    out = np.zeros(len(scene))
+    has = (template >= 0) & (count > 0)
+    at = m.face_start[template[has]] + first[has]
+    faces = cum[at + count[has]] - cum[at]  # in the template's units
+    scale = np.abs(np.linalg.det(scene.world[leaf[has]][:, :3, :3])) ** (2 / 3)
+    halves = np.linalg.norm(box[has, 4:13].reshape(-1, 3, 3), axis=2) + box[has, 3:4]
+    surface = 8 * (halves[:, 0] * halves[:, 1] + halves[:, 1] * halves[:, 2]
+                   + halves[:, 2] * halves[:, 0])
+    sides = np.where(outward[template[has]] != 0, 1.0, 2.0)
+    out[has] = np.minimum(1.0, sides * faces * scale / np.maximum(surface, 1e-300))
+    return out
+
+
+def _outward(meshes) -> np.ndarray:
+    """Per mesh of the table: +1 (-1) when it is closed (every edge between two faces) and its
+    faces wind counter-clockwise (clockwise) seen from outside (a positive (negative) volume);
+    0 when it is not closed."""
+    f = np.asarray(meshes.faces, np.int64)
+    mesh = np.repeat(np.arange(len(meshes)), np.diff(meshes.face_start))
+    p = np.asarray(meshes.vertices)[f + meshes.vertex_start[mesh][:, None]]
+    volume = np.bincount(mesh, np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])),
+                         len(meshes))
+    size = np.zeros(len(meshes))
+    np.maximum.at(size, mesh, np.abs(p).max(axis=(1, 2)))
+    open_ = np.bincount(mesh, (meshes.face_neighbors < 0).any(axis=1), len(meshes)) > 0
+    return np.where(open_ | (np.abs(volume) <= 1e-9 * size ** 3), 0,
+                    np.sign(volume)).astype(np.int64)
 
 
 def _levels(size: np.ndarray) -> tuple[np.ndarray, int]:
@@ -250,40 +343,85 @@ def _to_view(a, x, y, z):
             a[2, 0] * x + a[2, 1] * y + a[2, 2] * z + a[2, 3])
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _angle(box, i, affine, near):
-    """The largest angle node ``i``'s sphere spans in any view (radians, about); 0 when it
-    reaches behind the near plane of every view."""
+    """The largest angle node ``i``'s sphere spans in any view (radians, about); one radian
+    when it reaches through the near plane (its part beyond is cut out and occludes), 0 when it
+    lies wholly before it in every view."""
     best = 0.0
     for v in range(affine.shape[0]):
         _, _, z = _to_view(affine[v], box[i, 0], box[i, 1], box[i, 2])
         d = -z - box[i, 13]
         if d > near:
             best = max(best, box[i, 13] / d)
+        elif d + 2 * box[i, 13] > near:
+            best = max(best, 1.0)
     return best
+
+
+@njit(cache=True, inline="always")
+def _image(box, i, affine, near):
+    """About the solid angle node ``i``'s box covers in any view: each face's area times its
+    slant to the eye, over the squared distance; one when it reaches through the near plane."""
+    best = 0.0
+    for v in range(affine.shape[0]):
+        a = affine[v]
+        cx, cy, cz = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
+        dist = math.sqrt(cx * cx + cy * cy + cz * cz)
+        d = -cz - box[i, 13]
+        if not d > near:
+            if d + 2 * box[i, 13] > near:
+                best = max(best, 1.0)
+            continue
+        area = 0.0
+        for k in range(3):  # the faces across h_k: area 4 |h_k+1| |h_k+2|, slanted
+            p, q = 4 + 3 * ((k + 1) % 3), 4 + 3 * ((k + 2) % 3)
+            nx = box[i, p + 1] * box[i, q + 2] - box[i, p + 2] * box[i, q + 1]
+            ny = box[i, p + 2] * box[i, q] - box[i, p] * box[i, q + 2]
+            nz = box[i, p] * box[i, q + 1] - box[i, p + 1] * box[i, q]
+            m = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if m > 0:  # the normal in view coordinates, toward the centre
+                vx = a[0, 0] * nx + a[0, 1] * ny + a[0, 2] * nz
+                vy = a[1, 0] * nx + a[1, 1] * ny + a[1, 2] * nz
+                vz = a[2, 0] * nx + a[2, 1] * ny + a[2, 2] * nz
+                area += 4 * (m + box[i, 3] * (_length(box, i, (k + 1) % 3) + _length(box, i, (k + 2) % 3))) \
+                    * abs(vx * cx + vy * cy + vz * cz) / (m * dist)
+        best = max(best, area / (d * d))
+    return best
+
+
+@njit(cache=True, inline="always")
+def _length(box, i, k):
+    return math.sqrt(box[i, 4 + 3 * k] ** 2 + box[i, 5 + 3 * k] ** 2 + box[i, 6 + 3 * k] ** 2)
 
 
 @njit(cache=True)
 def _depths(units, box, affine):
-    """Each unit's centre's smallest depth over the views."""
+    """Each node's nearest depth (its centre's, less its sphere's radius) over the views."""
     out = np.empty(units.shape[0])
     for q in range(units.shape[0]):
         i = units[q]
         d = np.inf
         for v in range(affine.shape[0]):
             _, _, z = _to_view(affine[v], box[i, 0], box[i, 1], box[i, 2])
-            d = min(d, -z)
+            d = min(d, -z - box[i, 13])
         out[q] = d
     return out
 
 
 @njit(cache=True)
-def _pick(seeds, box, child_start, child_count, children, occluding, affine, near, stamp, frame):
-    """The childless nodes under ``seeds`` that may occlude, and the angle each spans. Only
-    nodes spanning at least a 500th of a radian are opened (what is smaller hides little)."""
-    stack = np.empty(seeds.shape[0] + 64, np.int64)
-    found = np.empty(seeds.shape[0] * 4 + 64, np.int64)
-    angle = np.empty(found.shape[0])
+def _pick(seeds, box, child_start, child_count, children, solid, affine, near, stamp, frame,
+          count, budget):
+    """The units to rasterize: the childless nodes under ``seeds`` that may occlude (``stamp``
+    marks those seen this ``frame``), the best first within ``budget`` triangles. A unit's
+    worth: the image its box covers (:func:`_image`) times the share of the box its faces
+    fill (``solid``; 0 where it must not occlude), per triangle: a wall's two triangles before
+    a pipe's forty, and a floor before a grating. Only nodes spanning at least a 500th of a
+    radian are opened (what is smaller hides little). The order is by worth within a factor of
+    1.02 (buckets of its logarithm: linear time)."""
+    stack = np.empty(64, np.int64)
+    found = np.empty(seeds.shape[0] + 64, np.int64)
+    worth = np.empty(found.shape[0])
     k = 0
     for s in range(seeds.shape[0]):
         sp = 0
@@ -292,18 +430,17 @@ def _pick(seeds, box, child_start, child_count, children, occluding, affine, nea
         while sp > 0:
             sp -= 1
             i = stack[sp]
-            if stamp[i] == frame or not occluding[i]:
+            if stamp[i] == frame or not solid[i] > 0:
                 continue
             stamp[i] = frame
-            a = _angle(box, i, affine, near)
-            if a < 0.002:
+            if _angle(box, i, affine, near) < 0.002:
                 continue
             if child_count[i] == 0:
                 if k == found.shape[0]:
                     found = np.concatenate((found, np.empty(found.shape[0], np.int64)))
-                    angle = np.concatenate((angle, np.empty(angle.shape[0])))
+                    worth = np.concatenate((worth, np.empty(worth.shape[0])))
                 found[k] = i
-                angle[k] = a
+                worth[k] = solid[i] * _image(box, i, affine, near) / max(count[i], 1)
                 k += 1
                 continue
             while sp + child_count[i] > stack.shape[0]:
@@ -311,284 +448,525 @@ def _pick(seeds, box, child_start, child_count, children, occluding, affine, nea
             for c in range(child_start[i], child_start[i] + child_count[i]):
                 stack[sp] = children[c]
                 sp += 1
-    return found[:k], angle[:k]
+    # buckets of log worth, the best first
+    buckets = 1024
+    top = -np.inf
+    for q in range(k):
+        if worth[q] > 0:
+            top = max(top, math.log(worth[q]))
+    bucket = np.empty(k, np.int64)
+    load = np.zeros(buckets + 1, np.int64)
+    for q in range(k):
+        b = buckets
+        if worth[q] > 0:
+            b = min(buckets - 1, int((top - math.log(worth[q])) * 50.0))
+        bucket[q] = b
+        load[b] += count[found[q]]
+    cut, total = 0, 0
+    while cut < buckets and total + load[cut] <= budget:
+        total += load[cut]
+        cut += 1
+    out = np.empty(k, np.int64)
+    n = 0
+    for q in range(k):  # the buckets before the cut, and the cut's first units that fit
+        b = bucket[q]
+        if b < cut or (b == cut and cut < buckets and total + count[found[q]] <= budget):
+            if b == cut:
+                total += count[found[q]]
+            out[n] = found[q]
+            n += 1
+    return out[:n]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
-               faces, neighbors, affine, rect, size, near, iz, offsets, mask, iz_work):
-    """Write every triangle of ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
-    count[u]``, nearest units first) into level 0 of each view (see :func:`_raster_triangle`),
-    with the far vertex of each edge's neighbour face (``neighbors``: per face of the table,
-    the face across each edge, -1 for none). Blocks of ``BLOCK`` x ``BLOCK`` texels keep a
-    lower bound of what their texels hold, brought up to date after each unit: a triangle
-    nearer nowhere than what its blocks already hold is skipped (nearest units first, most of
-    what lies behind them is)."""
-    tri = np.empty((3, 3))
-    far = np.empty((3, 3))
-    scratch = np.empty((16, SUB))
-    spans = np.empty((2, SUB + 6), np.int64)
+               faces, neighbors, outward, affine, rect, size, near, buf, at, mark, vmark, stamp,
+               slot_of, vslot, band, bands):
+    """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
+    count[u]``; a leaf's units next to each other, the nearest leaves first) into level 0 of
+    each view's buffer ``buf`` (view ``v``'s texels from ``at[v]``, row-major),
+    conservatively (see :func:`_commit`).
+
+    A leaf's chosen faces that face the same way form *patches*: faces joined across edges
+    whose two faces lie on either side of the edge as seen from the eye. Every other edge of
+    a patch (of one face only, between two faces folding over each other on the image, to a
+    face not chosen or facing the other way) is part of its *outline*, and so are the cuts of
+    the near plane through its faces (what lies nearer is never drawn: it does not occlude).
+    ``neighbors``: per face of the mesh table, the face across each edge, -1 for none;
+    ``outward``: per mesh, +1 (-1) when it is closed and its faces wind counter-clockwise
+    (clockwise) seen from outside, 0 when it is not closed: a closed mesh's back faces lie
+    behind its front faces and are skipped. ``mark`` and ``slot_of`` (per face of the table),
+    ``vmark`` and ``vslot`` (per vertex) and ``stamp``: scratch kept between frames; returns
+    the next stamp. Only the rows of band ``band`` of ``bands`` of each view are written (one
+    thread per band)."""
     views = affine.shape[0]
-    bw = np.empty(views, np.int64)
-    bh = np.empty(views, np.int64)
-    b_at = np.zeros(views + 1, np.int64)
-    for v in range(views):
-        bw[v], bh[v] = -(-size[v, 0] // BLOCK), -(-size[v, 1] // BLOCK)
-        b_at[v + 1] = b_at[v] + bw[v] * bh[v]
-    low = np.zeros(b_at[views])  # per block: no texel holds less
-    dirty = np.zeros(b_at[views], np.uint8)
-    for q in range(units.shape[0]):
-        u = units[q]
+    texels = buf.shape[0]
+    seen = np.zeros(texels, np.int64)  # per texel: the last patch that touched it
+    cover = np.zeros(texels, np.int64)  # ... whose face covered its centre
+    edge = np.zeros(texels, np.int64)  # ... whose outline touched it, and then:
+    outline_cells = np.empty(texels, np.uint64)  # the cells its outline touched
+    centre_cells = np.empty(texels, np.uint64)  # the cells whose centres its faces cover
+    low = np.empty(texels)  # the patch's least 1 / depth over the texel
+    work = np.zeros(texels, np.uint64)  # cells covered by patches that covered it in part
+    work_low = np.full(texels, np.inf)  # ... and their least 1 / depth over it
+    touched = np.empty(texels, np.int64)
+    scratch = np.empty((4, 9))
+    spans = np.empty((2, SUB), np.int64)
+    cap = 64
+    vlist = np.empty(3 * cap, np.int64)  # per vertex slot: the vertex
+    vview = np.empty((3 * cap, 3))  # ... its view coordinates
+    vimage = np.empty((3 * cap, 3))  # ... x, y (texels), 1 / depth; depth: its depth
+    vdepth = np.empty(3 * cap)
+    corner = np.empty((cap, 3), np.int64)  # per face slot: its vertices' slots
+    poly = np.empty((cap, 4, 3))  # its part beyond the near plane: x, y (texels), 1 / depth
+    label = np.empty((cap, 4), np.int64)  # the edge of the face each side lies on, 3: near
+    sides = np.empty(cap, np.int64)  # how many corners
+    facing = np.empty(cap, np.int64)  # +1: counter-clockwise on the image, -1, 0: skipped
+    face_of = np.empty(cap, np.int64)
+    inner = np.empty(cap, np.int64)  # which of its edges lie inside its patch (bits)
+    done = np.empty(cap, np.bool_)
+    queue = np.empty(cap, np.int64)
+    m_ = np.empty((3, 4))
+    q = 0
+    patch = 0
+    cut = near * (1 + NEAR_MARGIN)
+    while q < units.shape[0]:
         leaf = owner[q]
+        q1 = q
+        n = 0
+        while q1 < units.shape[0] and owner[q1] == leaf:
+            n += count[units[q1]]
+            q1 += 1
+        if n > cap:
+            cap = 2 * n
+            vlist = np.empty(3 * cap, np.int64)
+            vview = np.empty((3 * cap, 3))
+            vimage = np.empty((3 * cap, 3))
+            vdepth = np.empty(3 * cap)
+            corner = np.empty((cap, 3), np.int64)
+            poly = np.empty((cap, 4, 3))
+            label = np.empty((cap, 4), np.int64)
+            sides = np.empty(cap, np.int64)
+            facing = np.empty(cap, np.int64)
+            face_of = np.empty(cap, np.int64)
+            inner = np.empty(cap, np.int64)
+            done = np.empty(cap, np.bool_)
+            queue = np.empty(cap, np.int64)
+        stamp += 1
         m = mesh_of[leaf]
         w = world[leaf]
         v0 = vertex_start[m]
-        f0 = face_start[m] + first[u]
-        for f in range(f0, f0 + count[u]):
-            for c in range(3):
-                _place(w, vertices[v0 + faces[f, c]], tri[c])
-            for e in range(3):  # the neighbour's vertex off the shared edge (a, b)
-                g = neighbors[f, e]
-                far[e, 0] = np.nan
-                if g >= 0:
-                    a_, b_ = faces[f, e], faces[f, (e + 1) % 3]
+        n = 0
+        nv = 0
+        for r in range(q, q1):
+            f0 = face_start[m] + first[units[r]]
+            for f in range(f0, f0 + count[units[r]]):
+                mark[f] = stamp
+                slot_of[f] = n
+                face_of[n] = f
+                for c in range(3):
+                    x = v0 + faces[f, c]
+                    if vmark[x] != stamp:
+                        vmark[x] = stamp
+                        vslot[x] = nv
+                        vlist[nv] = x
+                        nv += 1
+                    corner[n, c] = vslot[x]
+                n += 1
+        # the front of a closed mesh: its winding outward, mirrored by a mirroring placement
+        det = (w[0, 0] * (w[1, 1] * w[2, 2] - w[1, 2] * w[2, 1])
+               - w[0, 1] * (w[1, 0] * w[2, 2] - w[1, 2] * w[2, 0])
+               + w[0, 2] * (w[1, 0] * w[2, 1] - w[1, 1] * w[2, 0]))
+        front = outward[m] * (1 if det > 0 else -1)
+        for v in range(views):
+            a = affine[v]
+            for r in range(3):  # world -> view, for this leaf
+                for c in range(4):
+                    m_[r, c] = a[r, 0] * w[0, c] + a[r, 1] * w[1, c] + a[r, 2] * w[2, c] \
+                        + (a[r, 3] if c == 3 else 0.0)
+            wv, hv = size[v, 0], size[v, 1]
+            j0, j1 = hv * band // bands, hv * (band + 1) // bands  # its rows [j0, j1)
+            sx = wv / (rect[v, 1] - rect[v, 0])
+            sy = hv / (rect[v, 3] - rect[v, 2])
+            for x in range(nv):  # the vertices, once each
+                p = vertices[vlist[x]]
+                px = m_[0, 0] * p[0] + m_[0, 1] * p[1] + m_[0, 2] * p[2] + m_[0, 3]
+                py = m_[1, 0] * p[0] + m_[1, 1] * p[1] + m_[1, 2] * p[2] + m_[1, 3]
+                pz = m_[2, 0] * p[0] + m_[2, 1] * p[1] + m_[2, 2] * p[2] + m_[2, 3]
+                vview[x, 0], vview[x, 1], vview[x, 2] = px, py, pz
+                d = -pz
+                vdepth[x] = d
+                if d > cut:
+                    vimage[x, 0] = (px / d - rect[v, 0]) * sx
+                    vimage[x, 1] = (py / d - rect[v, 2]) * sy
+                    vimage[x, 2] = 1.0 / d
+            for s in range(n):
+                facing[s] = 0
+                c0, c1, c2 = corner[s, 0], corner[s, 1], corner[s, 2]
+                # counter-clockwise seen from the eye (the origin): a negative triple product
+                t3 = _triple(vview[c0], vview[c1], vview[c2])
+                if front != 0 and (t3 < 0) != (front > 0):
+                    continue  # a back face of a closed mesh
+                if vdepth[c0] > cut and vdepth[c1] > cut and vdepth[c2] > cut:
                     for c in range(3):
-                        x = faces[g, c]
-                        if x != a_ and x != b_:
-                            _place(w, vertices[v0 + x], far[e])
-            for v in range(views):
-                _raster_triangle(tri, far, affine[v], rect[v], size[v, 0], size[v, 1], near,
-                                 iz, mask, iz_work, offsets[v, 0], scratch, spans,
-                                 low[b_at[v]:b_at[v + 1]], dirty[b_at[v]:b_at[v + 1]], bw[v])
-        for v in range(views):  # the blocks this unit wrote: their bound again
-            for b in range(b_at[v + 1] - b_at[v]):
-                if dirty[b_at[v] + b]:
-                    dirty[b_at[v] + b] = 0
-                    J, I = b // bw[v], b % bw[v]
-                    lo = np.inf
-                    for j in range(J * BLOCK, min((J + 1) * BLOCK, size[v, 1])):
-                        for i in range(I * BLOCK, min((I + 1) * BLOCK, size[v, 0])):
-                            lo = min(lo, iz[offsets[v, 0] + j * size[v, 0] + i])
-                    low[b_at[v] + b] = lo
-
-
-@njit(cache=True, inline="always")
-def _place(w, p, out):
-    for r in range(3):
-        out[r] = w[r, 0] * p[0] + w[r, 1] * p[1] + w[r, 2] * p[2] + w[r, 3]
-
-
-#: Sub-samples across a texel each way: a texel's coverage is a 64-bit mask of 8 x 8 cells.
-SUB = 8
-#: Texels across a block whose least value :func:`_rasterize` keeps.
-BLOCK = 8
-_FULL = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
-@njit(cache=True, inline="always")
-def _project(a, p, rect, sx, sy, near, out, k):
-    """Point ``p`` (world) to cells of the view: ``out[0:3, k]`` = x, y, 1 / depth; False when
-    it lies behind the near plane."""
-    x, y, z = _to_view(a, p[0], p[1], p[2])
-    d = -z
-    if not d > near:
-        return False
-    out[0, k] = (x / d - rect[0]) * sx
-    out[1, k] = (y / d - rect[2]) * sy
-    out[2, k] = 1.0 / d
-    return True
-
-
-@njit(cache=True, inline="always")
-def _side(px, py, i, j, k):
-    """Twice the signed area of points ``i, j, k`` (cells)."""
-    return (px[j] - px[i]) * (py[k] - py[i]) - (px[k] - px[i]) * (py[j] - py[i])
-
-
-@njit(cache=True)
-def _raster_triangle(tri, far, a, rect, w, h, near, buf, mask, iz_work, at, scratch, spans,
-                     low, dirty, bw):
-    """One occluder triangle into one view's texels, conservatively (the module docstring).
-
-    Coverage: the cells (8 x 8 a texel) wholly inside the triangle, by a margin, and across an
-    edge shared with a neighbour face (``far[e]``: its vertex off edge ``e``, NaN for none)
-    that lies on the other side of it on the image, inside the neighbour too: a cell is then
-    inside the triangle's other edges and the neighbour's, so each of its parts is in one of
-    the two, and a surface of many triangles covers whole the texels its triangles share.
-    Depths are kept as reciprocals (``1 / depth``: affine on the image plane, no division per
-    texel), the smallest over the cell's corners and the planes of the faces used (the
-    farthest the surface can be there). ``buf`` per texel: the largest, over what covers it
-    whole, of those. Texel rows by texel rows, each of its eight cell rows by the span of cells
-    covered; a texel covered whole takes the farthest depth over it at once, a texel covered in
-    part gets the cells' bits in its coverage mask and the farthest depth over them in its
-    working depth. Once the mask is full (several triangles covering the texel together),
-    everything beyond the working depth is hidden there: the texel takes it, and the mask
-    starts again."""
-    sx = SUB * w / (rect[1] - rect[0])  # cells
-    sy = SUB * h / (rect[3] - rect[2])
-    pts = scratch[0:3]  # x, y, 1/d of the triangle (0-2) and the neighbours' far vertices (3-5)
-    for c in range(3):
-        if not _project(a, tri[c], rect, sx, sy, near, pts, c):
-            return  # reaches behind the near plane: no occluder
-    px, py, iz = pts[0], pts[1], pts[2]
-    # nowhere nearer than what every texel its box touches holds already (``low``: a lower
-    # bound per block): it can change nothing
-    i0 = max(0, int(min(px[0], px[1], px[2]) // SUB) // BLOCK)
-    i1 = min(bw - 1, int(max(px[0], px[1], px[2]) // SUB) // BLOCK)
-    j0 = max(0, int(min(py[0], py[1], py[2]) // SUB) // BLOCK)
-    j1 = min(low.shape[0] // bw - 1, int(max(py[0], py[1], py[2]) // SUB) // BLOCK)
-    if i0 <= i1 and j0 <= j1:
-        held = np.inf
-        for J in range(j0, j1 + 1):
-            for I in range(i0, i1 + 1):
-                held = min(held, low[J * bw + I])
-        if max(iz[0], iz[1], iz[2]) <= held:
-            return
-    area = _side(px, py, 0, 1, 2)
-    if not abs(area) > 1e-9:
-        return
-    sign = 1.0 if area > 0 else -1.0
-    # half-planes, inside when A x + B y + C >= margin, and the planes of 1/depth in use
-    hp = scratch[3:7]  # A, B, C, margin
-    planes = scratch[7:10]  # ga, gb, gc
-    nh = 0
-    npl = 0
-    y_lo, y_hi = min(py[0], py[1], py[2]), max(py[0], py[1], py[2])  # of the faces in use
-    for e in range(4):
-        if e == 3:  # the triangle's own plane of 1/depth
-            i, j, k = 0, 1, 2
-        else:
-            i, j, k = e, (e + 1) % 3, 3 + e  # the neighbour across edge e: (i, j, far)
-            shared = not np.isnan(far[e, 0]) and _project(a, far[e], rect, sx, sy, near, pts, k)
-            if shared:
-                s2 = _side(px, py, i, j, k)
-                shared = s2 * area < 0 and abs(s2) > 1e-9  # across the edge on the image
-            if not shared:  # the edge bounds the coverage
-                nh = _half_plane(hp, nh, px, py, i, j, sign)
-                continue
-            s_n = 1.0 if s2 > 0 else -1.0
-            y_lo, y_hi = min(y_lo, py[k]), max(y_hi, py[k])
-            nh = _half_plane(hp, nh, px, py, j, k, s_n)
-            nh = _half_plane(hp, nh, px, py, k, i, s_n)
-        det = _side(px, py, i, j, k)
-        planes[0, npl] = ((iz[j] - iz[i]) * (py[k] - py[i]) - (iz[k] - iz[i]) * (py[j] - py[i])) / det
-        planes[1, npl] = ((px[j] - px[i]) * (iz[k] - iz[i]) - (px[k] - px[i]) * (iz[j] - iz[i])) / det
-        planes[2, npl] = iz[i] - planes[0, npl] * px[i] - planes[1, npl] * py[i]
-        npl += 1
-    # each half-plane as a bound on x, linear in y: x >= (or <=) p + q y; or on y alone
-    bp, bq, kind = scratch[10], scratch[11], spans[0]
-    for c in range(nh):
-        A, B, C, margin = hp[0, c], hp[1, c], hp[2, c], hp[3, c]
-        if A != 0:
-            bp[c] = (margin - C) / A
-            bq[c] = -B / A
-            kind[c] = 1 if A > 0 else 2
-        elif B != 0:  # B y + C >= margin
-            bp[c] = B
-            bq[c] = (margin - C) / B
-            kind[c] = 0
-        else:  # no line: everywhere (3) or nowhere
-            bp[c], bq[c] = 1.0, np.inf
-            kind[c] = 3 if C >= margin else 0
-    cells_w, cells_h = SUB * w, SUB * h
-    r0 = max(0, int(math.floor(y_lo)))
-    r1 = min(cells_h, int(math.ceil(y_hi)))
-    lo, hi = spans[0, 6:], spans[1, :SUB]
-    slope, offset = scratch[12], scratch[13]
-    for J in range(r0 // SUB, -(-r1 // SUB)):
-        inner_lo, inner_hi = cells_w, -1
-        outer_lo, outer_hi = cells_w, -1
-        for k in range(SUB):
-            y0 = float(J * SUB + k)
-            xl, xr = 0.0, float(cells_w)
-            for c in range(nh):
-                if kind[c] == 1:
-                    xl = max(xl, bp[c] + bq[c] * y0 + max(bq[c], 0.0))
-                elif kind[c] == 2:
-                    xr = min(xr, bp[c] + bq[c] * y0 + min(bq[c], 0.0))
-                elif not ((y0 >= bq[c] and y0 + 1 >= bq[c]) if bp[c] > 0
-                          else (y0 <= bq[c] and y0 + 1 <= bq[c])):
-                    xr = -1.0  # the row lies outside
-            c0 = int(math.ceil(xl))
-            c1 = int(math.floor(xr)) - 1  # the last cell whose right side is within
-            lo[k], hi[k] = c0, c1
-            if c0 <= c1:
-                outer_lo = min(outer_lo, c0)
-                outer_hi = max(outer_hi, c1)
-            inner_lo = max(inner_lo, c0) if k else c0
-            inner_hi = min(inner_hi, c1) if k else c1
-        if outer_lo > outer_hi:
-            continue
-        # the texels covered whole: one run, each the farthest of the planes over it, which
-        # along the run is affine in I (slope 8 ga, and the rest fixed for the row)
-        Ia, Ib = -(-inner_lo // SUB), (inner_hi + 1) // SUB - 1
-        if Ia <= Ib:
-            y0, y1 = J * SUB, J * SUB + SUB
-            for p_ in range(npl):
-                ga, gb = planes[0, p_], planes[1, p_]
-                slope[p_] = ga * SUB
-                offset[p_] = min(0.0, ga * SUB) + min(gb * y0, gb * y1) + planes[2, p_]
-            row = at + J * w
-            wrote = False
-            for I in range(Ia, Ib + 1):
-                far_iz = slope[0] * I + offset[0]
-                for p_ in range(1, npl):
-                    far_iz = min(far_iz, slope[p_] * I + offset[p_])
-                if far_iz > buf[row + I]:
-                    buf[row + I] = far_iz
-                    wrote = True
-            if wrote:
-                for b in range(Ia // BLOCK, Ib // BLOCK + 1):
-                    dirty[(J // BLOCK) * bw + b] = 1
-        for I in range(outer_lo // SUB, outer_hi // SUB + 1):
-            if Ia <= I <= Ib:
-                continue
-            k_at = at + J * w + I
-            x0, x1 = I * SUB, I * SUB + SUB
-            bits = np.uint64(0)
-            low_iz = np.inf
-            for k in range(SUB):
-                c0, c1 = max(lo[k], x0), min(hi[k], x1 - 1)
-                if c0 > c1:
+                        x = corner[s, c]
+                        poly[s, c, 0], poly[s, c, 1], poly[s, c, 2] = \
+                            vimage[x, 0], vimage[x, 1], vimage[x, 2]
+                        label[s, c] = c
+                    sides[s] = 3
+                else:
+                    sides[s] = _clip_near(vview, corner[s], poly[s], label[s], cut, rect[v],
+                                          sx, sy)
+                    if sides[s] == 0:
+                        continue
+                area = _cross(poly[s, 0], poly[s, 1], poly[s, 2])
+                if abs(area) > AREA_MIN and t3 * area < 0:
+                    facing[s] = 1 if area > 0 else -1
+            for s in range(n):  # which edges lie inside the outline (bits)
+                inner[s] = 0
+                if facing[s] != 0:
+                    f = face_of[s]
+                    for e in range(3):
+                        g = neighbors[f, e]
+                        if g >= 0 and mark[g] == stamp and facing[slot_of[g]] == facing[s] \
+                                and _across(f, e, g, s, slot_of[g], faces, corner, vview):
+                            inner[s] |= 1 << e
+                done[s] = facing[s] == 0
+            for s0 in range(n):  # each patch: the faces reached across inner edges
+                if done[s0]:
                     continue
-                run = (np.uint64(1) << np.uint64(c1 - c0 + 1)) - np.uint64(1)
-                bits |= run << np.uint64(k * SUB + c0 - x0)
-                yk = J * SUB + k
-                low_iz = min(low_iz, _lowest(planes, npl, c0, c1 + 1, yk, yk + 1))
-            if bits == 0 or not low_iz > 0:
+                done[s0] = True
+                queue[0] = s0
+                size_ = 1
+                r = 0
+                while r < size_:
+                    s = queue[r]
+                    r += 1
+                    for e in range(3):
+                        if inner[s] >> e & 1:
+                            t = slot_of[neighbors[face_of[s], e]]
+                            if not done[t]:
+                                done[t] = True
+                                queue[size_] = t
+                                size_ += 1
+                patch += 1
+                for r in range(size_):  # the outline's texels
+                    s = queue[r]
+                    ns = sides[s]
+                    for e in range(ns):
+                        lab = label[s, e]
+                        if lab == 3 or not inner[s] >> lab & 1:
+                            e1 = e + 1 if e + 1 < ns else 0
+                            _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0],
+                                     poly[s, e1, 1], wv, j0, j1, at[v], edge, outline_cells,
+                                     centre_cells, low, buf, patch, False)
+                k = 0
+                for r in range(size_):
+                    s = queue[r]
+                    k = _fill(poly[s], sides[s], facing[s], wv, j0, j1, at[v], seen, cover, edge,
+                              centre_cells, low, touched, k, patch, scratch, spans)
+                for r in range(size_):  # its cells, where the patch may bring texels nearer
+                    s = queue[r]
+                    ns = sides[s]
+                    for e in range(ns):
+                        lab = label[s, e]
+                        if lab == 3 or not inner[s] >> lab & 1:
+                            e1 = e + 1 if e + 1 < ns else 0
+                            _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0],
+                                     poly[s, e1, 1], wv, j0, j1, at[v], edge, outline_cells,
+                                     centre_cells, low, buf, patch, True)
+                _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
+                        work_low, buf, patch)
+        q = q1
+    return stamp
+
+
+#: Cells across a texel each way along an outline: a texel's cells are bits of a mask.
+SUB = 4
+_FULL = np.uint64((1 << SUB * SUB) - 1)
+#: Twice the least area (texels) of an occluder triangle on the image.
+AREA_MIN = 1e-9
+#: Occluders are cut this far (relative) beyond the near plane.
+NEAR_MARGIN = 1e-4
+#: The far vertex of a neighbour face counts as across an edge only this far (relative).
+SIDE_MARGIN = 1e-9
+#: Texels and cells count as touched by a line within this distance (texels): rounding
+#: never claims one an outline crosses.
+TOUCH = 1e-6
+
+
+@njit(cache=True, inline="always")
+def _cross(a, b, c):
+    """Twice the signed area of ``a, b, c`` on the image (their x, y)."""
+    return (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])
+
+
+@njit(cache=True, inline="always")
+def _triple(a, b, c):
+    """``a . (b x c)``."""
+    return (a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2])
+            + a[2] * (b[0] * c[1] - b[1] * c[0]))
+
+
+@njit(cache=True, inline="always")
+def _across(f, e, g, s, t, faces, corner, vview):
+    """Whether face ``g`` (slot ``t``) lies on the other side of edge ``e`` of face ``f``
+    (slot ``s``) than ``f`` does, as seen from the eye: either side of the plane through the
+    eye and the edge, by a margin (so the two lie either side of the edge on the image)."""
+    a_, b_ = faces[f, e], faces[f, (e + 1) % 3]
+    for c in range(3):
+        x = faces[g, c]
+        if x != a_ and x != b_:
+            p = vview[corner[s, e]]
+            q = vview[corner[s, (e + 1) % 3]]
+            far = vview[corner[t, c]]
+            own = _triple(p, q, vview[corner[s, (e + 2) % 3]])
+            other = _triple(p, q, far)
+            scale = ((abs(p[0]) + abs(p[1]) + abs(p[2])) * (abs(q[0]) + abs(q[1]) + abs(q[2]))
+                     * (abs(far[0]) + abs(far[1]) + abs(far[2])))
+            return own * other < 0 and abs(other) > SIDE_MARGIN * scale
+    return False
+
+
+@njit(cache=True, inline="always")
+def _clip_near(vview, corners, out, label, cut, rect, sx, sy):
+    """The part of the triangle of vertices ``vview[corners]`` (view coordinates) at depths
+    beyond ``cut``, projected into ``out`` (x, y in texels, 1 / depth per corner, in order),
+    each side's edge of the triangle in ``label`` (``e``: from corner ``e`` to ``e + 1``; 3:
+    along the cut). Returns how many corners (0, 3 or 4)."""
+    k = 0
+    for e in range(3):
+        p, q = vview[corners[e]], vview[corners[(e + 1) % 3]]
+        dp, dq = -p[2], -q[2]
+        if dp > cut:
+            _put(out, k, p[0], p[1], dp, rect, sx, sy)
+            label[k] = e
+            k += 1
+            if not dq > cut:  # leaves: the next side runs along the cut
+                t = (dp - cut) / (dp - dq)
+                _put(out, k, p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), cut, rect,
+                     sx, sy)
+                label[k] = 3
+                k += 1
+        elif dq > cut:  # enters: the next side runs along edge e
+            t = (cut - dp) / (dq - dp)
+            _put(out, k, p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), cut, rect, sx, sy)
+            label[k] = e
+            k += 1
+    return k
+
+
+@njit(cache=True, inline="always")
+def _put(out, k, x, y, d, rect, sx, sy):
+    out[k, 0] = (x / d - rect[0]) * sx
+    out[k, 1] = (y / d - rect[2]) * sy
+    out[k, 2] = 1.0 / d
+
+
+@njit(cache=True, inline="always")
+def _outline(ax, ay, bx, by, w, j0, j1, at, edge, outline_cells, centre_cells, low, buf, patch,
+             cells):
+    """Mark the texels of rows ``[j0, j1)`` that segment ``a b`` (texel coordinates) touches,
+    or nearly; with
+    ``cells``, the cells it touches in those texels where the patch may bring the buffer
+    nearer (``low`` beyond ``buf``: elsewhere it claims nothing)."""
+    if ay > by:
+        ax, ay, bx, by = bx, by, ax, ay
+    dy = by - ay
+    slope = (bx - ax) / dy if dy > 0 else 0.0
+    for J in range(max(j0, int(math.floor(max(ay - TOUCH, -1.0)))),
+                   min(j1 - 1, int(math.floor(min(by + TOUCH, j1 + 1.0)))) + 1):
+        lo, hi = _along(ax, ay, bx, by, slope, J - TOUCH, J + 1 + TOUCH)
+        if hi < -TOUCH or lo > w + TOUCH:
+            continue
+        i0 = max(0, int(math.floor(lo - TOUCH)))
+        i1 = min(w - 1, int(math.floor(hi + TOUCH)))
+        row = at + J * w
+        if not cells:
+            for t in range(row + i0, row + i1 + 1):
+                if edge[t] != patch:
+                    edge[t] = patch
+                    outline_cells[t] = 0
+                    centre_cells[t] = 0
+            continue
+        worth = False
+        for t in range(row + i0, row + i1 + 1):
+            worth = worth or low[t] > buf[t]
+        if not worth:
+            continue
+        for k in range(SUB):  # the cell rows of this texel row
+            y0 = J + k / SUB
+            if y0 > by + TOUCH or y0 + 1.0 / SUB < ay - TOUCH:
                 continue
-            mask[k_at] |= bits
-            iz_work[k_at] = min(iz_work[k_at], low_iz)
-            if mask[k_at] == _FULL:
-                if iz_work[k_at] > buf[k_at]:
-                    buf[k_at] = iz_work[k_at]
-                    dirty[(J // BLOCK) * bw + I // BLOCK] = 1
-                mask[k_at] = np.uint64(0)
-                iz_work[k_at] = np.inf
+            lo, hi = _along(ax, ay, bx, by, slope, y0 - TOUCH, y0 + 1.0 / SUB + TOUCH)
+            c0 = max(SUB * i0, int(math.floor((lo - TOUCH) * SUB)))
+            c1 = min(SUB * i1 + SUB - 1, int(math.floor((hi + TOUCH) * SUB)))
+            for I in range(c0 // SUB, c1 // SUB + 1):
+                t = row + I
+                if low[t] > buf[t]:
+                    l_, h_ = max(c0 - I * SUB, 0), min(c1 - I * SUB, SUB - 1)
+                    run = (np.uint64(1) << np.uint64(h_ - l_ + 1)) - np.uint64(1)
+                    outline_cells[t] |= run << np.uint64(k * SUB + l_)
 
 
 @njit(cache=True, inline="always")
-def _half_plane(hp, n, px, py, i, j, sign):
-    """Add the half-plane on the ``sign`` side of the line from point ``i`` to ``j``, inside
-    by a margin of a millionth of a cell's size: ``sign (ex (y - ay) - ey (x - ax)) >= m``."""
-    ax, ay = px[i], py[i]
-    ex, ey = px[j] - ax, py[j] - ay
-    hp[0, n] = -sign * ey
-    hp[1, n] = sign * ex
-    hp[2, n] = sign * (ey * ax - ex * ay)
-    hp[3, n] = EDGE_MARGIN * SUB * (abs(ex) + abs(ey))
-    return n + 1
+def _along(ax, ay, bx, by, slope, y0, y1):
+    """The x extent of segment ``a b`` (``ay <= by``; ``slope``: dx / dy, or 0 when level)
+    within the rows ``y0`` to ``y1``."""
+    if by > ay:
+        x0 = ax + slope * (min(max(y0, ay), by) - ay)
+        x1 = ax + slope * (min(max(y1, ay), by) - ay)
+        return min(x0, x1), max(x0, x1)
+    return min(ax, bx), max(ax, bx)
 
 
 @njit(cache=True, inline="always")
-def _lowest(planes, n, x0, x1, y0, y1):
-    """The smallest value of ``n`` planes of 1/depth over the rectangle ``[x0, x1] x [y0,
-    y1]`` (cells): at a corner, plane by plane."""
-    out = np.inf
-    for p in range(n):
-        ga, gb, gc = planes[0, p], planes[1, p], planes[2, p]
-        out = min(out, min(ga * x0, ga * x1) + min(gb * y0, gb * y1) + gc)
-    return out
+def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touched, k, patch,
+          ed, spans):
+    """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
+    area) into the patch's texels of rows ``[j0, j1)``: every texel it touches (or nearly) takes the least 1 / depth
+    of the polygon over the texel into ``low``; the texels whose centres lie inside it are
+    marked in ``cover``, and in those its outline touches, the cells whose centres do in
+    ``centre_cells``. New texels of the patch are listed in ``touched`` (``k`` of them so
+    far; returns the new count). ``ed (4, >= ns)`` and ``spans (2, SUB)``: scratch."""
+    y_lo, y_hi = np.inf, -np.inf
+    for c in range(ns):
+        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
+    if y_hi < j0 - 1 or y_lo > j1 + 1:
+        return k  # none of it in these rows
+    area = _cross(p[0], p[1], p[2])
+    # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective)
+    ga = ((p[1, 2] - p[0, 2]) * (p[2, 1] - p[0, 1]) - (p[2, 2] - p[0, 2]) * (p[1, 1] - p[0, 1])) / area
+    gb = ((p[1, 0] - p[0, 0]) * (p[2, 2] - p[0, 2]) - (p[2, 0] - p[0, 0]) * (p[1, 2] - p[0, 2])) / area
+    gc = p[0, 2] - ga * p[0, 0] - gb * p[0, 1]
+    least = np.inf
+    for c in range(ns):
+        least = min(least, p[c, 2])
+    # each side: inside where side (ex (y - ay) - ey (x - ax)) >= 0 (a centre on an edge the
+    # outline holds is on a texel or cell the outline touches, by a margin: rounding claims
+    # nothing there, and one on an inner edge is in both faces); as a bound on x,
+    # x >= q y + o (kind 1) or x <= q y + o (kind 2), or on y alone (kind 0: where
+    # q y + o >= 0)
+    for e in range(ns):
+        e1 = e + 1 if e + 1 < ns else 0
+        ax, ay = p[e, 0], p[e, 1]
+        ex, ey = p[e1, 0] - ax, p[e1, 1] - ay
+        A = -side * ey
+        B = side * ex
+        C = side * (ey * ax - ex * ay)
+        if A != 0:
+            ed[0, e] = 1.0 if A > 0 else 2.0
+            ed[1, e] = -B / A
+            ed[2, e] = -C / A
+        else:
+            ed[0, e] = 0.0
+            ed[1, e] = B
+            ed[2, e] = C
+    for J in range(max(j0, int(math.floor(y_lo - TOUCH))),
+                   min(j1 - 1, int(math.floor(y_hi + TOUCH))) + 1):
+        y0, y1 = max(J - TOUCH, y_lo), min(J + 1 + TOUCH, y_hi)  # the polygon's rows in it
+        lo, hi = np.inf, -np.inf
+        for e in range(ns):
+            e1 = e + 1 if e + 1 < ns else 0
+            ax, ay, bx, by = p[e, 0], p[e, 1], p[e1, 0], p[e1, 1]
+            if ay > by:
+                ax, ay, bx, by = bx, by, ax, ay
+            if by < y0 or ay > y1:
+                continue
+            if by > ay:
+                s_ = (bx - ax) / (by - ay)
+                x0 = ax + s_ * (max(y0, ay) - ay)
+                x1 = ax + s_ * (min(y1, by) - ay)
+            else:
+                x0, x1 = ax, bx
+            lo, hi = min(lo, x0, x1), max(hi, x0, x1)
+        if lo > hi or hi < -TOUCH or lo > w + TOUCH:
+            continue
+        i0 = max(0, int(math.floor(lo - TOUCH)))
+        i1 = min(w - 1, int(math.floor(hi + TOUCH)))
+        c0, c1 = _centres(ed, ns, J + 0.5, 1.0)
+        gy = min(gb * y0, gb * y1) + gc
+        row = at + J * w
+        cells = False
+        for i in range(i0, i1 + 1):
+            # the least over the polygon's part in the texel, within its box there
+            z = max(least, ga * (max(i, lo) if ga >= 0 else min(i + 1, hi)) + gy)
+            t = row + i
+            if seen[t] != patch:
+                seen[t] = patch
+                low[t] = z
+                touched[k] = t
+                k += 1
+            elif z < low[t]:
+                low[t] = z
+            if c0 <= i <= c1:
+                cover[t] = patch
+            if edge[t] == patch:  # on the outline: which of its cells' centres are inside
+                if not cells:
+                    for r in range(SUB):
+                        spans[0, r], spans[1, r] = _centres(ed, ns, J + (r + 0.5) / SUB, SUB)
+                    cells = True
+                bits = np.uint64(0)
+                for r in range(SUB):
+                    l_, h_ = max(spans[0, r] - i * SUB, 0), min(spans[1, r] - i * SUB, SUB - 1)
+                    if l_ <= h_:
+                        run = (np.uint64(1) << np.uint64(h_ - l_ + 1)) - np.uint64(1)
+                        bits |= run << np.uint64(r * SUB + l_)
+                centre_cells[t] |= bits
+    return k
+
+
+@njit(cache=True, inline="always")
+def _centres(ed, ns, y, scale):
+    """The first and last column (texels, or cells for ``scale`` = SUB) whose centre on row
+    line ``y`` (texels) lies in the polygon whose sides are ``ed[:, :ns]`` (see
+    :func:`_fill`); first > last: none."""
+    xl, xr = -1e9, 1e9
+    for e in range(ns):
+        kind = ed[0, e]
+        if kind == 1.0:
+            xl = max(xl, ed[1, e] * y + ed[2, e])
+        elif kind == 2.0:
+            xr = min(xr, ed[1, e] * y + ed[2, e])
+        elif ed[1, e] * y + ed[2, e] < 0:
+            return 1, 0
+    if not xl <= xr:
+        return 1, 0
+    return int(math.ceil(xl * scale - 0.5)), int(math.floor(xr * scale - 0.5))
+
+
+@njit(cache=True, inline="always")
+def _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work, work_low, buf,
+            patch):
+    """A patch's claims. A texel (or a cell of it) whose centre one of the patch's faces
+    covers, and that no edge of its outline touches, lies wholly inside the patch: the outline
+    holds every edge of its border (an edge inside it has the patch on both sides, and so does
+    a vertex all of whose edges are inside, its faces winding around it). A texel claimed
+    whole hides everything behind the patch's farthest depth over it: ``buf`` keeps the
+    nearest such depth (its reciprocal). Cells claimed in part gather in ``work`` with the
+    farthest depth of the patches that claimed them, until they fill the texel (a patch no
+    nearer than the buffer over a texel adds nothing there: their depth would be no nearer)."""
+    for r in range(k):
+        t = touched[r]
+        if edge[t] == patch:
+            if not low[t] > buf[t]:
+                continue  # its cells were not marked: nothing to gain there
+            claimed = centre_cells[t] & ~outline_cells[t]
+        elif cover[t] == patch:
+            claimed = _FULL
+        else:
+            continue
+        if claimed == _FULL:
+            if low[t] > buf[t]:
+                buf[t] = low[t]
+        elif claimed:
+            work[t] |= claimed
+            work_low[t] = min(work_low[t], low[t])
+            if work[t] == _FULL:
+                if work_low[t] > buf[t]:
+                    buf[t] = work_low[t]
+                work[t] = np.uint64(0)
+                work_low[t] = np.inf
 
 
 @njit(cache=True)
@@ -615,7 +993,7 @@ def _pyramids(lo_, hi_, size, offsets):
             w, h = cw, ch
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _extreme(buf, offsets, v, w0, h0, i0, i1, j0, j1, largest):
     """The largest (or smallest) value of level 0's texels ``[i0, i1) x [j0, j1)``, read at the
     level where they span at most two texels each way (which covers them, and maybe more)."""
@@ -633,147 +1011,40 @@ def _extreme(buf, offsets, v, w0, h0, i0, i1, j0, j1, largest):
     return out
 
 
-@njit(cache=True)
-def _judge(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo, izhi, offsets,
-           half, child_count_i, hull):
-    """0: node ``i`` is hidden in tile ``t`` (from every eye); 1: it is not, and no part of it
-    can be; 2: a part of it might be. ``half (6, 3)`` is scratch."""
-    ball = box[i, 3]
-    for k in range(3):  # the half-extent vectors, grown by the ball (a box around the bound)
-        hx, hy, hz = box[i, 4 + 3 * k], box[i, 5 + 3 * k], box[i, 6 + 3 * k]
-        n = math.sqrt(hx * hx + hy * hy + hz * hz)
-        if n > 0:
-            g = 1.0 + ball / n
-            half[k, 0], half[k, 1], half[k, 2] = hx * g, hy * g, hz * g
-        else:  # no extent along this axis: the ball along the world's
-            half[k, 0] = half[k, 1] = half[k, 2] = 0.0
-            half[k, k] = ball
-    hidden = True
-    partly = False
-    for e in range(tile_view.shape[0]):
-        v = tile_view[e, t]
-        a = affine[v]
-        cx, cy, cz = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
-        # the eight corners in view coordinates: the centre plus the signed half vectors
-        hv = half[3:]
-        for k in range(3):
-            for r in range(3):
-                hv[k, r] = a[r, 0] * half[k, 0] + a[r, 1] * half[k, 1] + a[r, 2] * half[k, 2]
-        lo_x = lo_y = np.inf
-        hi_x = hi_y = -np.inf
-        d_near = np.inf
-        d_far = 0.0
-        for c in range(8):
-            s0 = 1.0 if c & 1 else -1.0
-            s1 = 1.0 if c & 2 else -1.0
-            s2 = 1.0 if c & 4 else -1.0
-            x = cx + s0 * hv[0, 0] + s1 * hv[1, 0] + s2 * hv[2, 0]
-            y = cy + s0 * hv[0, 1] + s1 * hv[1, 1] + s2 * hv[2, 1]
-            d = -(cz + s0 * hv[0, 2] + s1 * hv[1, 2] + s2 * hv[2, 2])
-            if not d > near:
-                return 2  # it reaches the eye: never hidden; its children may be
-            d_near = min(d_near, d)
-            d_far = max(d_far, d)
-            lo_x = min(lo_x, x / d)
-            hi_x = max(hi_x, x / d)
-            lo_y = min(lo_y, y / d)
-            hi_y = max(hi_y, y / d)
-        w, h = size[v, 0], size[v, 1]
-        sx = w / (rect[v, 1] - rect[v, 0])
-        sy = h / (rect[v, 3] - rect[v, 2])
-        i0 = max(tile_texels[e, t, 0], int(math.floor((lo_x - rect[v, 0]) * sx)))
-        i1 = min(tile_texels[e, t, 1], int(math.ceil((hi_x - rect[v, 0]) * sx)))
-        j0 = max(tile_texels[e, t, 2], int(math.floor((lo_y - rect[v, 2]) * sy)))
-        j1 = min(tile_texels[e, t, 3], int(math.ceil((hi_y - rect[v, 2]) * sy)))
-        if i1 <= i0 or j1 <= j0:
-            continue  # nothing of it in this tile from this eye
-        # hidden beyond 1 / iz: over every texel (the smallest iz), or over some (the largest)
-        if not d_near * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) \
-                > 1 + DEPTH_MARGIN:
-            partly = partly or d_far * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) \
-                > 1 + DEPTH_MARGIN
-            # a node that cannot be opened: over the texels its outline touches, not its box
-            if not (child_count_i == 0 and partly
-                    and _outline_hidden(hull, cx, cy, cz, hv, rect[v], w, h, i0, i1, j0, j1,
-                                        d_near, izlo, offsets[v, 0])):
-                hidden = False
-    if hidden:
-        return 0
-    return 2 if partly else 1
+#: What a node's projection says of it over a whole view (:func:`_project`): hidden wherever
+#: it is; not hidden anywhere, nor any part of it; reaching the eye (never hidden, its
+#: children may be); or to be tested tile by tile.
+_HIDDEN, _CLEAR, _NEAR, _TEST = 0, 1, 2, 3
+#: A node's record per eye (:func:`_project`): its rectangle (texels, unclipped), nearest and
+#: farthest depth, centre and half vectors (view coordinates); once a texel test needs them,
+#: the planes of its front faces (ready 1) and its outline's corners (ready 2, texels).
+_R_RECT, _R_NEAR, _R_FAR, _R_CENTRE, _R_HALF, _R_READY, _R_HULL, _R_ORDER, _R_CORNERS, \
+    _R_FACES, _R_PLANES, _R_SIZE = 0, 4, 5, 6, 9, 18, 19, 35, 43, 44, 45, 54
 
 
-@njit(cache=True)
-def _outline_hidden(hull, cx, cy, cz, hv, rect, w, h, i0, i1, j0, j1, d_near, izlo, at):
-    """Whether every texel of ``[i0, i1) x [j0, j1)`` that the outline of the box (centre
-    ``c``, half vectors ``hv``, view coordinates) touches holds occluders nearer than
-    ``d_near``. The outline: the convex hull of the eight corners on the image (gift
-    wrapping), in texel coordinates; a texel is left out only when all four of its corners lie
-    outside one of its edges (then the two are apart)."""
-    sx = w / (rect[1] - rect[0])
-    sy = h / (rect[3] - rect[2])
-    for c in range(8):
-        s0 = 1.0 if c & 1 else -1.0
-        s1 = 1.0 if c & 2 else -1.0
-        s2 = 1.0 if c & 4 else -1.0
-        d = -(cz + s0 * hv[0, 2] + s1 * hv[1, 2] + s2 * hv[2, 2])
-        hull[0, c] = ((cx + s0 * hv[0, 0] + s1 * hv[1, 0] + s2 * hv[2, 0]) / d - rect[0]) * sx
-        hull[1, c] = ((cy + s0 * hv[0, 1] + s1 * hv[1, 1] + s2 * hv[2, 1]) / d - rect[2]) * sy
-    # gift wrapping: the hull's corners in counter-clockwise order, into hull[2] (indices)
-    start = 0
-    for c in range(1, 8):
-        if hull[0, c] < hull[0, start] or (hull[0, c] == hull[0, start]
-                                            and hull[1, c] < hull[1, start]):
-            start = c
-    n = 0
-    p = start
-    while True:
-        hull[2, n] = p
-        n += 1
-        q = (p + 1) % 8
-        for r in range(8):
-            cross = ((hull[0, q] - hull[0, p]) * (hull[1, r] - hull[1, p])
-                     - (hull[1, q] - hull[1, p]) * (hull[0, r] - hull[0, p]))
-            if cross < 0:
-                q = r
-        p = q
-        if p == start or n == 8:
-            break
-    for j in range(j0, j1):
-        for i in range(i0, i1):
-            touched = True
-            for e in range(n):
-                a = int(hull[2, e])
-                b = int(hull[2, (e + 1) % n])
-                ex, ey = hull[0, b] - hull[0, a], hull[1, b] - hull[1, a]
-                out = True
-                for cy_ in range(2):
-                    for cx_ in range(2):
-                        if ex * (j + cy_ - hull[1, a]) - ey * (i + cx_ - hull[0, a]) >= 0:
-                            out = False
-                if out:
-                    touched = False
-                    break
-            if touched and not d_near * izlo[at + j * w + i] > 1 + DEPTH_MARGIN:
-                return False
-    return True
-
-
-@njit(cache=True)
-def _prune(start, nodes, box, child_start, child_count, children, affine, rect, size,
-           tile_view, tile_texels, near, izlo, izhi, offsets):
-    """Each tile's nodes without the hidden ones, partly hidden ones replaced by their children
-    (recursively): CSR ``(start, nodes)`` in preorder, and how many nodes were dropped."""
+@njit(cache=True, nogil=True)
+def _prune(start, nodes, first_tile, box, child_start, child_count, children, affine, rect,
+           size, tile_view, tile_texels, near, izlo, izhi, offsets, slot, stamp, rec):
+    """Each tile's nodes (CSR ``(start, nodes)``, the first tile ``first_tile``) without the
+    hidden ones, partly hidden ones replaced by their children (recursively): CSR ``(start,
+    nodes)`` in preorder, how many nodes were dropped, and the records. A node is projected once per frame and view (``slot (nodes, 3)``: the frame's
+    ``stamp``, its record in ``rec`` and its first eye's view; both kept between frames,
+    ``rec`` grown when full)."""
     tiles = start.shape[0] - 1
+    eyes = tile_view.shape[0]
     out = np.empty(nodes.shape[0] + 1024, np.int64)
     out_start = np.zeros(tiles + 1, np.int64)
     stack = np.empty(1024, np.int64)
-    half = np.empty((6, 3))
-    hull = np.empty((3, 9))
+    cap = rec.shape[0]
+    verdict = np.empty(cap, np.int64)
+    half = np.empty((3, 3))
+    seen = 0
     k = 0
     hidden = 0
-    for t in range(tiles):
+    for tile in range(tiles):
+        t = first_tile + tile
         sp = 0
-        for j in range(start[t + 1] - 1, start[t] - 1, -1):
+        for j in range(start[tile + 1] - 1, start[tile] - 1, -1):
             if sp == stack.shape[0]:
                 stack = np.concatenate((stack, np.empty(stack.shape[0], np.int64)))
             stack[sp] = nodes[j]
@@ -781,12 +1052,30 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
         while sp > 0:
             sp -= 1
             i = stack[sp]
-            state = _judge(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo,
-                           izhi, offsets, half, child_count[i], hull)
-            if state == 0:
+            if child_count[i] == 0 and _centre_shows(box, i, affine, rect, size, tile_view,
+                                                      tile_texels, t, near, izlo, offsets):
+                state = _CLEAR
+            elif slot[i, 0] != stamp or slot[i, 2] != tile_view[0, t]:
+                if seen == cap:
+                    cap *= 2
+                    rec2 = np.empty((cap, eyes, _R_SIZE))
+                    rec2[:seen] = rec[:seen]
+                    rec = rec2
+                    verdict = np.concatenate((verdict, np.empty(seen, np.int64)))
+                slot[i, 0], slot[i, 1], slot[i, 2] = stamp, seen, tile_view[0, t]
+                verdict[seen] = _project(box, i, affine, rect, size, near, izlo, izhi, offsets,
+                                         tile_view[:, t], rec[seen], half)
+                seen += 1
+                state = verdict[slot[i, 1]]
+            else:
+                state = verdict[slot[i, 1]]
+            if state == _TEST:
+                state = _judge(rec[slot[i, 1]], rect, size, tile_view, tile_texels, t, izlo,
+                               izhi, offsets)
+            if state == _HIDDEN:
                 hidden += 1
                 continue
-            if state == 2 and child_count[i] > 0:
+            if state != _CLEAR and child_count[i] > 0:
                 while sp + child_count[i] > stack.shape[0]:
                     stack = np.concatenate((stack, np.empty(stack.shape[0], np.int64)))
                 for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
@@ -797,5 +1086,261 @@ def _prune(start, nodes, box, child_start, child_count, children, affine, rect, 
                 out = np.concatenate((out, np.empty(out.shape[0], np.int64)))
             out[k] = i
             k += 1
-        out_start[t + 1] = k
-    return out_start, out[:k], hidden
+        out_start[tile + 1] = k
+    return out_start, out[:k], hidden, rec
+
+
+@njit(cache=True, inline="always")
+def _centre_shows(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo, offsets):
+    """Whether node ``i``'s centre lies in tile ``t`` (a texel of it) from some eye, with
+    nothing nearer there in the buffer: then neither it nor any part of it can be hidden
+    there, and projecting it is not needed."""
+    for e in range(tile_view.shape[0]):
+        v = tile_view[e, t]
+        x, y, z = _to_view(affine[v], box[i, 0], box[i, 1], box[i, 2])
+        d = -z
+        if not d > near:
+            continue
+        w = size[v, 0]
+        fi = (x / d - rect[v, 0]) * w / (rect[v, 1] - rect[v, 0])
+        fj = (y / d - rect[v, 2]) * size[v, 1] / (rect[v, 3] - rect[v, 2])
+        if tile_texels[e, t, 0] <= fi < tile_texels[e, t, 1] and \
+                tile_texels[e, t, 2] <= fj < tile_texels[e, t, 3]:
+            if not d * izlo[offsets[v, 0] + int(fj) * w + int(fi)] > 1 + DEPTH_MARGIN:
+                return True
+    return False
+
+
+@njit(cache=True, inline="always")
+def _project(box, i, affine, rect, size, near, izlo, izhi, offsets, views, rec, half):
+    """Node ``i``'s bound in each eye's view (``views[e]``), into ``rec[e]`` (see
+    ``_R_...``), and what that says of it over the whole view (``_HIDDEN`` ...). Its bound:
+    its box grown by its ball (the half vectors lengthened by the ball)."""
+    ball = box[i, 3]
+    for k in range(3):
+        hx, hy, hz = box[i, 4 + 3 * k], box[i, 5 + 3 * k], box[i, 6 + 3 * k]
+        n = math.sqrt(hx * hx + hy * hy + hz * hz)
+        if n > 0:
+            g = 1.0 + ball / n
+            half[k, 0], half[k, 1], half[k, 2] = hx * g, hy * g, hz * g
+        else:  # no extent along this axis: the ball along the world's
+            half[k, 0] = half[k, 1] = half[k, 2] = 0.0
+            half[k, k] = ball
+    hidden = clear = True
+    for e in range(views.shape[0]):
+        v = views[e]
+        a = affine[v]
+        re = rec[e]
+        cx, cy, cz = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
+        re[_R_CENTRE], re[_R_CENTRE + 1], re[_R_CENTRE + 2] = cx, cy, cz
+        for k in range(3):
+            for r in range(3):
+                re[_R_HALF + 3 * k + r] = a[r, 0] * half[k, 0] + a[r, 1] * half[k, 1] \
+                    + a[r, 2] * half[k, 2]
+        lo_x = lo_y = np.inf
+        hi_x = hi_y = -np.inf
+        d_near = np.inf
+        d_far = 0.0
+        for c in range(8):
+            x, y, d = _corner(re, c)
+            if not d > near:
+                return _NEAR
+            d_near = min(d_near, d)
+            d_far = max(d_far, d)
+            lo_x, hi_x = min(lo_x, x / d), max(hi_x, x / d)
+            lo_y, hi_y = min(lo_y, y / d), max(hi_y, y / d)
+        w, h = size[v, 0], size[v, 1]
+        sx = w / (rect[v, 1] - rect[v, 0])
+        sy = h / (rect[v, 3] - rect[v, 2])
+        re[_R_RECT] = (lo_x - rect[v, 0]) * sx
+        re[_R_RECT + 1] = (hi_x - rect[v, 0]) * sx
+        re[_R_RECT + 2] = (lo_y - rect[v, 2]) * sy
+        re[_R_RECT + 3] = (hi_y - rect[v, 2]) * sy
+        re[_R_NEAR], re[_R_FAR] = d_near, d_far
+        re[_R_READY] = 0.0
+        i0, i1, j0, j1 = _clip(re, 0, w, 0, h)
+        if i1 <= i0 or j1 <= j0:
+            continue  # not in this view
+        if not d_near * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) > 1 + DEPTH_MARGIN:
+            hidden = False
+        if d_far * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) > 1 + DEPTH_MARGIN:
+            clear = False
+    if hidden:
+        return _HIDDEN
+    return _CLEAR if clear else _TEST
+
+
+@njit(cache=True, inline="always")
+def _corner(re, c):
+    """Corner ``c`` of a node's box: view x, y and depth."""
+    s0 = 1.0 if c & 1 else -1.0
+    s1 = 1.0 if c & 2 else -1.0
+    s2 = 1.0 if c & 4 else -1.0
+    h = _R_HALF
+    x = re[_R_CENTRE] + s0 * re[h] + s1 * re[h + 3] + s2 * re[h + 6]
+    y = re[_R_CENTRE + 1] + s0 * re[h + 1] + s1 * re[h + 4] + s2 * re[h + 7]
+    d = -(re[_R_CENTRE + 2] + s0 * re[h + 2] + s1 * re[h + 5] + s2 * re[h + 8])
+    return x, y, d
+
+
+@njit(cache=True, inline="always")
+def _clip(re, i0, i1, j0, j1):
+    """A node's rectangle's texels within ``[i0, i1) x [j0, j1)``."""
+    return (max(i0, int(math.floor(re[_R_RECT]))), min(i1, int(math.ceil(re[_R_RECT + 1]))),
+            max(j0, int(math.floor(re[_R_RECT + 2]))), min(j1, int(math.ceil(re[_R_RECT + 3]))))
+
+
+@njit(cache=True, inline="always")
+def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
+    """``_HIDDEN``: the node of record ``rec`` (see :func:`_project`) is hidden in tile ``t``
+    from every eye; ``_CLEAR``: it is not, and no part of it can be; else ``_TEST``: a part of
+    it might be."""
+    hidden = True
+    partly = False
+    for e in range(tile_view.shape[0]):
+        v = tile_view[e, t]
+        re = rec[e]
+        w, h = size[v, 0], size[v, 1]
+        i0, i1, j0, j1 = _clip(re, tile_texels[e, t, 0], tile_texels[e, t, 1],
+                               tile_texels[e, t, 2], tile_texels[e, t, 3])
+        if i1 <= i0 or j1 <= j0:
+            continue  # nothing of it in this tile from this eye
+        # hidden beyond 1 / iz: over every texel (the smallest iz), or over some (the largest);
+        # as over the whole view (:func:`_project`) when all of it lies in this tile
+        if (i0, i1, j0, j1) != _clip(re, 0, w, 0, h):
+            if re[_R_NEAR] * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) \
+                    > 1 + DEPTH_MARGIN:
+                continue
+            if not re[_R_FAR] * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) \
+                    > 1 + DEPTH_MARGIN:
+                hidden = False  # nowhere hidden
+                continue
+        partly = True
+        # texel by texel: those its outline touches, at its nearest depth there
+        if hidden and not _texels_hidden(re, rect[v], w, h, i0, i1, j0, j1, izlo,
+                                         offsets[v, 0]):
+            hidden = False
+    if hidden:
+        return _HIDDEN
+    return _TEST if partly else _CLEAR
+
+
+@njit(cache=True, inline="always")
+def _outline_of(re, rect, w, h):
+    """A node's outline on the image, into its record: the convex hull of its box's eight
+    corners (gift wrapping), in texel coordinates."""
+    sx = w / (rect[1] - rect[0])
+    sy = h / (rect[3] - rect[2])
+    hull = _R_HULL
+    for c in range(8):
+        x, y, d = _corner(re, c)
+        re[hull + 2 * c] = (x / d - rect[0]) * sx
+        re[hull + 2 * c + 1] = (y / d - rect[2]) * sy
+    start = 0
+    for c in range(1, 8):
+        if re[hull + 2 * c] < re[hull + 2 * start] or (
+                re[hull + 2 * c] == re[hull + 2 * start]
+                and re[hull + 2 * c + 1] < re[hull + 2 * start + 1]):
+            start = c
+    n = 0
+    p = start
+    while True:
+        re[_R_ORDER + n] = p
+        n += 1
+        q = (p + 1) % 8
+        px, py = re[hull + 2 * p], re[hull + 2 * p + 1]
+        for r in range(8):
+            cross = ((re[hull + 2 * q] - px) * (re[hull + 2 * r + 1] - py)
+                     - (re[hull + 2 * q + 1] - py) * (re[hull + 2 * r] - px))
+            if cross < 0:
+                q = r
+        p = q
+        if p == start or n == 8:
+            break
+    re[_R_CORNERS] = n
+    re[_R_READY] = 2.0
+
+
+@njit(cache=True, inline="always")
+def _planes_of(re, rect, w, h):
+    """The planes of a node's box's faces toward the eye, into its record: per face, 1 / depth
+    on its plane as ``a x + b y + c`` over texel coordinates."""
+    sx = w / (rect[1] - rect[0])
+    sy = h / (rect[3] - rect[2])
+    cx, cy, cz = re[_R_CENTRE], re[_R_CENTRE + 1], re[_R_CENTRE + 2]
+    faces = 0
+    for k in range(3):
+        a, b = _R_HALF + 3 * ((k + 1) % 3), _R_HALF + 3 * ((k + 2) % 3)
+        nx = re[a + 1] * re[b + 2] - re[a + 2] * re[b + 1]
+        ny = re[a + 2] * re[b] - re[a] * re[b + 2]
+        nz = re[a] * re[b + 1] - re[a + 1] * re[b]
+        hk = _R_HALF + 3 * k
+        dot = nx * re[hk] + ny * re[hk + 1] + nz * re[hk + 2]
+        if dot < 0:
+            nx, ny, nz, dot = -nx, -ny, -nz, -dot
+        central = nx * cx + ny * cy + nz * cz
+        for sign in (1.0, -1.0):  # the face at c + sign h_k, its outward normal sign n
+            q = sign * central + dot
+            if dot > 0 and q < 0:
+                at = _R_PLANES + 3 * faces
+                re[at] = sign * nx / (sx * q)
+                re[at + 1] = sign * ny / (sy * q)
+                re[at + 2] = sign * (nx * rect[0] + ny * rect[2] - nz) / q
+                faces += 1
+    re[_R_FACES] = faces
+    re[_R_READY] = 1.0
+
+
+@njit(cache=True, inline="always")
+def _bound(re, i, j):
+    """The most 1 / depth a node's box has over texel ``(i, j)``: a ray entering the box crosses
+    the plane of every face that faces the eye, so the box lies no nearer there than the
+    farthest of those planes over the texel (1 / depth is affine on the image: at a corner),
+    nor nearer than its nearest corner; at most 0 where none of it is."""
+    bound = 1.0 / re[_R_NEAR]
+    for f in range(int(re[_R_FACES])):
+        ga, gb = re[_R_PLANES + 3 * f], re[_R_PLANES + 3 * f + 1]
+        bound = min(bound, ga * i + max(ga, 0.0) + gb * j + max(gb, 0.0)
+                    + re[_R_PLANES + 3 * f + 2])
+    return bound
+
+
+@njit(cache=True, inline="always")
+def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, at):
+    """Whether the node of record ``re`` lies behind ``izlo`` over every texel of ``[i0, i1) x
+    [j0, j1)`` that its outline touches, at its depth there (:func:`_bound`). The texel of its
+    centre first (its outline always touches it); a texel is out of its outline when all four
+    of its corners lie outside one of the outline's edges."""
+    if re[_R_READY] == 0.0:
+        _planes_of(re, rect, w, h)
+    sx = w / (rect[1] - rect[0])
+    sy = h / (rect[3] - rect[2])
+    d = -re[_R_CENTRE + 2]
+    ic = int(math.floor((re[_R_CENTRE] / d - rect[0]) * sx))
+    jc = int(math.floor((re[_R_CENTRE + 1] / d - rect[2]) * sy))
+    if i0 <= ic < i1 and j0 <= jc < j1:
+        bound = _bound(re, ic, jc)
+        if bound > 0 and not izlo[at + jc * w + ic] > (1 + DEPTH_MARGIN) * bound:
+            return False
+    if re[_R_READY] == 1.0:
+        _outline_of(re, rect, w, h)
+    n = int(re[_R_CORNERS])
+    hull = _R_HULL
+    for j in range(j0, j1):
+        for i in range(i0, i1):
+            bound = _bound(re, i, j)
+            if not bound > 0 or izlo[at + j * w + i] > (1 + DEPTH_MARGIN) * bound:
+                continue  # hidden there, or none of it there
+            touched = True
+            for e in range(n):  # out when the texel's corner most inside is outside
+                a = int(re[_R_ORDER + e])
+                b = int(re[_R_ORDER + (e + 1) % n])
+                ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
+                ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
+                if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
+                        - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
+                    touched = False
+                    break
+            if touched:
+                return False
+    return True
