@@ -47,6 +47,16 @@ def test_the_main_job_needs_no_extra():
     assert "culling time per frame" in run.stdout and "4 x 4 wall" in run.stdout
 
 
+def test_lights_and_mirrors_need_no_extra():
+    """The fits' compiled kernels call no BLAS or LAPACK (numba's ``@`` and ``np.linalg`` use
+    SciPy's, an extra: without it the process stops with a fatal error)."""
+    run = base("cull", "powerplant", "--wall", "examples/wall-4x4.json", "--frame",
+               '{"position": [0, 30, 160], "orientation": [1, 0, 0, 0]}', "--settings",
+               "scenes/powerplant-lights3.json")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert ", 3 shadows" in run.stdout and ", 1 mirrors;" in run.stdout
+
+
 @pytest.mark.parametrize("argv, extra", [
     (["cull", "powerplant", "--wall", "examples/wall-4x4.json", "--frame",
       '{"position": [0, 30, 160], "orientation": [1, 0, 0, 0]}', "--bounds", "obb-hull"], "hull"),

@@ -447,3 +447,21 @@ def test_fit_boxes_splits_among_threads_without_changing_a_bit(monkeypatch):
     for other in results[1:]:
         for key in results[0]:
             np.testing.assert_array_equal(results[0][key], other[key])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0, 12))
+def test_rq_round_trip(seed, decades):
+    """``_rq`` (written out: numba's ``np.linalg`` needs SciPy) splits ``k @ r`` back into an
+    upper triangular ``k`` and orthonormal rows, however ill-conditioned ``k`` is."""
+    from wallcull.lowilie import _rq
+
+    rng = np.random.default_rng(seed)
+    k = np.triu(rng.normal(size=(3, 3)))
+    k[np.diag_indices(3)] = np.abs(k.diagonal()) * 10.0 ** (-decades * np.arange(3) / 2) + 1e-300
+    r = random_rotation(rng) * rng.choice([-1.0, 1.0], size=(3, 1))
+    p = k @ r
+    k2, r2 = _rq(p)
+    np.testing.assert_allclose(r2 @ r2.T, np.eye(3), atol=4e-16 * 8)
+    assert np.all(np.tril(k2, -1) == 0)
+    np.testing.assert_allclose(k2 @ r2, p, rtol=0, atol=1e-14 * np.abs(p).max())

@@ -42,7 +42,7 @@ import numpy as np
 from numba import njit
 
 from . import workers
-from .projection import frustum, look_at
+from .projection import dot, frustum, look_at, matmul
 from .quad import COLLINEAR, OCTANTS, _greedy, _hull, _polygon_area, _refine
 
 __all__ = ["FitError", "FrustumFit", "fit_frustum", "float32_error", "bench_fit",
@@ -219,7 +219,7 @@ def _homography(src, dst):
     for k in range(4):
         norm[k, 0], norm[k, 1] = (src[k, 0] - cx) * scale, (src[k, 1] - cy) * scale
     t = np.array([[scale, 0.0, -scale * cx], [0.0, scale, -scale * cy], [0.0, 0.0, 1.0]])
-    return _from_square(dst) @ _adjugate(_from_square(norm)) @ t
+    return matmul(matmul(_from_square(dst), _adjugate(_from_square(norm))), t)
 
 
 @njit(cache=True)
@@ -279,11 +279,33 @@ def _segment_rectangle(hull, aspect):
 
 @njit(cache=True)
 def _rq(p):
-    """``p = k @ r`` with ``k`` upper triangular and ``r`` orthonormal, via Householder QR of
-    the reversed transpose (the rows of ``r`` are orthonormal to rounding whatever the
-    conditioning of ``k``)."""
-    q, u = np.linalg.qr(np.ascontiguousarray(p[::-1].T))
-    return np.ascontiguousarray(u.T[::-1, ::-1]), np.ascontiguousarray(q.T[::-1])
+    """``p = k @ r`` (3 x 3) with ``k`` upper triangular and ``r`` a rotation or a reflection,
+    by Gram-Schmidt over ``p``'s rows from the last, each row's part orthogonal to those below
+    taken twice (once more recovers the digits the first loses when ``p`` is ill-conditioned),
+    and ``r``'s first row the cross product of the other two: its rows are orthonormal to
+    rounding whatever the conditioning of ``k``. (Not ``np.linalg.qr``: it needs SciPy.)"""
+    r = np.zeros((3, 3))
+    for i in (2, 1):
+        row = p[i].copy()
+        for _ in range(2):
+            for j in range(i + 1, 3):
+                row -= dot(row, r[j]) * r[j]
+        length = math.sqrt(dot(row, row))
+        if length > 0:
+            r[i] = row / length
+        else:  # a degenerate p: any unit vector orthogonal to the rows below
+            axis = np.zeros(3)
+            axis[np.argmin(np.abs(r[2]))] = 1.0
+            axis -= dot(axis, r[2]) * r[2]
+            r[i] = axis / math.sqrt(dot(axis, axis))
+    r[0, 0] = r[1, 1] * r[2, 2] - r[1, 2] * r[2, 1]
+    r[0, 1] = r[1, 2] * r[2, 0] - r[1, 0] * r[2, 2]
+    r[0, 2] = r[1, 0] * r[2, 1] - r[1, 1] * r[2, 0]
+    k = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            k[i, j] = dot(p[i], r[j])
+    return k, r
 
 
 @njit(cache=True)
@@ -591,7 +613,7 @@ def _fit_core(eye, centers, g, width, height, near_in, far_in, effort, view, pro
     for i in range(3):
         for j in range(3):
             flip[i, j] = rot_s[i, j] * (-1.0 if i == 2 else 1.0)
-    p = h @ flip
+    p = matmul(h, flip)
     w0 = quad[0, 0] * h[2, 0] + quad[0, 1] * h[2, 1] + h[2, 2]
     for k in range(4):
         w = quad[k, 0] * h[2, 0] + quad[k, 1] * h[2, 1] + h[2, 2]

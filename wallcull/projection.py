@@ -365,6 +365,42 @@ def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
     return out, reason
 
 
+#: Small products inside compiled kernels are written out: numba's ``@``, ``np.dot`` and
+#: ``np.linalg`` call SciPy's BLAS and LAPACK, which the base install does not have (a kernel
+#: that used them would stop the process, not raise).
+
+
+@njit(cache=True)
+def matmul(a, b):
+    """``a @ b`` for 2-D arrays, in a compiled kernel."""
+    out = np.zeros((a.shape[0], b.shape[1]))
+    for i in range(a.shape[0]):
+        for k in range(a.shape[1]):
+            x = a[i, k]
+            for j in range(b.shape[1]):
+                out[i, j] += x * b[k, j]
+    return out
+
+
+@njit(cache=True)
+def matvec(a, v):
+    """``a @ v`` for a 2-D ``a`` and a 1-D ``v``, in a compiled kernel."""
+    out = np.zeros(a.shape[0])
+    for i in range(a.shape[0]):
+        for k in range(a.shape[1]):
+            out[i] += a[i, k] * v[k]
+    return out
+
+
+@njit(cache=True)
+def dot(u, v):
+    """``u @ v`` for 1-D arrays, in a compiled kernel."""
+    total = 0.0
+    for k in range(u.shape[0]):
+        total += u[k] * v[k]
+    return total
+
+
 @njit(cache=True)
 def _inverse4(m):
     """Inverse of a 4x4 matrix by cofactors (no pivoting needed for projections: they are
@@ -423,15 +459,15 @@ def _oblique(m, c, rtol, out, reason):
             reason[k] = 2
             continue
         inv = _inverse4(m[k])
-        c_clip = inv.T @ c[k]  # C' = M^-T C
+        c_clip = matvec(inv.T, c[k])  # C' = M^-T C
         corner[0] = 1.0 if c_clip[0] > 0 else (-1.0 if c_clip[0] < 0 else 0.0)
         corner[1] = 1.0 if c_clip[1] > 0 else (-1.0 if c_clip[1] < 0 else 0.0)
         corner[2] = corner[3] = 1.0
-        q = inv @ corner  # Q = M^-1 (sgn C'x, sgn C'y, 1, 1)
-        cq = c[k] @ q
+        q = matvec(inv, corner)  # Q = M^-1 (sgn C'x, sgn C'y, 1, 1)
+        cq = dot(c[k], q)
         if not cq > 0:
             reason[k] = 3
             continue
-        scale = 2.0 * (m[k, 3] @ q) / cq
+        scale = 2.0 * dot(m[k, 3], q) / cq
         for j in range(4):
             out[k, 2, j] = scale * c[k, j] - m[k, 3, j]
