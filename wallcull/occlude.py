@@ -159,7 +159,7 @@ class Occluder:
         self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
-        self._scratch: list = []  # per thread: _rasterize's marks, slots and stamp
+        self._scratch: list = []  # per thread: _rasterize's (see _scratch)
         self._buffers: list = []  # per thread: _prune's slot and records
 
     def wanted(self, frame: Frame) -> bool:
@@ -235,18 +235,15 @@ class Occluder:
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
         units, owner = units[order], owner[order]
         bands = min(workers.count(), max(1, int(views.size[:, 1].min()) // BAND))
-        while len(self._scratch) < bands:
-            self._scratch.append([np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
-                                  np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
-                                  0])
+        for k in range(bands):
+            if k == len(self._scratch) or self._scratch[k][2].shape[1] < total:
+                self._scratch[k:k + 1] = [_scratch(len(m.faces), len(m.vertices), total)]
 
         def band(k, *_):  # rows of every view, in threads
-            faces, vertices, face_slot, vertex_slot, stamp = self._scratch[k]
-            self._scratch[k][4] = _rasterize(
-                units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
-                m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
-                views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
-                faces, vertices, stamp, face_slot, vertex_slot, k, bands)
+            _rasterize(units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
+                       m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
+                       views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
+                       *self._scratch[k], k, bands)
 
         workers.run(band, [(k, k + 1) for k in range(bands)])
         izhi = izlo.copy()
@@ -266,6 +263,15 @@ class Depth:
     offsets: np.ndarray
     izlo: np.ndarray
     izhi: np.ndarray
+
+
+def _scratch(faces: int, vertices: int, texels: int) -> list:
+    """:func:`_rasterize`'s scratch for a mesh table of ``faces`` and ``vertices`` and buffers
+    of ``texels`` (all levels): kept from frame to frame, its marks compared with stamps that only
+    grow, so that a frame neither allocates nor clears it."""
+    return [np.zeros((2, faces), np.int64), np.zeros((2, vertices), np.int64),
+            np.zeros((4, texels), np.int64), np.zeros((3, texels), np.uint64),
+            np.zeros((2, texels)), np.zeros(2, np.int64)]
 
 
 def _occluding(scene) -> np.ndarray:
@@ -480,8 +486,8 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
 
 @njit(cache=True, nogil=True)
 def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
-               faces, neighbors, outward, affine, rect, size, near, buf, at, mark, vmark, stamp,
-               slot_of, vslot, band, bands):
+               faces, neighbors, outward, affine, rect, size, near, buf, at, face_marks,
+               vertex_marks, texel_marks, texel_cells, texel_depths, stamps, band, bands):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]``; a leaf's units next to each other, the nearest leaves first) into level 0 of
     each view's buffer ``buf`` (view ``v``'s texels from ``at[v]``, row-major),
@@ -495,21 +501,28 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     ``neighbors``: per face of the mesh table, the face across each edge, -1 for none;
     ``outward``: per mesh, +1 (-1) when it is closed and its faces wind counter-clockwise
     (clockwise) seen from outside, 0 when it is not closed: a closed mesh's back faces lie
-    behind its front faces and are skipped. ``mark`` and ``slot_of`` (per face of the table),
-    ``vmark`` and ``vslot`` (per vertex) and ``stamp``: scratch kept between frames; returns
-    the next stamp. Only the rows of band ``band`` of ``bands`` of each view are written (one
-    thread per band)."""
+    behind its front faces and are skipped. Only the rows of band ``band`` of ``bands`` of
+    each view are written (one thread per band). The rest: scratch kept between frames (see
+    :func:`_scratch`), marked with the ``stamps`` of leaves and patches (updated)."""
     views = affine.shape[0]
-    texels = buf.shape[0]
-    seen = np.zeros(texels, np.int64)  # per texel: the last patch that touched it
-    cover = np.zeros(texels, np.int64)  # ... whose face covered its centre
-    edge = np.zeros(texels, np.int64)  # ... whose outline touched it, and then:
-    outline_cells = np.empty(texels, np.uint64)  # the cells its outline touched
-    centre_cells = np.empty(texels, np.uint64)  # the cells whose centres its faces cover
-    low = np.empty(texels)  # the patch's least 1 / depth over the texel
-    work = np.zeros(texels, np.uint64)  # cells covered by patches that covered it in part
-    work_low = np.full(texels, np.inf)  # ... and their least 1 / depth over it
-    touched = np.empty(texels, np.int64)
+    mark, slot_of = face_marks[0], face_marks[1]  # per face: the last leaf, its slot there
+    vmark, vslot = vertex_marks[0], vertex_marks[1]  # per vertex: the same
+    seen = texel_marks[0]  # per texel: the last patch that touched it
+    cover = texel_marks[1]  # ... whose face covered its centre
+    edge = texel_marks[2]  # ... whose outline touched it, and then:
+    touched = texel_marks[3]  # (a list of the texels the patch touched)
+    outline_cells = texel_cells[0]  # the cells its outline touched
+    centre_cells = texel_cells[1]  # the cells whose centres its faces cover
+    work = texel_cells[2]  # cells covered by patches that covered it in part
+    low = texel_depths[0]  # the patch's least 1 / depth over the texel
+    work_low = texel_depths[1]  # ... and the least 1 / depth of those in ``work``
+    for v in range(views):  # this frame's rows: nothing gathered yet
+        w = size[v, 0]
+        r0 = at[v] + size[v, 1] * band // bands * w
+        r1 = at[v] + size[v, 1] * (band + 1) // bands * w
+        work[r0:r1] = 0
+        work_low[r0:r1] = np.inf
+    stamp, patch = stamps[0], stamps[1]
     scratch = np.empty((4, 9))
     spans = np.empty((2, SUB), np.int64)
     cap = 64
@@ -528,7 +541,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     queue = np.empty(cap, np.int64)
     m_ = np.empty((3, 4))
     q = 0
-    patch = 0
     cut = near * (1 + NEAR_MARGIN)
     while q < units.shape[0]:
         leaf = owner[q]
@@ -600,6 +612,8 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                     vimage[x, 0] = (px / d - rect[v, 0]) * sx
                     vimage[x, 1] = (py / d - rect[v, 2]) * sy
                     vimage[x, 2] = 1.0 / d
+            if _idle(vimage, vdepth, nv, cut, wv, j0, j1, at[v], buf):
+                continue
             for s in range(n):
                 facing[s] = 0
                 c0, c1, c2 = corner[s, 0], corner[s, 1], corner[s, 2]
@@ -649,6 +663,17 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                                 done[t] = True
                                 queue[size_] = t
                                 size_ += 1
+                x0 = y0 = np.inf
+                x1 = y1 = -np.inf
+                near_ = 0.0
+                for r in range(size_):
+                    s = queue[r]
+                    for c in range(sides[s]):
+                        x0, x1 = min(x0, poly[s, c, 0]), max(x1, poly[s, c, 0])
+                        y0, y1 = min(y0, poly[s, c, 1]), max(y1, poly[s, c, 1])
+                        near_ = max(near_, poly[s, c, 2])
+                if _futile(x0, x1, y0, y1, near_, wv, j0, j1, at[v], buf):
+                    continue
                 patch += 1
                 for r in range(size_):  # the outline's texels
                     s = queue[r]
@@ -664,7 +689,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                 for r in range(size_):
                     s = queue[r]
                     k = _fill(poly[s], sides[s], facing[s], wv, j0, j1, at[v], seen, cover, edge,
-                              centre_cells, low, touched, k, patch, scratch, spans)
+                              centre_cells, low, buf, touched, k, patch, scratch, spans)
                 for r in range(size_):  # its cells, where the patch may bring texels nearer
                     s = queue[r]
                     ns = sides[s]
@@ -678,7 +703,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                 _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
                         work_low, buf, patch)
         q = q1
-    return stamp
+    stamps[0], stamps[1] = stamp, patch
 
 
 #: Cells across a texel each way along an outline: a texel's cells are bits of a mask.
@@ -693,6 +718,47 @@ SIDE_MARGIN = 1e-9
 #: Texels and cells count as touched by a line within this distance (texels): rounding
 #: never claims one an outline crosses.
 TOUCH = 1e-6
+
+
+@njit(cache=True, inline="always")
+def _idle(vimage, vdepth, nv, cut, w, j0, j1, at, buf):
+    """Whether a leaf whose ``nv`` vertices project to ``vimage`` can claim nothing in rows
+    ``[j0, j1)`` (see :func:`_futile`; False when a vertex lies before ``cut``: its image is
+    then not its vertices'). Most occluders behind the nearest ones end here, before any of
+    their faces is set up."""
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    near = 0.0
+    for x in range(nv):
+        if not vdepth[x] > cut:
+            return False
+        x0, x1 = min(x0, vimage[x, 0]), max(x1, vimage[x, 0])
+        y0, y1 = min(y0, vimage[x, 1]), max(y1, vimage[x, 1])
+        near = max(near, vimage[x, 2])
+    return _futile(x0, x1, y0, y1, near, w, j0, j1, at, buf)
+
+
+@njit(cache=True, inline="always")
+def _futile(x0, x1, y0, y1, near, w, j0, j1, at, buf):
+    """Whether occluders within the image box ``[x0, x1] x [y0, y1]`` (texels), at most
+    ``near`` in 1 / depth, can change nothing in rows ``[j0, j1)`` of the buffer ``buf``: a
+    texel or cell they claim lies wholly inside their image, so within the box, and a claim
+    changes ``buf`` only where they are nearer than it (see :func:`_commit`)."""
+    # the box within the rows and columns written here (a vertex near the eye's plane may
+    # project far beyond)
+    x0, x1 = max(x0, -1.0), min(x1, w + 1.0)
+    y0, y1 = max(y0, j0 - 1.0), min(y1, j1 + 1.0)
+    # no whole cell (of SUB x SUB a texel) fits within it
+    if math.ceil(x0 * SUB) + 1 > math.floor(x1 * SUB) or \
+            math.ceil(y0 * SUB) + 1 > math.floor(y1 * SUB):
+        return True
+    i0, i1 = max(0, int(math.floor(x0))), min(w - 1, int(math.floor(x1)))
+    for j in range(max(j0, int(math.floor(y0))), min(j1 - 1, int(math.floor(y1))) + 1):
+        row = at + j * w
+        for t in range(row + i0, row + i1 + 1):
+            if buf[t] < near:
+                return False
+    return True
 
 
 @njit(cache=True, inline="always")
@@ -821,8 +887,8 @@ def _along(ax, ay, bx, by, slope, y0, y1):
 
 
 @njit(cache=True, inline="always")
-def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touched, k, patch,
-          ed, spans):
+def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, buf, touched, k,
+          patch, ed, spans):
     """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
     area) into the patch's texels of rows ``[j0, j1)``: every texel it touches (or nearly) takes the least 1 / depth
     of the polygon over the texel into ``low``; the texels whose centres lie inside it are
@@ -901,7 +967,9 @@ def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touc
                 low[t] = z
             if c0 <= i <= c1:
                 cover[t] = patch
-            if edge[t] == patch:  # on the outline: which of its cells' centres are inside
+            # on the outline: which of its cells' centres are inside, where the patch may
+            # bring the texel nearer (its least 1 / depth there is at most z)
+            if edge[t] == patch and z > buf[t]:
                 if not cells:
                     for r in range(SUB):
                         spans[0, r], spans[1, r] = _centres(ed, ns, J + (r + 0.5) / SUB, SUB)
