@@ -663,17 +663,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                                 done[t] = True
                                 queue[size_] = t
                                 size_ += 1
-                x0 = y0 = np.inf
-                x1 = y1 = -np.inf
-                near_ = 0.0
-                for r in range(size_):
-                    s = queue[r]
-                    for c in range(sides[s]):
-                        x0, x1 = min(x0, poly[s, c, 0]), max(x1, poly[s, c, 0])
-                        y0, y1 = min(y0, poly[s, c, 1]), max(y1, poly[s, c, 1])
-                        near_ = max(near_, poly[s, c, 2])
-                if _futile(x0, x1, y0, y1, near_, wv, j0, j1, at[v], buf):
-                    continue
                 patch += 1
                 for r in range(size_):  # the outline's texels
                     s = queue[r]
@@ -722,10 +711,12 @@ TOUCH = 1e-6
 
 @njit(cache=True, inline="always")
 def _idle(vimage, vdepth, nv, cut, w, j0, j1, at, buf):
-    """Whether a leaf whose ``nv`` vertices project to ``vimage`` can claim nothing in rows
-    ``[j0, j1)`` (see :func:`_futile`; False when a vertex lies before ``cut``: its image is
-    then not its vertices'). Most occluders behind the nearest ones end here, before any of
-    their faces is set up."""
+    """Whether a leaf whose ``nv`` vertices project to ``vimage`` can change nothing in rows
+    ``[j0, j1)`` of the buffer ``buf``: a texel or cell it claims lies wholly inside its
+    image, so within its vertices' box, and a claim changes ``buf`` only where the leaf is
+    nearer than it (see :func:`_commit`; its most 1 / depth is at a vertex). False when a
+    vertex lies before ``cut`` (its image is then not its vertices'). A fifth of the leaves
+    chosen, behind the nearer ones, end here before any of their faces is set up."""
     x0 = y0 = np.inf
     x1 = y1 = -np.inf
     near = 0.0
@@ -735,15 +726,6 @@ def _idle(vimage, vdepth, nv, cut, w, j0, j1, at, buf):
         x0, x1 = min(x0, vimage[x, 0]), max(x1, vimage[x, 0])
         y0, y1 = min(y0, vimage[x, 1]), max(y1, vimage[x, 1])
         near = max(near, vimage[x, 2])
-    return _futile(x0, x1, y0, y1, near, w, j0, j1, at, buf)
-
-
-@njit(cache=True, inline="always")
-def _futile(x0, x1, y0, y1, near, w, j0, j1, at, buf):
-    """Whether occluders within the image box ``[x0, x1] x [y0, y1]`` (texels), at most
-    ``near`` in 1 / depth, can change nothing in rows ``[j0, j1)`` of the buffer ``buf``: a
-    texel or cell they claim lies wholly inside their image, so within the box, and a claim
-    changes ``buf`` only where they are nearer than it (see :func:`_commit`)."""
     # the box within the rows and columns written here (a vertex near the eye's plane may
     # project far beyond)
     x0, x1 = max(x0, -1.0), min(x1, w + 1.0)
@@ -1079,6 +1061,8 @@ def _extreme(buf, offsets, v, w0, h0, i0, i1, j0, j1, largest):
     return out
 
 
+#: The texel test reads blocks of 2^BLOCK x 2^BLOCK texels first (pyramid level BLOCK).
+BLOCK = 2
 #: What a node's projection says of it over a whole view (:func:`_project`): hidden wherever
 #: it is; not hidden anywhere, nor any part of it; reaching the eye (never hidden, its
 #: children may be); or to be tested tile by tile.
@@ -1286,7 +1270,7 @@ def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
         partly = True
         # texel by texel: those its outline touches, at its nearest depth there
         if hidden and not _texels_hidden(re, rect[v], w, h, i0, i1, j0, j1, izlo,
-                                         offsets[v, 0]):
+                                         offsets[v]):
             hidden = False
     if hidden:
         return _HIDDEN
@@ -1360,55 +1344,71 @@ def _planes_of(re, rect, w, h):
 
 
 @njit(cache=True, inline="always")
-def _bound(re, i, j):
-    """The most 1 / depth a node's box has over texel ``(i, j)``: a ray entering the box crosses
-    the plane of every face that faces the eye, so the box lies no nearer there than the
-    farthest of those planes over the texel (1 / depth is affine on the image: at a corner),
-    nor nearer than its nearest corner; at most 0 where none of it is."""
+def _bound(re, i, j, s):
+    """The most 1 / depth a node's box has over the ``s x s`` texels from ``(i, j)``: a ray
+    entering the box crosses the plane of every face that faces the eye, so the box lies no
+    nearer there than the farthest of those planes over the texels (1 / depth is affine on
+    the image: at a corner), nor nearer than its nearest corner; at most 0 where none of it
+    is."""
     bound = 1.0 / re[_R_NEAR]
     for f in range(int(re[_R_FACES])):
         ga, gb = re[_R_PLANES + 3 * f], re[_R_PLANES + 3 * f + 1]
-        bound = min(bound, ga * i + max(ga, 0.0) + gb * j + max(gb, 0.0)
+        bound = min(bound, ga * i + max(ga, 0.0) * s + gb * j + max(gb, 0.0) * s
                     + re[_R_PLANES + 3 * f + 2])
     return bound
 
 
 @njit(cache=True, inline="always")
-def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, at):
+def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
     """Whether the node of record ``re`` lies behind ``izlo`` over every texel of ``[i0, i1) x
     [j0, j1)`` that its outline touches, at its depth there (:func:`_bound`). The texel of its
-    centre first (its outline always touches it); a texel is out of its outline when all four
-    of its corners lie outside one of the outline's edges."""
+    centre first (its outline always touches it); then blocks of texels, read at a level of
+    the pyramid (its least over the block), and texel by texel only in those where that does
+    not settle it; a texel is out of its outline when all four of its corners lie outside
+    one of the outline's edges."""
     if re[_R_READY] == 0.0:
         _planes_of(re, rect, w, h)
+    at = offsets[0]
     sx = w / (rect[1] - rect[0])
     sy = h / (rect[3] - rect[2])
     d = -re[_R_CENTRE + 2]
     ic = int(math.floor((re[_R_CENTRE] / d - rect[0]) * sx))
     jc = int(math.floor((re[_R_CENTRE + 1] / d - rect[2]) * sy))
     if i0 <= ic < i1 and j0 <= jc < j1:
-        bound = _bound(re, ic, jc)
+        bound = _bound(re, ic, jc, 1)
         if bound > 0 and not izlo[at + jc * w + ic] > (1 + DEPTH_MARGIN) * bound:
             return False
-    if re[_R_READY] == 1.0:
-        _outline_of(re, rect, w, h)
+    l = min(BLOCK, offsets.shape[0] - 1)
+    s = 1 << l
+    wl = -(-w // s)
+    for J in range(j0 >> l, ((j1 - 1) >> l) + 1):
+        for I in range(i0 >> l, ((i1 - 1) >> l) + 1):
+            if izlo[offsets[l] + J * wl + I] > (1 + DEPTH_MARGIN) * _bound(re, I * s, J * s, s):
+                continue  # hidden over the whole block
+            if re[_R_READY] == 1.0:
+                _outline_of(re, rect, w, h)
+            for j in range(max(j0, J * s), min(j1, J * s + s)):
+                for i in range(max(i0, I * s), min(i1, I * s + s)):
+                    if _touches(re, i, j, izlo[at + j * w + i]):
+                        return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def _touches(re, i, j, iz):
+    """Whether the node of record ``re`` (its outline ready) may show in texel ``(i, j)``
+    before ``1 / iz``: some of it is there, nearer, and its outline touches the texel."""
+    bound = _bound(re, i, j, 1)
+    if not bound > 0 or iz > (1 + DEPTH_MARGIN) * bound:
+        return False  # hidden there, or none of it there
     n = int(re[_R_CORNERS])
     hull = _R_HULL
-    for j in range(j0, j1):
-        for i in range(i0, i1):
-            bound = _bound(re, i, j)
-            if not bound > 0 or izlo[at + j * w + i] > (1 + DEPTH_MARGIN) * bound:
-                continue  # hidden there, or none of it there
-            touched = True
-            for e in range(n):  # out when the texel's corner most inside is outside
-                a = int(re[_R_ORDER + e])
-                b = int(re[_R_ORDER + (e + 1) % n])
-                ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
-                ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
-                if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
-                        - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
-                    touched = False
-                    break
-            if touched:
-                return False
+    for e in range(n):  # out when the texel's corner most inside is outside
+        a = int(re[_R_ORDER + e])
+        b = int(re[_R_ORDER + (e + 1) % n])
+        ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
+        ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
+        if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
+                - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
+            return False
     return True
