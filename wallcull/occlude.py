@@ -1,32 +1,42 @@
 """Occlusion culling: a tile draws nothing that is hidden behind something else.
 
-After the frustum cull, a frame's largest nearby clusters (or what was visible last frame) are
-rasterized as *occluders* into small depth buffers, one per image plane: every tile of a planar
-grid shares the eye and the wall's plane, so one buffer serves the whole wall; each screen of a
-screens wall has its own; a stereo frame has one per eye. Then each tile's listed nodes are
-tested against the buffer over the tile's part of it, top down: a node hidden over every texel
-its projection touches is dropped; one that is not, but might be in part, is replaced by its
-children, and so on down to clusters; one that cannot be is kept whole.
+After the frustum cull, a frame's best occluders are rasterized into small depth buffers, one
+per image plane: every tile of a planar grid shares the eye and the wall's plane, so one buffer
+serves the whole wall; each screen of a screens wall has its own; a stereo frame has one per
+eye. Then each tile's listed nodes are tested against the buffer over the tile's part of it,
+top down: a node hidden over every texel its projection touches is dropped; one that is not,
+but might be in part, is replaced by its children, and so on down to clusters; one that cannot
+be is kept whole.
 
 Conservative on both sides, so that dropping never removes a pixel:
 
-* an occluder triangle writes only the texels it covers *wholly* (all four corners inside its
-  edges, by a margin), and writes there its *farthest* depth over the texel (depth's reciprocal
-  is affine on the image plane, so the farthest is at a corner); a texel keeps the nearest such
-  depth: everything beyond it, over the whole texel, is hidden. Triangles that reach behind the
-  near plane do not occlude;
+* occluders claim only what they cover *wholly*. A leaf's chosen faces that face the eye form
+  *patches*, faces joined across the edges they share (when the two lie either side of the
+  edge on the image); the patch's other edges, and the near plane's cuts through its faces,
+  are its *outline*. A texel whose centre a face of the patch covers and that no edge of the
+  outline touches (by a margin) lies wholly inside the patch; a texel the outline touches is
+  split into ``SUB x SUB`` cells, claimed the same way, and cells claimed by several patches
+  gather in a mask until they fill the texel. A texel claimed keeps the nearest of the
+  *farthest* depths of what claimed it (depth's reciprocal is affine on each face, so the
+  farthest is at a corner of the face's part in the texel): everything beyond it, over the
+  whole texel, is hidden. Faces before the near plane are cut off; a closed mesh's back faces
+  are skipped (its front faces hide them);
 * a node's bound is projected whole (its box's eight corners, grown by its ball): the texels
   of its rectangle within the tile, and its nearest depth. It is hidden when that depth lies
   beyond the buffer's farthest over the rectangle (read from a max pyramid of the buffer, at the
-  level where the rectangle spans two texels), by a relative margin that keeps a 24-bit depth
-  buffer's rounding from letting it through. A bound reaching behind the near plane is never
-  hidden. In stereo a node must be hidden from both eyes.
+  level where the rectangle spans two texels), or else over every texel its box's outline
+  touches, at the box's own depth there (blocks of texels first, from the min pyramid), by a
+  relative margin that keeps a 24-bit depth buffer's rounding from letting it through. A bound
+  reaching behind the near plane is never hidden. In stereo a node must be hidden from both
+  eyes.
 
-Occluders come from the frame's own lists (``choice="size"``: the units, clusters or whole
-leaves, that span the largest angles, within a budget of triangles) or from what the tiles
-showed last frame (``"last"``), and never from nodes the scene's settings mark transparent
-(``{"occlusion": {"exclude": [node names]}}``, their subtrees with them). What mirrors and
-lights see is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
+Occluders are the units (clusters, or whole leaves) under the frame's lists whose box covers
+the most image per triangle, weighted by the share of the box their faces fill (a wall before
+a pipe, a floor before a grating), within a budget of triangles, and never nodes the scene's
+settings mark transparent (``{"occlusion": {"exclude": [node names]}}``, their subtrees with
+them). They are rasterized nearest leaf first, so that a leaf that cannot bring any texel of
+its image nearer is skipped whole. What mirrors and lights see is culled apart
+(:mod:`wallcull.fit`) and never occlusion-culled.
 """
 
 from __future__ import annotations
@@ -62,7 +72,7 @@ MAX_TEXELS = 1024
 class OcclusionOptions:
     """``mode``: every frame (``on``) or frames from inside the scene (``auto``); ``budget``:
     occluder triangles per frame; ``texels``: buffer texels across one tile's (one screen's)
-    width; ``choice``: occluders by ``size`` this frame, or what was visible ``last`` frame."""
+    width."""
 
     mode: str = "on"
     budget: int = 20_000
@@ -149,7 +159,7 @@ class Views:
 
 class Occluder:
     """Occlusion-culls one scene state's frames on one wall (see the module docstring); keeps
-    its buffers, and what was visible last frame, from frame to frame."""
+    its buffers and scratch from frame to frame."""
 
     def __init__(self, state: SceneState, wall, options: OcclusionOptions = OcclusionOptions()):
         self.state, self.wall, self.options = state, wall, options
@@ -208,7 +218,7 @@ class Occluder:
         return out
 
     def depth(self, vis: Visibility, frame: Frame) -> "Depth":
-        """The frame's occluders (chosen from ``vis``, or last frame's lists) rasterized."""
+        """The frame's occluders (chosen from ``vis``) rasterized."""
         box = packed(self.state)
         views = Views.of(self.wall, frame, self.options.texels)
         return self.rasterize(self.choose(vis, views, box), views, box)
