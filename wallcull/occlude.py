@@ -912,6 +912,7 @@ def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, buf,
         A = -side * ey
         B = side * ex
         C = side * (ey * ax - ex * ay)
+        ed[3, e] = ex / ey if ey != 0 else 0.0  # dx / dy along it, for its rows' extent
         if A != 0:
             ed[0, e] = 1.0 if A > 0 else 2.0
             ed[1, e] = -B / A
@@ -932,9 +933,8 @@ def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, buf,
             if by < y0 or ay > y1:
                 continue
             if by > ay:
-                s_ = (bx - ax) / (by - ay)
-                x0 = ax + s_ * (max(y0, ay) - ay)
-                x1 = ax + s_ * (min(y1, by) - ay)
+                x0 = ax + ed[3, e] * (max(y0, ay) - ay)
+                x1 = ax + ed[3, e] * (min(y1, by) - ay)
             else:
                 x0, x1 = ax, bx
             lo, hi = min(lo, x0, x1), max(hi, x0, x1)
