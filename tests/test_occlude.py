@@ -42,11 +42,13 @@ def _ray_depths(tris: np.ndarray, xy: np.ndarray, near: float = NEAR) -> np.ndar
     return np.where(hit, t, np.inf).min(axis=1)  # d has unit z: t is the depth
 
 
-def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=None, bands=1):
+def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=None, bands=1,
+           reused=False):
     """Rasterize meshes ``[(points (view coordinates), faces), ...]`` as occluders, each a
     leaf of its own (its faces sharing an edge join across it), all its faces one unit, or
     ``units``: per mesh, runs ``(first, count)`` of its faces (its clusters chosen); in
-    ``bands`` of rows, one after the other (as threads do)."""
+    ``bands`` of rows, one after the other (as threads do); ``reused``: with scratch that
+    served a frame before (the view shifted)."""
     from wallcull.instances import MeshTable
 
     rect = np.asarray(rect, float)
@@ -55,17 +57,16 @@ def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=Non
     owner = np.array([k for k, r in enumerate(runs) for _ in r], np.int64)
     first = np.array([a for r in runs for a, _ in r], np.int64)
     count = np.array([c for r in runs for _, c in r], np.int64)
-    buf = np.zeros(w * h)
-    for band in range(bands):
-        occlude._rasterize(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
-                           np.repeat(np.eye(4)[None], len(meshes), 0), table.vertex_start,
-                           table.vertices, table.face_start, table.faces, table.face_neighbors,
-                           occlude._outward(table), np.eye(3, 4)[None], rect[None],
-                           np.array([[w, h]]), near, buf, np.array([0]),
-                           np.zeros(len(table.faces), np.int64),
-                           np.zeros(len(table.vertices), np.int64), 0,
-                           np.zeros(len(table.faces), np.int64),
-                           np.zeros(len(table.vertices), np.int64), band, bands)
+    scratch = occlude._scratch(len(table.faces), len(table.vertices), w * h)
+    for frame in ([rect + 0.05, rect] if reused else [rect]):
+        buf = np.zeros(w * h)
+        for band in range(bands):
+            occlude._rasterize(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
+                               np.repeat(np.eye(4)[None], len(meshes), 0), table.vertex_start,
+                               table.vertices, table.face_start, table.faces,
+                               table.face_neighbors, occlude._outward(table), np.eye(3, 4)[None],
+                               frame[None], np.array([[w, h]]), near, buf, np.array([0]),
+                               *scratch, band, bands)
     return buf, rect
 
 
@@ -168,6 +169,8 @@ def test_closed_meshes_through_the_near_plane_claim_only_what_they_cover(seed, c
     check_claims(buf, rect, tris, rng=rng)
     banded, _ = raster(meshes, bands=3)  # in bands of rows (threads): the same buffer
     np.testing.assert_array_equal(banded, buf)
+    again, _ = raster(meshes, bands=3, reused=True)  # and with scratch of a frame before
+    np.testing.assert_array_equal(again, buf)
 
 
 def test_the_rasterizer_is_not_vacuous():

@@ -1,32 +1,42 @@
 """Occlusion culling: a tile draws nothing that is hidden behind something else.
 
-After the frustum cull, a frame's largest nearby clusters (or what was visible last frame) are
-rasterized as *occluders* into small depth buffers, one per image plane: every tile of a planar
-grid shares the eye and the wall's plane, so one buffer serves the whole wall; each screen of a
-screens wall has its own; a stereo frame has one per eye. Then each tile's listed nodes are
-tested against the buffer over the tile's part of it, top down: a node hidden over every texel
-its projection touches is dropped; one that is not, but might be in part, is replaced by its
-children, and so on down to clusters; one that cannot be is kept whole.
+After the frustum cull, a frame's best occluders are rasterized into small depth buffers, one
+per image plane: every tile of a planar grid shares the eye and the wall's plane, so one buffer
+serves the whole wall; each screen of a screens wall has its own; a stereo frame has one per
+eye. Then each tile's listed nodes are tested against the buffer over the tile's part of it,
+top down: a node hidden over every texel its projection touches is dropped; one that is not,
+but might be in part, is replaced by its children, and so on down to clusters; one that cannot
+be is kept whole.
 
 Conservative on both sides, so that dropping never removes a pixel:
 
-* an occluder triangle writes only the texels it covers *wholly* (all four corners inside its
-  edges, by a margin), and writes there its *farthest* depth over the texel (depth's reciprocal
-  is affine on the image plane, so the farthest is at a corner); a texel keeps the nearest such
-  depth: everything beyond it, over the whole texel, is hidden. Triangles that reach behind the
-  near plane do not occlude;
+* occluders claim only what they cover *wholly*. A leaf's chosen faces that face the eye form
+  *patches*, faces joined across the edges they share (when the two lie either side of the
+  edge on the image); the patch's other edges, and the near plane's cuts through its faces,
+  are its *outline*. A texel whose centre a face of the patch covers and that no edge of the
+  outline touches (by a margin) lies wholly inside the patch; a texel the outline touches is
+  split into ``SUB x SUB`` cells, claimed the same way, and cells claimed by several patches
+  gather in a mask until they fill the texel. A texel claimed keeps the nearest of the
+  *farthest* depths of what claimed it (depth's reciprocal is affine on each face, so the
+  farthest is at a corner of the face's part in the texel): everything beyond it, over the
+  whole texel, is hidden. Faces before the near plane are cut off; a closed mesh's back faces
+  are skipped (its front faces hide them);
 * a node's bound is projected whole (its box's eight corners, grown by its ball): the texels
   of its rectangle within the tile, and its nearest depth. It is hidden when that depth lies
   beyond the buffer's farthest over the rectangle (read from a max pyramid of the buffer, at the
-  level where the rectangle spans two texels), by a relative margin that keeps a 24-bit depth
-  buffer's rounding from letting it through. A bound reaching behind the near plane is never
-  hidden. In stereo a node must be hidden from both eyes.
+  level where the rectangle spans two texels), or else over every texel its box's outline
+  touches, at the box's own depth there (blocks of texels first, from the min pyramid), by a
+  relative margin that keeps a 24-bit depth buffer's rounding from letting it through. A bound
+  reaching behind the near plane is never hidden. In stereo a node must be hidden from both
+  eyes.
 
-Occluders come from the frame's own lists (``choice="size"``: the units, clusters or whole
-leaves, that span the largest angles, within a budget of triangles) or from what the tiles
-showed last frame (``"last"``), and never from nodes the scene's settings mark transparent
-(``{"occlusion": {"exclude": [node names]}}``, their subtrees with them). What mirrors and
-lights see is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
+Occluders are the units (clusters, or whole leaves) under the frame's lists whose box covers
+the most image per triangle, weighted by the share of the box their faces fill (a wall before
+a pipe, a floor before a grating), within a budget of triangles, and never nodes the scene's
+settings mark transparent (``{"occlusion": {"exclude": [node names]}}``, their subtrees with
+them). They are rasterized nearest leaf first, so that a leaf that cannot bring any texel of
+its image nearer is skipped whole. What mirrors and lights see is culled apart
+(:mod:`wallcull.fit`) and never occlusion-culled.
 """
 
 from __future__ import annotations
@@ -62,7 +72,7 @@ MAX_TEXELS = 1024
 class OcclusionOptions:
     """``mode``: every frame (``on``) or frames from inside the scene (``auto``); ``budget``:
     occluder triangles per frame; ``texels``: buffer texels across one tile's (one screen's)
-    width; ``choice``: occluders by ``size`` this frame, or what was visible ``last`` frame."""
+    width."""
 
     mode: str = "on"
     budget: int = 20_000
@@ -149,7 +159,7 @@ class Views:
 
 class Occluder:
     """Occlusion-culls one scene state's frames on one wall (see the module docstring); keeps
-    its buffers, and what was visible last frame, from frame to frame."""
+    its buffers and scratch from frame to frame."""
 
     def __init__(self, state: SceneState, wall, options: OcclusionOptions = OcclusionOptions()):
         self.state, self.wall, self.options = state, wall, options
@@ -159,7 +169,7 @@ class Occluder:
         self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
-        self._scratch: list = []  # per thread: _rasterize's marks, slots and stamp
+        self._scratch: list = []  # per thread: _rasterize's (see _scratch)
         self._buffers: list = []  # per thread: _prune's slot and records
 
     def wanted(self, frame: Frame) -> bool:
@@ -208,7 +218,7 @@ class Occluder:
         return out
 
     def depth(self, vis: Visibility, frame: Frame) -> "Depth":
-        """The frame's occluders (chosen from ``vis``, or last frame's lists) rasterized."""
+        """The frame's occluders (chosen from ``vis``) rasterized."""
         box = packed(self.state)
         views = Views.of(self.wall, frame, self.options.texels)
         return self.rasterize(self.choose(vis, views, box), views, box)
@@ -235,18 +245,15 @@ class Occluder:
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
         units, owner = units[order], owner[order]
         bands = min(workers.count(), max(1, int(views.size[:, 1].min()) // BAND))
-        while len(self._scratch) < bands:
-            self._scratch.append([np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
-                                  np.zeros(len(m.faces), np.int64), np.zeros(len(m.vertices), np.int64),
-                                  0])
+        for k in range(bands):
+            if k == len(self._scratch) or self._scratch[k][2].shape[1] < total:
+                self._scratch[k:k + 1] = [_scratch(len(m.faces), len(m.vertices), total)]
 
         def band(k, *_):  # rows of every view, in threads
-            faces, vertices, face_slot, vertex_slot, stamp = self._scratch[k]
-            self._scratch[k][4] = _rasterize(
-                units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
-                m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
-                views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
-                faces, vertices, stamp, face_slot, vertex_slot, k, bands)
+            _rasterize(units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
+                       m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
+                       views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
+                       *self._scratch[k], k, bands)
 
         workers.run(band, [(k, k + 1) for k in range(bands)])
         izhi = izlo.copy()
@@ -266,6 +273,15 @@ class Depth:
     offsets: np.ndarray
     izlo: np.ndarray
     izhi: np.ndarray
+
+
+def _scratch(faces: int, vertices: int, texels: int) -> list:
+    """:func:`_rasterize`'s scratch for a mesh table of ``faces`` and ``vertices`` and buffers
+    of ``texels`` (all levels): kept from frame to frame, its marks compared with stamps that only
+    grow, so that a frame neither allocates nor clears it."""
+    return [np.zeros((2, faces), np.int64), np.zeros((2, vertices), np.int64),
+            np.zeros((4, texels), np.int64), np.zeros((3, texels), np.uint64),
+            np.zeros((2, texels)), np.zeros(2, np.int64)]
 
 
 def _occluding(scene) -> np.ndarray:
@@ -480,8 +496,8 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
 
 @njit(cache=True, nogil=True)
 def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
-               faces, neighbors, outward, affine, rect, size, near, buf, at, mark, vmark, stamp,
-               slot_of, vslot, band, bands):
+               faces, neighbors, outward, affine, rect, size, near, buf, at, face_marks,
+               vertex_marks, texel_marks, texel_cells, texel_depths, stamps, band, bands):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]``; a leaf's units next to each other, the nearest leaves first) into level 0 of
     each view's buffer ``buf`` (view ``v``'s texels from ``at[v]``, row-major),
@@ -495,21 +511,28 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     ``neighbors``: per face of the mesh table, the face across each edge, -1 for none;
     ``outward``: per mesh, +1 (-1) when it is closed and its faces wind counter-clockwise
     (clockwise) seen from outside, 0 when it is not closed: a closed mesh's back faces lie
-    behind its front faces and are skipped. ``mark`` and ``slot_of`` (per face of the table),
-    ``vmark`` and ``vslot`` (per vertex) and ``stamp``: scratch kept between frames; returns
-    the next stamp. Only the rows of band ``band`` of ``bands`` of each view are written (one
-    thread per band)."""
+    behind its front faces and are skipped. Only the rows of band ``band`` of ``bands`` of
+    each view are written (one thread per band). The rest: scratch kept between frames (see
+    :func:`_scratch`), marked with the ``stamps`` of leaves and patches (updated)."""
     views = affine.shape[0]
-    texels = buf.shape[0]
-    seen = np.zeros(texels, np.int64)  # per texel: the last patch that touched it
-    cover = np.zeros(texels, np.int64)  # ... whose face covered its centre
-    edge = np.zeros(texels, np.int64)  # ... whose outline touched it, and then:
-    outline_cells = np.empty(texels, np.uint64)  # the cells its outline touched
-    centre_cells = np.empty(texels, np.uint64)  # the cells whose centres its faces cover
-    low = np.empty(texels)  # the patch's least 1 / depth over the texel
-    work = np.zeros(texels, np.uint64)  # cells covered by patches that covered it in part
-    work_low = np.full(texels, np.inf)  # ... and their least 1 / depth over it
-    touched = np.empty(texels, np.int64)
+    mark, slot_of = face_marks[0], face_marks[1]  # per face: the last leaf, its slot there
+    vmark, vslot = vertex_marks[0], vertex_marks[1]  # per vertex: the same
+    seen = texel_marks[0]  # per texel: the last patch that touched it
+    cover = texel_marks[1]  # ... whose face covered its centre
+    edge = texel_marks[2]  # ... whose outline touched it, and then:
+    touched = texel_marks[3]  # (a list of the texels the patch touched)
+    outline_cells = texel_cells[0]  # the cells its outline touched
+    centre_cells = texel_cells[1]  # the cells whose centres its faces cover
+    work = texel_cells[2]  # cells covered by patches that covered it in part
+    low = texel_depths[0]  # the patch's least 1 / depth over the texel
+    work_low = texel_depths[1]  # ... and the least 1 / depth of those in ``work``
+    for v in range(views):  # this frame's rows: nothing gathered yet
+        w = size[v, 0]
+        r0 = at[v] + size[v, 1] * band // bands * w
+        r1 = at[v] + size[v, 1] * (band + 1) // bands * w
+        work[r0:r1] = 0
+        work_low[r0:r1] = np.inf
+    stamp, patch = stamps[0], stamps[1]
     scratch = np.empty((4, 9))
     spans = np.empty((2, SUB), np.int64)
     cap = 64
@@ -528,7 +551,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     queue = np.empty(cap, np.int64)
     m_ = np.empty((3, 4))
     q = 0
-    patch = 0
     cut = near * (1 + NEAR_MARGIN)
     while q < units.shape[0]:
         leaf = owner[q]
@@ -600,6 +622,8 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                     vimage[x, 0] = (px / d - rect[v, 0]) * sx
                     vimage[x, 1] = (py / d - rect[v, 2]) * sy
                     vimage[x, 2] = 1.0 / d
+            if _idle(vimage, vdepth, nv, cut, wv, j0, j1, at[v], buf):
+                continue
             for s in range(n):
                 facing[s] = 0
                 c0, c1, c2 = corner[s, 0], corner[s, 1], corner[s, 2]
@@ -664,7 +688,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                 for r in range(size_):
                     s = queue[r]
                     k = _fill(poly[s], sides[s], facing[s], wv, j0, j1, at[v], seen, cover, edge,
-                              centre_cells, low, touched, k, patch, scratch, spans)
+                              centre_cells, low, buf, touched, k, patch, scratch, spans)
                 for r in range(size_):  # its cells, where the patch may bring texels nearer
                     s = queue[r]
                     ns = sides[s]
@@ -678,7 +702,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                 _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
                         work_low, buf, patch)
         q = q1
-    return stamp
+    stamps[0], stamps[1] = stamp, patch
 
 
 #: Cells across a texel each way along an outline: a texel's cells are bits of a mask.
@@ -693,6 +717,40 @@ SIDE_MARGIN = 1e-9
 #: Texels and cells count as touched by a line within this distance (texels): rounding
 #: never claims one an outline crosses.
 TOUCH = 1e-6
+
+
+@njit(cache=True, inline="always")
+def _idle(vimage, vdepth, nv, cut, w, j0, j1, at, buf):
+    """Whether a leaf whose ``nv`` vertices project to ``vimage`` can change nothing in rows
+    ``[j0, j1)`` of the buffer ``buf``: a texel or cell it claims lies wholly inside its
+    image, so within its vertices' box, and a claim changes ``buf`` only where the leaf is
+    nearer than it (see :func:`_commit`; its most 1 / depth is at a vertex). False when a
+    vertex lies before ``cut`` (its image is then not its vertices'). A fifth of the leaves
+    chosen, behind the nearer ones, end here before any of their faces is set up."""
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    near = 0.0
+    for x in range(nv):
+        if not vdepth[x] > cut:
+            return False
+        x0, x1 = min(x0, vimage[x, 0]), max(x1, vimage[x, 0])
+        y0, y1 = min(y0, vimage[x, 1]), max(y1, vimage[x, 1])
+        near = max(near, vimage[x, 2])
+    # the box within the rows and columns written here (a vertex near the eye's plane may
+    # project far beyond)
+    x0, x1 = max(x0, -1.0), min(x1, w + 1.0)
+    y0, y1 = max(y0, j0 - 1.0), min(y1, j1 + 1.0)
+    # no whole cell (of SUB x SUB a texel) fits within it
+    if math.ceil(x0 * SUB) + 1 > math.floor(x1 * SUB) or \
+            math.ceil(y0 * SUB) + 1 > math.floor(y1 * SUB):
+        return True
+    i0, i1 = max(0, int(math.floor(x0))), min(w - 1, int(math.floor(x1)))
+    for j in range(max(j0, int(math.floor(y0))), min(j1 - 1, int(math.floor(y1))) + 1):
+        row = at + j * w
+        for t in range(row + i0, row + i1 + 1):
+            if buf[t] < near:
+                return False
+    return True
 
 
 @njit(cache=True, inline="always")
@@ -821,8 +879,8 @@ def _along(ax, ay, bx, by, slope, y0, y1):
 
 
 @njit(cache=True, inline="always")
-def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touched, k, patch,
-          ed, spans):
+def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, buf, touched, k,
+          patch, ed, spans):
     """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
     area) into the patch's texels of rows ``[j0, j1)``: every texel it touches (or nearly) takes the least 1 / depth
     of the polygon over the texel into ``low``; the texels whose centres lie inside it are
@@ -854,6 +912,7 @@ def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touc
         A = -side * ey
         B = side * ex
         C = side * (ey * ax - ex * ay)
+        ed[3, e] = ex / ey if ey != 0 else 0.0  # dx / dy along it, for its rows' extent
         if A != 0:
             ed[0, e] = 1.0 if A > 0 else 2.0
             ed[1, e] = -B / A
@@ -874,9 +933,8 @@ def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touc
             if by < y0 or ay > y1:
                 continue
             if by > ay:
-                s_ = (bx - ax) / (by - ay)
-                x0 = ax + s_ * (max(y0, ay) - ay)
-                x1 = ax + s_ * (min(y1, by) - ay)
+                x0 = ax + ed[3, e] * (max(y0, ay) - ay)
+                x1 = ax + ed[3, e] * (min(y1, by) - ay)
             else:
                 x0, x1 = ax, bx
             lo, hi = min(lo, x0, x1), max(hi, x0, x1)
@@ -901,7 +959,9 @@ def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, touc
                 low[t] = z
             if c0 <= i <= c1:
                 cover[t] = patch
-            if edge[t] == patch:  # on the outline: which of its cells' centres are inside
+            # on the outline: which of its cells' centres are inside, where the patch may
+            # bring the texel nearer (its least 1 / depth there is at most z)
+            if edge[t] == patch and z > buf[t]:
                 if not cells:
                     for r in range(SUB):
                         spans[0, r], spans[1, r] = _centres(ed, ns, J + (r + 0.5) / SUB, SUB)
@@ -1011,6 +1071,8 @@ def _extreme(buf, offsets, v, w0, h0, i0, i1, j0, j1, largest):
     return out
 
 
+#: The texel test reads blocks of 2^BLOCK x 2^BLOCK texels first (pyramid level BLOCK).
+BLOCK = 2
 #: What a node's projection says of it over a whole view (:func:`_project`): hidden wherever
 #: it is; not hidden anywhere, nor any part of it; reaching the eye (never hidden, its
 #: children may be); or to be tested tile by tile.
@@ -1218,7 +1280,7 @@ def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
         partly = True
         # texel by texel: those its outline touches, at its nearest depth there
         if hidden and not _texels_hidden(re, rect[v], w, h, i0, i1, j0, j1, izlo,
-                                         offsets[v, 0]):
+                                         offsets[v]):
             hidden = False
     if hidden:
         return _HIDDEN
@@ -1292,55 +1354,71 @@ def _planes_of(re, rect, w, h):
 
 
 @njit(cache=True, inline="always")
-def _bound(re, i, j):
-    """The most 1 / depth a node's box has over texel ``(i, j)``: a ray entering the box crosses
-    the plane of every face that faces the eye, so the box lies no nearer there than the
-    farthest of those planes over the texel (1 / depth is affine on the image: at a corner),
-    nor nearer than its nearest corner; at most 0 where none of it is."""
+def _bound(re, i, j, s):
+    """The most 1 / depth a node's box has over the ``s x s`` texels from ``(i, j)``: a ray
+    entering the box crosses the plane of every face that faces the eye, so the box lies no
+    nearer there than the farthest of those planes over the texels (1 / depth is affine on
+    the image: at a corner), nor nearer than its nearest corner; at most 0 where none of it
+    is."""
     bound = 1.0 / re[_R_NEAR]
     for f in range(int(re[_R_FACES])):
         ga, gb = re[_R_PLANES + 3 * f], re[_R_PLANES + 3 * f + 1]
-        bound = min(bound, ga * i + max(ga, 0.0) + gb * j + max(gb, 0.0)
+        bound = min(bound, ga * i + max(ga, 0.0) * s + gb * j + max(gb, 0.0) * s
                     + re[_R_PLANES + 3 * f + 2])
     return bound
 
 
 @njit(cache=True, inline="always")
-def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, at):
+def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
     """Whether the node of record ``re`` lies behind ``izlo`` over every texel of ``[i0, i1) x
     [j0, j1)`` that its outline touches, at its depth there (:func:`_bound`). The texel of its
-    centre first (its outline always touches it); a texel is out of its outline when all four
-    of its corners lie outside one of the outline's edges."""
+    centre first (its outline always touches it); then blocks of texels, read at a level of
+    the pyramid (its least over the block), and texel by texel only in those where that does
+    not settle it; a texel is out of its outline when all four of its corners lie outside
+    one of the outline's edges."""
     if re[_R_READY] == 0.0:
         _planes_of(re, rect, w, h)
+    at = offsets[0]
     sx = w / (rect[1] - rect[0])
     sy = h / (rect[3] - rect[2])
     d = -re[_R_CENTRE + 2]
     ic = int(math.floor((re[_R_CENTRE] / d - rect[0]) * sx))
     jc = int(math.floor((re[_R_CENTRE + 1] / d - rect[2]) * sy))
     if i0 <= ic < i1 and j0 <= jc < j1:
-        bound = _bound(re, ic, jc)
+        bound = _bound(re, ic, jc, 1)
         if bound > 0 and not izlo[at + jc * w + ic] > (1 + DEPTH_MARGIN) * bound:
             return False
-    if re[_R_READY] == 1.0:
-        _outline_of(re, rect, w, h)
+    l = min(BLOCK, offsets.shape[0] - 1)
+    s = 1 << l
+    wl = -(-w // s)
+    for J in range(j0 >> l, ((j1 - 1) >> l) + 1):
+        for I in range(i0 >> l, ((i1 - 1) >> l) + 1):
+            if izlo[offsets[l] + J * wl + I] > (1 + DEPTH_MARGIN) * _bound(re, I * s, J * s, s):
+                continue  # hidden over the whole block
+            if re[_R_READY] == 1.0:
+                _outline_of(re, rect, w, h)
+            for j in range(max(j0, J * s), min(j1, J * s + s)):
+                for i in range(max(i0, I * s), min(i1, I * s + s)):
+                    if _touches(re, i, j, izlo[at + j * w + i]):
+                        return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def _touches(re, i, j, iz):
+    """Whether the node of record ``re`` (its outline ready) may show in texel ``(i, j)``
+    before ``1 / iz``: some of it is there, nearer, and its outline touches the texel."""
+    bound = _bound(re, i, j, 1)
+    if not bound > 0 or iz > (1 + DEPTH_MARGIN) * bound:
+        return False  # hidden there, or none of it there
     n = int(re[_R_CORNERS])
     hull = _R_HULL
-    for j in range(j0, j1):
-        for i in range(i0, i1):
-            bound = _bound(re, i, j)
-            if not bound > 0 or izlo[at + j * w + i] > (1 + DEPTH_MARGIN) * bound:
-                continue  # hidden there, or none of it there
-            touched = True
-            for e in range(n):  # out when the texel's corner most inside is outside
-                a = int(re[_R_ORDER + e])
-                b = int(re[_R_ORDER + (e + 1) % n])
-                ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
-                ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
-                if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
-                        - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
-                    touched = False
-                    break
-            if touched:
-                return False
+    for e in range(n):  # out when the texel's corner most inside is outside
+        a = int(re[_R_ORDER + e])
+        b = int(re[_R_ORDER + (e + 1) % n])
+        ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
+        ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
+        if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
+                - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
+            return False
     return True
