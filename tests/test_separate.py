@@ -8,9 +8,14 @@ from scipy.spatial.transform import Rotation
 
 from wallcull import oracle
 from wallcull.cull import RECORD
-from wallcull.separate import _corners, _separated
+from wallcull.separate import _corners, _separated as _separated_into
 
 from .randscene import random_wall
+
+
+def _separated(box, i, corners) -> bool:
+    return _separated_into(box, i, corners, np.empty(3), np.empty((3, 3)), np.empty((8, 3)))
+
 
 #: the oracle's planes (bottom, right, top, left, near, far) as the culler orders them
 LRTB = [3, 1, 2, 0, 4, 5]
@@ -91,3 +96,34 @@ def test_it_finds_what_the_plane_test_misses():
     assert not (dist < 0).all(axis=0).any()  # no plane has it wholly outside
     assert not box_meets(center, axes, half, planes, corners)
     assert _separated(box, 0, corners)
+
+
+def test_threads_drop_the_same_pairs(monkeypatch):
+    """The pass runs over chunks of pairs in threads on big frames: the same lists, tile for
+    tile, for any number of threads; and it does drop pairs there."""
+    import json
+    from pathlib import Path
+
+    import wallcull.separate as S
+    from wallcull.cull import Culler
+    from wallcull.paths import scene_path
+    from wallcull.scene import SceneState, load
+    from wallcull.wall import Frusta, Wall
+
+    powerplant = load("powerplant")
+
+    wall = Wall.from_dict(json.loads((Path(__file__).parents[1] / "examples" / "wall-8x8.json")
+                                     .read_text()))
+    state = SceneState(powerplant)
+    frames = [Frusta.build(wall, f) for f in scene_path(powerplant, wall, "orbit", 4)]
+    monkeypatch.setenv("WALLCULL_THREADS", "1")
+    expect = [Culler(state, wall).cull(f) for f in frames]
+    assert sum(e.stats["separated"] for e in expect) > 0
+    monkeypatch.setattr(S, "THREAD_PAIRS", 16)
+    for threads in ("2", "3", "5"):
+        monkeypatch.setenv("WALLCULL_THREADS", threads)
+        culler = Culler(state, wall)
+        for frusta, e in zip(frames, expect):
+            got = culler.cull(frusta)
+            assert np.array_equal(got.start, e.start) and np.array_equal(got.nodes, e.nodes)
+            assert got.stats["separated"] == e.stats["separated"]

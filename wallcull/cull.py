@@ -64,7 +64,7 @@ from . import workers
 from .bounds import Bounds
 from .errors import InputError
 from .scene import Scene, SceneState
-from .separate import SMALL, drop_separated
+from .separate import SMALL, drop_all
 from .wall import Frusta
 
 METHODS = ("naive", "oh", "fh", "adaptive")
@@ -1111,8 +1111,7 @@ class Culler:
         # the nodes that stand for part of one leaf's triangles: its clusters, and the leaf
         self._parts_of_leaves = ((scene.cluster_of >= 0)
                                  | (scene.is_leaf & (scene.child_count > 0))).astype(np.uint8)
-        self._corners = np.empty((tiles, 8, 3))  # scratch of drop_separated
-        self._known = np.zeros(tiles, np.uint8)
+        self._separate: list = []  # scratch of drop_all
         self._units = (scene.units, *scene.unit_range)
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
         self._depth_bound = height * max(int(scene.child_count.max()), 2)
@@ -1226,11 +1225,10 @@ class Culler:
                 stack)
         self._last_tests = tests
         listed = len(nodes)
-        self._known[:] = 0
-        kept = drop_separated(nodes, tiles, listed, box, planes, self._tile_planes,
-                              self._tree[1], eye, SMALL * tile_angle, self._corners,
-                              self._known)
-        start, ordered = _by_region(nodes[:kept], tiles[:kept], wall.tiles)
+        nodes, tiles = drop_all(nodes, tiles, listed, box, planes, self._tile_planes,
+                                self._tree[1], eye, SMALL * tile_angle, self._separate)
+        kept = len(nodes)
+        start, ordered = _by_region(nodes, tiles, wall.tiles)
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
             "tests": int(tests), "pairs": kept, "separated": listed - kept})

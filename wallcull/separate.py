@@ -25,15 +25,45 @@ import math
 import numpy as np
 from numba import njit
 
+from . import workers
+
 #: A gap along an axis separates only beyond this share of the coordinates' magnitude.
 MARGIN = 1e-9
 #: Bounds whose sphere spans less than this share of a tile's angular size are not tested: on
 #: the power plant's orbit (small parts, seen whole) that skips 85% of the tests for a third of
 #: the drops; on the satellite's fly path (large clusters up close) it keeps 99% of the drops.
 SMALL = 0.5
+#: Pairs a thread is given at least: below, handing them over costs more than it saves.
+THREAD_PAIRS = 4096
 
 
-@njit(cache=True)
+def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
+             scratch: list) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``count`` pairs ``(nodes, regions)`` but the separated ones
+    (:func:`drop_separated`), in threads over chunks of pairs on a frame with many (a 64 x 64
+    wall lists tens of thousands, most of them cut by two of their small tile's planes).
+    ``scratch``: per thread, the tiles' corners and whether they are known, kept between
+    frames."""
+    parts = max(1, min(workers.count(), count // THREAD_PAIRS))
+    ranges = [(count * k // parts, count * (k + 1) // parts) for k in range(parts)]
+    tiles = len(tile_rows)
+    while len(scratch) < parts:
+        scratch.append((np.empty((tiles, 8, 3)), np.zeros(tiles, np.uint8)))
+
+    def chunk(k, a, b):
+        corners, known = scratch[k]
+        known[:] = 0
+        return a + drop_separated(nodes[a:b], regions[a:b], b - a, box, planes, tile_rows,
+                                  child_count, eye, small, corners, known)
+
+    ends = workers.run(chunk, ranges)
+    if parts == 1:
+        return nodes[:ends[0]], regions[:ends[0]]
+    keep = np.concatenate([np.arange(a, end) for (a, _), end in zip(ranges, ends)])
+    return nodes[keep], regions[keep]
+
+
+@njit(cache=True, nogil=True)
 def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
                    corners, known):
     """Keep the first ``count`` pairs ``(nodes[j], regions[j])`` but those whose node has no
@@ -43,6 +73,9 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     frustum; compacts the arrays in place and returns how many pairs are left.
     ``corners (tiles, 8, 3)`` and ``known (tiles,)`` are scratch: each tile's frustum corners,
     computed when first needed."""
+    h = np.empty(3)  # scratch of _separated
+    u = np.empty((3, 3))
+    local = np.empty((8, 3))
     k = 0
     for j in range(count):
         i = nodes[j]
@@ -52,7 +85,7 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
                 and _undecided(box, i, planes, tile_rows[t]):
             if not known[t]:
                 known[t] = 1 if _corners(planes, tile_rows[t], corners[t]) else 2
-            if known[t] == 1 and _separated(box, i, corners[t]):
+            if known[t] == 1 and _separated(box, i, corners[t], h, u, local):
                 keep = False
         if keep:
             nodes[k] = i
@@ -120,15 +153,13 @@ def _corners(planes, rows, out) -> bool:
 
 
 @njit(cache=True)
-def _separated(box, i, corners) -> bool:
+def _separated(box, i, corners, h, u, local) -> bool:
     """Whether bound ``i`` and the frustum of ``corners`` lie apart along one of the box's axes
     or the cross product of one with a frustum edge (the frustum's face normals are the planes
     already tested). Worked in the box's frame: the corners' coordinates along its axes once,
     then each axis is a few products. The edges: the four from near to far, and two of the near
     face's (the other two are parallel to them on a tile's frustum; on any other, fewer axes
-    only find fewer separations)."""
-    h = np.empty(3)
-    u = np.empty((3, 3))
+    only find fewer separations). ``h``, ``u``, ``local``: scratch."""
     for a in range(3):
         h[a] = math.sqrt(box[i, 4 + 3 * a] ** 2 + box[i, 5 + 3 * a] ** 2 + box[i, 6 + 3 * a] ** 2)
         if h[a] == 0.0:
@@ -136,7 +167,6 @@ def _separated(box, i, corners) -> bool:
         for k in range(3):
             u[a, k] = box[i, 4 + 3 * a + k] / h[a]
     ball = box[i, 3]
-    local = np.empty((8, 3))
     scale = abs(box[i, 0]) + abs(box[i, 1]) + abs(box[i, 2]) + box[i, 13]
     for c in range(8):
         scale = max(scale, abs(corners[c, 0]) + abs(corners[c, 1]) + abs(corners[c, 2]))
