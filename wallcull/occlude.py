@@ -674,31 +674,16 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                                 queue[size_] = t
                                 size_ += 1
                 patch += 1
-                for r in range(size_):  # the outline's texels
-                    s = queue[r]
-                    ns = sides[s]
-                    for e in range(ns):
-                        lab = label[s, e]
-                        if lab == 3 or not inner[s] >> lab & 1:
-                            e1 = e + 1 if e + 1 < ns else 0
-                            _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0],
-                                     poly[s, e1, 1], wv, j0, j1, at[v], edge, outline_cells,
-                                     centre_cells, low, buf, patch, False)
+                _outlines(queue, size_, sides, label, inner, poly, wv, j0, j1, at[v], edge,
+                          outline_cells, centre_cells, low, buf, patch, False)  # its texels
                 k = 0
                 for r in range(size_):
                     s = queue[r]
                     k = _fill(poly[s], sides[s], facing[s], wv, j0, j1, at[v], seen, cover, edge,
                               centre_cells, low, buf, touched, k, patch, scratch, spans)
-                for r in range(size_):  # its cells, where the patch may bring texels nearer
-                    s = queue[r]
-                    ns = sides[s]
-                    for e in range(ns):
-                        lab = label[s, e]
-                        if lab == 3 or not inner[s] >> lab & 1:
-                            e1 = e + 1 if e + 1 < ns else 0
-                            _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0],
-                                     poly[s, e1, 1], wv, j0, j1, at[v], edge, outline_cells,
-                                     centre_cells, low, buf, patch, True)
+                # its cells, where the patch may bring texels nearer
+                _outlines(queue, size_, sides, label, inner, poly, wv, j0, j1, at[v], edge,
+                          outline_cells, centre_cells, low, buf, patch, True)
                 _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
                         work_low, buf, patch)
         q = q1
@@ -819,6 +804,23 @@ def _put(out, k, x, y, d, rect, sx, sy):
     out[k, 0] = (x / d - rect[0]) * sx
     out[k, 1] = (y / d - rect[2]) * sy
     out[k, 2] = 1.0 / d
+
+
+@njit(cache=True, inline="always")
+def _outlines(queue, size_, sides, label, inner, poly, w, j0, j1, at, edge, outline_cells,
+              centre_cells, low, buf, patch, cells):
+    """:func:`_outline` over the outline of the patch of faces ``queue[:size_]``: each face's
+    sides that are not inner edges (``inner``'s bits), and its cuts by the near plane (label
+    3)."""
+    for r in range(size_):
+        s = queue[r]
+        ns = sides[s]
+        for e in range(ns):
+            lab = label[s, e]
+            if lab == 3 or not inner[s] >> lab & 1:
+                e1 = e + 1 if e + 1 < ns else 0
+                _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0], poly[s, e1, 1], w, j0,
+                         j1, at, edge, outline_cells, centre_cells, low, buf, patch, cells)
 
 
 @njit(cache=True, inline="always")
