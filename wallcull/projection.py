@@ -365,11 +365,9 @@ def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
     return out, reason
 
 
-#: Small products inside compiled kernels are written out: numba's ``@``, ``np.dot`` and
-#: ``np.linalg`` call SciPy's BLAS and LAPACK, which the base install does not have (a kernel
-#: that used them would stop the process, not raise).
-
-
+# Small products inside compiled kernels are written out: numba's ``@``, ``np.dot`` and
+# ``np.linalg`` call SciPy's BLAS and LAPACK, which the base install does not have (a kernel
+# that used them would stop the process, not raise).
 @njit(cache=True)
 def matmul(a, b):
     """``a @ b`` for 2-D arrays, in a compiled kernel."""
