@@ -9,13 +9,14 @@ that a tile listed had no triangle in its frustum).
 
 So every culled frame ends with one compiled pass (:func:`drop_separated`; on big frames in
 threads over chunks of pairs, :func:`drop_all`) over the listed (unit, tile) pairs, units being
-the nodes without children (clusters, and leaves not cut into clusters): a unit that the tile's planes cut is tested against the tile's frustum by the
-separating axis theorem, on the axes the plane test leaves out: the box's three axes and the
-cross products of its edges with the frustum's edges. Two convex bodies that do not meet are
-separated along one of them, so a unit separated on any is not in the frustum, and dropped.
-Conservative: the frustum's corners come from its planes, the box's reach includes its ball,
-and a separation counts only when the gap exceeds a margin relative to the coordinates.
-Applied the same way after every method, so the methods still agree where they agreed.
+the nodes without children (clusters, and leaves not cut into clusters): a unit that the tile's
+planes cut is tested against the tile's frustum by the separating axis theorem, on the axes the
+plane test leaves out: the box's three axes and the cross products of its edges with the
+frustum's edges. Two convex bodies that do not meet are separated along one of them, so a unit
+separated on any is not in the frustum, and dropped. Conservative: the frustum's corners come
+from its planes, the box's reach includes its ball, and a separation counts only when the gap
+exceeds a margin relative to the coordinates. Applied the same way after every method, so the
+methods still agree where they agreed.
 """
 
 from __future__ import annotations
