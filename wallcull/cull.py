@@ -1385,7 +1385,8 @@ def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarra
     ``planes (P, 4)`` (inward unit normals): region ``q`` uses rows
     ``region_planes[q, :region_size[q]]`` (at most 63). Nodes wholly inside a region stand for
     their subtrees, as in a tile list. The object hierarchy is culled to each region in turn
-    with plane masking (the ``oh`` kernel): shadow casters and mirror views of every tile.
+    with plane masking (the ``oh`` kernel), down to leaves (not their clusters): the shadow
+    casters of every tile.
     The regions are split among threads (:mod:`wallcull.workers`), by ``work`` (cumulative,
     ``(R + 1,)``: an estimate of each region's cost) when given."""
     planes = np.ascontiguousarray(planes, dtype=np.float64)
@@ -1408,8 +1409,8 @@ def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarra
     def chunk(k, a, b):  # regions [a, b), on buffers of their own
         buf = pool[k]
         nodes, which, tests = buf.run(
-            _oh, root, root, scene.child_start, scene.child_count, scene.children, box, planes,
-            region_planes[a:b], region_size[a:b], force[a:b], np.zeros(b - a, np.int64),
+            _oh, root, root, scene.child_start, scene.leaf_child_count, scene.children, box,
+            planes, region_planes[a:b], region_size[a:b], force[a:b], np.zeros(b - a, np.int64),
             buf.get("stack_n", stack), buf.get("stack_m", stack))
         return nodes, which + a, tests
 

@@ -105,6 +105,12 @@ class Scene:
         return np.flatnonzero(self.is_leaf)
 
     @cached_property
+    def leaf_child_count(self) -> np.ndarray:
+        """``child_count`` with the leaves' clusters cut off: for a traversal whose answer is
+        leaves (a shadow's casters), which unfolding clusters would only slow."""
+        return np.where(self.is_leaf, 0, self.child_count)
+
+    @cached_property
     def leaf_range(self) -> tuple[np.ndarray, np.ndarray]:
         """``(start, count)``: the leaves under node ``i`` are ``leaves[start[i]:start[i]+count[i]]``."""
         return self._range(self.is_leaf)
