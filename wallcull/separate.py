@@ -45,11 +45,17 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
     wall lists tens of thousands, most of them cut by two of their small tile's planes).
     ``scratch``: per thread, the tiles' corners and whether they are known, kept between
     frames."""
-    parts = max(1, min(workers.count(), count // THREAD_PAIRS))
-    ranges = [(count * k // parts, count * (k + 1) // parts) for k in range(parts)]
+    parts = 1 if count < 2 * THREAD_PAIRS else min(workers.count(), count // THREAD_PAIRS)
     tiles = len(tile_rows)
     while len(scratch) < parts:
         scratch.append((np.empty((tiles, 8, 3)), np.zeros(tiles, np.uint8)))
+    if parts == 1:  # most frames: no thread to hand over to
+        corners, known = scratch[0]
+        known[:] = 0
+        kept = drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye,
+                              small, corners, known)
+        return nodes[:kept], regions[:kept]
+    ranges = [(count * k // parts, count * (k + 1) // parts) for k in range(parts)]
 
     def chunk(k, a, b):
         corners, known = scratch[k]
@@ -58,8 +64,6 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
                                   child_count, eye, small, corners, known)
 
     ends = workers.run(chunk, ranges)
-    if parts == 1:
-        return nodes[:ends[0]], regions[:ends[0]]
     keep = np.concatenate([np.arange(a, end) for (a, _), end in zip(ranges, ends)])
     return nodes[keep], regions[keep]
 
