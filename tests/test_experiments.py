@@ -165,9 +165,10 @@ def test_frame(out):
     result = E.run("frame", out, quick=True, progress=False)
     r = check_output(out, "frame", result)
     assert len(r["stages"]) == 9
-    for s in r["stages"].values():  # the total is the sum of the stages, frame by frame
-        parts = sum(s[k]["median_ms"] for k in ("cull", "leaves", "fit", "encode"))
-        assert 0 < s["total"]["median_ms"] <= 2 * parts and s["packet_bytes_per_frame"] > 0
+    for s in r["stages"].values():  # the total is the sum of the stages, frame by frame, so
+        # its median is at least each stage's (and how much more depends on the machine's load)
+        parts = max(s[k]["median_ms"] for k in ("cull", "leaves", "fit", "encode"))
+        assert 0 < parts <= s["total"]["median_ms"] and s["packet_bytes_per_frame"] > 0
     lit, plain = r["stages"]["8x8 / lamp + mirror"], r["stages"]["8x8 / none"]
     assert lit["packet_bytes_per_frame"] > plain["packet_bytes_per_frame"]  # shadows, mirrors
     for per in r["efforts"].values():  # the dial: the quads fill more of the shadow map
