@@ -49,20 +49,17 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
     tiles = len(tile_rows)
     while len(scratch) < parts:
         scratch.append((np.empty((tiles, 8, 3)), np.zeros(tiles, np.uint8)))
-    if parts == 1:  # most frames: no thread to hand over to
-        corners, known = scratch[0]
-        known[:] = 0
-        kept = drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye,
-                              small, corners, known)
-        return nodes[:kept], regions[:kept]
-    ranges = [(count * k // parts, count * (k + 1) // parts) for k in range(parts)]
 
-    def chunk(k, a, b):
+    def chunk(k, a, b):  # pairs [a, b) compacted in place; returns where they end
         corners, known = scratch[k]
         known[:] = 0
         return a + drop_separated(nodes[a:b], regions[a:b], b - a, box, planes, tile_rows,
                                   child_count, eye, small, corners, known)
 
+    if parts == 1:  # most frames: no thread to hand over to
+        kept = chunk(0, 0, count)
+        return nodes[:kept], regions[:kept]
+    ranges = [(count * k // parts, count * (k + 1) // parts) for k in range(parts)]
     ends = workers.run(chunk, ranges)
     keep = np.concatenate([np.arange(a, end) for (a, _), end in zip(ranges, ends)])
     return nodes[keep], regions[keep]
