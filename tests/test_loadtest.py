@@ -309,7 +309,7 @@ def test_pull_and_stream_nodes_against_a_real_server(server):
             for c in clients:
                 await c.connected.wait()
             assert await d.wait_clients(info["id"], 2, 10) == 2
-            await d.run(info["id"], frames, rate=0, barrier=True, barrier_timeout=5)
+            await d.run(info["id"], frames, rate=0, barrier=True, barrier_timeout=10)
             await asyncio.gather(*tasks)
             barrier = await d.barrier(info["id"], 7, 0)
         assert barrier["complete"] and barrier["acked"] == 4
