@@ -136,3 +136,25 @@ def test_fly_path_is_inside_the_scene_box():
     lo, hi = pts.min(0), pts.max(0)
     for frame in camera_path("fly", lo, hi, wall, 16):
         assert (frame.position >= lo).all() and (frame.position <= hi).all()
+
+
+def test_bench_times_the_occlusion_dial(capsys):
+    """``bench --occlusion``: the occlude stage and the triangles drawn, beside the same frames
+    without it; ``auto`` skips the frames whose camera is outside the scene (the orbit)."""
+    wall = json.dumps({"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.0, 0.0],
+                       "distance": 2.0})
+    docs = {}
+    for path, setting in (("fly", "off"), ("fly", "on"), ("orbit", "auto")):
+        code, out, err = run(capsys, "bench", "powerplant", "--wall", wall, "--frames", "4",
+                             "--methods", "adaptive", "--path", path, "--occlusion", setting,
+                             "--json")
+        assert code == 0, err
+        docs[path, setting] = doc = json.loads(out)
+        assert doc["occlusion"] == setting
+        stages = doc["stages"]
+        assert stages["total"]["median_ms"] >= stages["occlude"]["median_ms"]
+    off, on = docs["fly", "off"], docs["fly", "on"]
+    assert off["stages"]["occlude"]["median_ms"] == 0 < on["stages"]["occlude"]["median_ms"]
+    assert (on["methods"]["adaptive"]["triangles_per_frame"]
+            < off["methods"]["adaptive"]["triangles_per_frame"])
+    assert docs["orbit", "auto"]["stages"]["occlude"]["p99_ms"] == 0  # outside: never run

@@ -20,6 +20,7 @@ from .cull import METHODS
 from .errors import InputError
 from .encode import frame_packets, node_entries
 from .fit import FRUSTUM, FitOptions
+from .occlude import OcclusionOptions
 from .paths import scene_path
 from .pipeline import Session
 from .protocol import FrameRecord, History
@@ -83,17 +84,18 @@ class Motion:
         return out
 
 
-#: The stages of a frame ``bench --json`` reports: ``encode`` is every tile's entry of the
+#: The stages of a frame ``bench --json`` reports: ``occlude`` is the occlusion cull (0 on
+#: frames it skips, and without ``--occlusion``); ``encode`` is every tile's entry of the
 #: frame's node messages, encoded once in one compiled pass as the node streams and NATS send
 #: them (a node's message is then a slice of it behind a shared head); ``encode_packets``, not
 #: in ``total``, is every tile's packet as the per-tile streams and ``GET .../packets`` send it.
-STAGES = ("cull", "leaves", "fit", "encode", "total")
+STAGES = ("cull", "occlude", "leaves", "fit", "encode", "total")
 
 
 def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
                 pseudo_groups: bool = False, progress=None, motion: Motion | None = None,
                 refit: str | None = None, fit: FitOptions | None = None,
-                stages: bool = False) -> dict:
+                stages: bool = False, occlusion: OcclusionOptions | None = None) -> dict:
     """Cull every frame with one method; per-frame times and counters. With ``motion``, the
     moving nodes are updated and refit before each frame, and that time is reported apart;
     with ``fit``, the fitted frusta are timed too, and the depth precision they buy. With
@@ -101,9 +103,10 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     server's defaults): ``cull``, ``leaves`` (the per-tile leaf lists), ``fit``, ``encode``
     (every tile's entry of the node messages, a delta against the previous frame as a
     streaming node gets it) and their ``total``, and ``encode_packets`` (every tile's packet,
-    as a per-tile stream gets it; see :data:`STAGES`)."""
+    as a per-tile stream gets it; see :data:`STAGES`). ``occlusion``: the occlusion setting,
+    timed as the ``occlude`` stage, with the triangles the tiles draw."""
     session = Session(scene, wall, method, bounds, pseudo_groups,
-                      fit or (FitOptions() if stages else None))
+                      fit or (FitOptions() if stages else None), occlusion=occlusion)
     history, tiles, packet_bytes = History(4), np.arange(wall.tiles), []
     none = np.zeros(0, np.int64)
     for k, frame in enumerate(frames[:WARMUP_FRAMES]):  # every stage once: compiled, cached
@@ -116,7 +119,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     history = History(4)
     times, refits, tests, pairs, fits, ratios, coverages = [], [], [], [], [], [], []
     stage_ms = {name: [] for name in (*STAGES, "encode_packets")}
-    entry_bytes = []
+    entry_bytes, triangles = [], []
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
@@ -142,7 +145,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             t2 = time.perf_counter()
             packet_bytes.append(sent.nbytes)
             entry_bytes.append(len(entries.data))
-            timings = {**result.timings, "encode_ms": (t1 - t0) * 1e3}
+            timings = {"occlude_ms": 0.0, **result.timings, "encode_ms": (t1 - t0) * 1e3}
             for name in STAGES[:-1]:
                 stage_ms[name].append(timings[f"{name}_ms"])
             stage_ms["total"].append(sum(timings[f"{name}_ms"] for name in STAGES[:-1]))
@@ -150,12 +153,14 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
         stats = result.visibility.stats
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])
+        triangles.append(int(result.visibility.triangles().sum()))
         if progress:
             progress.advance(task)
     # leaves reported per frame, from the last frame (the lists, not their timing)
     out = {**summarize(times), "tests_per_frame": float(np.mean(tests)),
            "nodes_per_frame": float(np.mean(pairs)),
-           "leaf_pairs_last_frame": int(len(result.leaves[1]))}
+           "leaf_pairs_last_frame": int(len(result.leaves[1])),
+           "triangles_per_frame": float(np.mean(triangles))}
     if refits:
         out["refit_median_ms"] = float(np.median(refits))
         out["refit_p99_ms"] = float(np.percentile(refits, 99))
@@ -211,11 +216,14 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         hierarchy: str = "auto", clusters: int | None = CLUSTERS, moving: float = 0.0,
         refit: str | None = None,
         fit: FitOptions | None = None, settings: dict | None = None,
-        progress: bool = True, shadow_fits: tuple = (), stereo: float | None = None) -> dict:
+        progress: bool = True, shadow_fits: tuple = (), stereo: float | None = None,
+        occlusion: str = "off") -> dict:
     """The whole benchmark; returns the ``bench --json`` document. ``shadow_fits``: fitting
     efforts (:data:`wallcull.lowilie.EFFORTS`) to compare, fit time against shadow-map
     coverage, with the main method. ``stereo``: the path's frames are stereo frames with this
-    interpupillary distance (m), the head level with the display (SPEC section 3)."""
+    interpupillary distance (m), the head level with the display (SPEC section 3).
+    ``occlusion``: ``off``, ``on`` or ``auto`` (:mod:`wallcull.occlude`), every method with
+    it."""
     from . import scene as scene_mod
 
     for m in methods:
@@ -241,7 +249,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     with bar as p:
         for kind in bounds:
             by_bounds[kind] = {m: time_method(scene, wall, path_frames, m, kind, pseudo_groups,
-                                              p, motion, refit, fit, stages=True)
+                                              p, motion, refit, fit, stages=True,
+                                              occlusion=OcclusionOptions.parse(occlusion))
                                for m in methods}
         acc = (accuracy(scene, wall, path_frames[:accuracy_frames], methods, bounds, p, motion,
                         refit) if accuracy_frames else None)
@@ -261,7 +270,7 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         "wall": wall.to_dict(), "frames": frames, "path": path, "stereo": stereo,
         "bounds": bounds[0],
         "pseudo_groups": pseudo_groups, "methods": by_bounds[bounds[0]],
-        "moving": moving, "refit": refit, "fit": fit is not None,
+        "moving": moving, "refit": refit, "fit": fit is not None, "occlusion": occlusion,
         "settings": {"lights": len(scene.settings.get("lights", [])),
                      "mirrors": len(scene.settings.get("mirrors", []))},
         "machine": machine(), "threads": workers.count(), "peak_rss_mb": peak_rss_mb(),

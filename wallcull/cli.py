@@ -125,7 +125,7 @@ def cmd_bench(args) -> int:
                        fit=fit, settings=read(args.settings) if args.settings else None,
                        progress=not args.json,
                        shadow_fits=tuple(efforts) if len(efforts) > 1 else (),
-                       stereo=args.stereo)
+                       stereo=args.stereo, occlusion=args.occlusion)
     if args.json:
         print(json.dumps(result))
         return 0
@@ -173,6 +173,14 @@ def _print_bench(result: dict) -> None:
         console.print(f"depth range log2(far/near): wall {depth['wall']:.1f}, fitted "
                       f"{depth['fitted_mean']:.1f} on average: {depth['bits_gained']:.1f} bits "
                       f"of a 24-bit depth buffer gained")
+    if result.get("occlusion", "off") != "off":
+        main = result["stages"]
+        console.print(f"occlusion {result['occlusion']} ({main['method']}): "
+                      f"{main['occlude']['median_ms']:.3f} ms median, "
+                      f"{main['occlude']['p99_ms']:.3f} ms p99 a frame; whole frame "
+                      f"{main['total']['median_ms']:.3f} ms median; "
+                      f"{result['methods'][main['method']]['triangles_per_frame']:,.0f} "
+                      f"triangles drawn a frame")
     if "adaptive_speedup_vs_oh" in result:
         console.print(f"adaptive is {result['adaptive_speedup_vs_oh']:.1f}x faster than oh")
     if "accuracy" in result:
@@ -438,6 +446,7 @@ def parser() -> argparse.ArgumentParser:
                    help="how moved nodes and their ancestors are refit (default: as --bounds)")
     q.add_argument("--fit", action="store_true",
                    help="also time the fitted frusta (depth ranges, shadows, mirrors)")
+    occlusion_arg(q)
     q.add_argument("--reversed-z", action="store_true", help="with --fit: reversed-Z projections")
     q.add_argument("--shadow-fit", default="refined", metavar="EFFORT[,EFFORT...]",
                    help="with --fit: shadow-frustum fitting, sphere|greedy|refined; several "
