@@ -123,11 +123,6 @@ _SHARED, _DISJOINT, _OVERLAP, _BOUNDS, _PASS = range(5)
 _UNKNOWN = 63
 _CUT = 8
 _BEHIND = 1 << 16
-# ... and, for the kernel's own use: the states of the split test on its two sides (bits 24-25
-# and 26-27, :func:`_split_block`), or, at a tile, outside one of its planes (bit 28).
-_SA, _SB = 24, 26
-_STATES = 15 << _SA
-_DEAD = 28
 
 
 def pack(bounds: Bounds) -> np.ndarray:
@@ -383,229 +378,65 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
     return k, tests
 
 
-@njit(cache=True, inline="always")
-def _split_block(box, planes, fh, f, objects, masks, lo, hi):
-    """The split test of frustum node ``f`` (one of a grid's modes) on every object of
-    ``objects[lo:hi]`` at once: each state pair goes into its mask (bits ``_STATES``); returns
-    the tests the decisions need. No branch depends on a test's outcome, so the loop runs tests
-    of many objects at once: a bezel's second plane is computed for every object and counted
-    only where :func:`_split` would test it."""
-    mode = fh[f, _MODE]
-    pa, pb = fh[f, _PA], fh[f, _PB]
-    ax, ay, az, ad = planes[pa, 0], planes[pa, 1], planes[pa, 2], planes[pa, 3]
-    bx, by, bz, bd = planes[pb, 0], planes[pb, 1], planes[pb, 2], planes[pb, 3]
-    tests = 0
-    if mode == _SHARED:
-        for j in range(lo, hi):
-            s, r = _sr4(box, objects[j], ax, ay, az, ad)
-            masks[j] |= (_state3(s, r) << _SA) | (_state3(-s, r) << _SB)
-        return hi - lo
-    disjoint = mode == _DISJOINT
-    for j in range(lo, hi):
-        o = objects[j]
-        s, r = _sr4(box, o, ax, ay, az, ad)
-        t, q = _sr4(box, o, bx, by, bz, bd)
-        sa = _state3(s, r)
-        skip = disjoint & (sa == _FULL) & ((masks[j] & _BEHIND) == 0)
-        sb = _state3(t, q) * (1 - skip)  # _OUT is 0
-        masks[j] |= (sa << _SA) | (sb << _SB)
-        tests += 2 - skip
-    return tests
-
-
-@njit(cache=True, inline="always")
-def _sr4(box, i, nx, ny, nz, d):
-    """:func:`_sr` with the plane given."""
-    s = nx * box[i, 0] + ny * box[i, 1] + nz * box[i, 2] + d
-    r = (abs(nx * box[i, 4] + ny * box[i, 5] + nz * box[i, 6])
-         + abs(nx * box[i, 7] + ny * box[i, 8] + nz * box[i, 9])
-         + abs(nx * box[i, 10] + ny * box[i, 11] + nz * box[i, 12]) + box[i, 3])
-    return s, r
-
-
-@njit(cache=True, inline="always")
-def _state3(s, r):
-    """:func:`_state` without a branch (a NaN cuts, as there)."""
-    return 1 - np.int64(s < -r) + np.int64(s >= r)
-
-
-@njit(cache=True, inline="always")
-def _cull_children(box, planes, tile_planes, tile, sides, child_start, child_count, children,
-                   o, mm, ts, tm, tp):
-    """Push ``o``'s children on ``ts``/``tm`` (in reverse: the first on top) with the planes of
-    ``mm`` that cut them, but those outside one: each plane of ``mm`` tested on all of them at
-    once. Returns the new top and the tests a plane-by-plane loop that stops at the first
-    outside plane takes."""
-    first = child_start[o]
-    count = child_count[o]
-    for q in range(count):
-        ts[tp + q] = children[first + count - 1 - q]
-        tm[tp + q] = mm
-    tests = 0
-    for p in range(sides):
-        if mm & (1 << p):
-            row = tile_planes[tile, p]
-            nx, ny, nz, d = planes[row, 0], planes[row, 1], planes[row, 2], planes[row, 3]
-            for q in range(tp, tp + count):
-                s, r = _sr4(box, ts[q], nx, ny, nz, d)
-                m = tm[q]
-                tests += 1 - ((m >> _DEAD) & 1)
-                tm[q] = (m & ~(np.int64(s >= r) << p)) | (np.int64(s < -r) << _DEAD)
-    w = tp
-    for q in range(tp, tp + count):  # compact: drop the dead, keep the order
-        ts[w] = ts[q]
-        tm[w] = tm[q]
-        w += 1 - ((tm[q] >> _DEAD) & 1)
-    return w, tests
-
-
 @njit(cache=True, nogil=True)
 def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh, fh_unfold,
               tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, regions, parts,
-              fine, allowed, bo, bm, xo, xm, uo, um, ts, tm, fs, out_n, out_t):
-    """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring),
-    run frustum node by frustum node over blocks of objects.
+              fine, allowed, so, sf, sm, ts, tm, out_n, out_t):
+    """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring).
 
-    The frustum hierarchy is walked depth first (stack ``fs``: node, its block, where free
-    space starts); each node holds a block of (object, mask) pairs in ``bo``/``bm``, disjoint
-    subtrees in preorder. At an internal frustum node the whole block is tested against the
-    planes bounding the two children in one loop (:func:`_split_block`), then each object is
-    routed in order. If neither plane cuts it, it moves down intact to each child it fills
-    (and the side plane the split gives that child is known inside: its bits clear). If one
-    cuts it, a leaf goes down each side it reaches, its "cut" bit set for the plane that cut
-    it. An internal node unfolds into its children, tested at the same frustum node as one
-    block and routed before the next object (stack ``uo``/``um``: the blocks stay in
-    preorder), when it would reach more than ``fh_unfold[f]`` tiles (estimated from the angle
-    its bounding sphere spans, ``view`` giving its depth, against the tiles' angular pitch);
-    otherwise it goes down both sides whole like a leaf. The first child's block is written
-    above the node's, the second's gathered in ``xo``/``xm`` and copied after it. At a tile,
-    an object is tested against its "unknown" planes; with no plane left cut it is inside the
+    A stack entry is (object ``so``, frustum node ``sf``, mask ``sm``). At an internal frustum
+    node the object is tested against the planes bounding the two children. If neither cuts it,
+    it moves down intact to each child it fills (and the side plane the split gives that child
+    is known inside: its bits clear). If one cuts it, a leaf goes down each side it reaches,
+    its "cut" bit set for the plane that cut it. An internal node unfolds into its children,
+    tested at the same frustum node, when it would reach more than ``fh_unfold[f]`` tiles
+    (estimated from the angle its bounding sphere spans, ``view`` giving its depth, against the
+    tiles' angular pitch); otherwise it goes down both sides whole like a leaf. At a tile, an
+    object is tested against its "unknown" planes; with no plane left cut it is inside the
     tile and is listed; a cut leaf is listed; a cut internal node is culled to this tile alone,
-    over the planes it is cut by (``oh`` with plane masking, on stack ``ts``/``tm``, each
-    node's children tested as one block: :func:`_cull_children`). A tile's pairs come out
-    together, its nodes in preorder.
+    over the planes it is cut by (``oh`` with plane masking, on stack ``ts``/``tm``).
 
     ``tile_planes`` holds each tile's side planes: four for a grid (the primary frustum holds
     near and far), six for screens, whose objects start with all six unknown
     (``unknown_at_root``). ``view``: the plane ``view[:4]`` whose distance is an object's depth,
     or zeros there and the eye at ``view[4:7]`` for its distance from the eye (screens).
     ``regions``: ``tile_planes`` when the frustum hierarchy has ``BOUNDS`` and ``PASS`` nodes
-    (screens walls, split tests one object at a time), ``None`` for a grid. numba compiles a
-    version for each, so a grid's hot loop has no branch it never takes.
+    (screens walls), ``None`` for a grid. numba compiles a version for each, so a grid's hot
+    loop has no branch it never takes (with it, 5x slower on 8x8).
 
     ``allowed`` (one flag per frustum node): the part of the frustum hierarchy this call
     covers. Parts whose tiles are disjoint run in threads at once (:class:`Culler`), each
     listing exactly the pairs, in the same order, that one call over everything lists for its
-    tiles. Returns ``(pairs, tests)``, pairs ``-1`` when ``out_n`` is full and ``-2`` when
-    ``bo`` is (the caller grows it and calls again).
+    tiles.
     """
     sides = 4 if regions is None else 6
-    cap = out_n.shape[0]
-    room = bo.shape[0]
     k = 0
     tests = 0
-    if roots.shape[0] > room:
-        return -2, tests
-    for j in range(roots.shape[0]):
-        bo[j] = roots[j]
-        bm[j] = unknown_at_root | (_BEHIND if masks[j] & near_bit else 0)
-    fs[0, 0], fs[0, 1], fs[0, 2], fs[0, 3] = 0, 0, roots.shape[0], roots.shape[0]
-    fp = 1
-    while fp > 0:
-        fp -= 1
-        f, a, b, top = fs[fp, 0], fs[fp, 1], fs[fp, 2], fs[fp, 3]
-        tile = fh[f, _TILE]
-        if tile >= 0:
-            for j in range(a, b):
-                o = bo[j]
-                m = bm[j]
-                unknown = m & _UNKNOWN
-                cut = (m >> _CUT) & _UNKNOWN
-                if unknown:
-                    outside = False
-                    for p in range(sides):
-                        if unknown & (1 << p):
-                            s, r = _sr(box, o, planes, tile_planes[tile, p])
-                            tests += 1
-                            if s < -r:
-                                outside = True
-                                break
-                            if s < r:
-                                cut |= 1 << p
-                    if outside:
-                        continue
-                tp = 0
-                leaf = True
-                if not (cut == 0 or child_count[o] == 0
-                        or (parts[o] and _angle(box, o, view, regions) < fine)):
-                    tp, nt = _cull_children(box, planes, tile_planes, tile, sides, child_start,
-                                            child_count, children, o, cut, ts, tm, 0)
-                    tests += nt
-                    leaf = False
-                while leaf or tp > 0:  # o listed, or its subtree culled to this tile
-                    if leaf:
-                        i = o
-                        leaf = False
-                    else:
-                        tp -= 1
-                        i = ts[tp]
-                        mm = tm[tp]
-                        if not (mm == 0 or child_count[i] == 0
-                                or (parts[i] and _angle(box, i, view, regions) < fine)):
-                            tp, nt = _cull_children(box, planes, tile_planes, tile, sides,
-                                                    child_start, child_count, children, i, mm,
-                                                    ts, tm, tp)
-                            tests += nt
-                            continue
-                    if k == cap:
-                        return -1, tests
-                    out_n[k] = i
-                    out_t[k] = tile
-                    k += 1
-            continue
-        if regions is None:  # decided when compiled (see the docstring)
-            tests += _split_block(box, planes, fh, f, bo, bm, a, b)
-        first, second = fh[f, _FIRST], fh[f, _SECOND]
-        bit_a, bit_b = fh[f, _SIDE_A], fh[f, _SIDE_B]
-        keep_a, keep_b = allowed[first] != 0, allowed[second] != 0  # else another thread's
-        na = 0
-        nb = 0
-        up = 0
-        j = a
-        while True:  # the block in order, each unfolded object's children right after it
-            if up > 0:
-                up -= 1
-                o = uo[up]
-                m = um[up]
-            elif j < b:
-                o = bo[j]
-                m = bm[j]
-                j += 1
-            else:
+    cap = out_n.shape[0]
+    sp = 0
+    for j in range(roots.shape[0] - 1, -1, -1):
+        so[sp] = roots[j]
+        sf[sp] = 0
+        sm[sp] = unknown_at_root | (_BEHIND if masks[j] & near_bit else 0)
+        sp += 1
+    while sp > 0:
+        sp -= 1
+        o = so[sp]
+        f = sf[sp]
+        m = sm[sp]
+        while True:  # follow the object down while it goes one way: no stack traffic
+            tile = fh[f, _TILE]
+            if tile >= 0:
                 break
-            ca = cb = -1
-            if regions is None:
-                sa = (m >> _SA) & 3
-                sb = (m >> _SB) & 3
-                m &= ~_STATES
+            if regions is None:  # decided when compiled (see the docstring)
+                sa, sb, nt = _split(box, o, planes, fh, f, (m & _BEHIND) != 0)
+                ca = cb = -1
             else:
                 sa, sb, nt, ca, cb = _split_any(box, o, planes, fh, f, (m & _BEHIND) != 0,
                                                 regions)
-                tests += nt
-            if (sa == _CUTS or sb == _CUTS) and child_count[o] > 0:
-                angle = _angle(box, o, view, regions)
-                reach = (2 * angle / pitch_x + 1) * (2 * angle / pitch_y + 1)
-                if reach > fh_unfold[f] and not (parts[o] and angle < fine):
-                    # large for this frustum node: unfold here
-                    cm = (m & _UNKNOWN) | ((m >> _CUT) & _UNKNOWN)
-                    first_child, count = child_start[o], child_count[o]
-                    for q in range(count):
-                        uo[up + q] = children[first_child + count - 1 - q]
-                        um[up + q] = cm
-                    if regions is None:
-                        tests += _split_block(box, planes, fh, f, uo, um, up, up + count)
-                    up += count
-                    continue
+            tests += nt
+            bit_a = fh[f, _SIDE_A]
+            bit_b = fh[f, _SIDE_B]
             # the split gives each child a new side plane: forget what was known of the old one
             ma = (m & ~(bit_a | (bit_a << _CUT))) | ((bit_a << _CUT) if sa == _CUTS else 0)
             mb = (m & ~(bit_b | (bit_b << _CUT))) | ((bit_b << _CUT) if sb == _CUTS else 0)
@@ -613,27 +444,98 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                 ma = (m & _BEHIND) | (ca << _CUT)
             if cb >= 0:
                 mb = (m & _BEHIND) | (cb << _CUT)
+            if (sa == _CUTS or sb == _CUTS) and child_count[o] > 0:
+                angle = _angle(box, o, view, regions)
+                reach = (2 * angle / pitch_x + 1) * (2 * angle / pitch_y + 1)
+                if reach > fh_unfold[f] and not (parts[o] and angle < fine):
+                    # large for this frustum node: unfold here
+                    cm = (m & _UNKNOWN) | ((m >> _CUT) & _UNKNOWN)
+                    for c in range(child_start[o] + child_count[o] - 1, child_start[o] - 1,
+                                   -1):
+                        so[sp] = children[c]
+                        sf[sp] = f
+                        sm[sp] = cm
+                        sp += 1
+                    tile = -2
+                    break
             # Down every side it reaches, whole: intact where it is inside, cut where it is
             # cut (the plane's "cut" bit set), both sides or neither in an overlap or a gap.
-            if top + na >= room:
-                return -2, tests
-            bo[top + na] = o
-            bm[top + na] = ma
-            na += keep_a & (sa != _OUT)
-            xo[nb] = o
-            xm[nb] = mb
-            nb += keep_b & (sb != _OUT)
-        if top + na + nb > room:
-            return -2, tests
-        end = top + na + nb
-        bo[top + na:end] = xo[:nb]
-        bm[top + na:end] = xm[:nb]
-        if nb:
-            fs[fp, 0], fs[fp, 1], fs[fp, 2], fs[fp, 3] = second, top + na, end, end
-            fp += 1
-        if na:
-            fs[fp, 0], fs[fp, 1], fs[fp, 2], fs[fp, 3] = first, top, top + na, end
-            fp += 1
+            if not allowed[fh[f, _FIRST]]:  # another thread's part
+                sa = _OUT
+            if not allowed[fh[f, _SECOND]]:
+                sb = _OUT
+            if sa != _OUT:
+                if sb != _OUT:
+                    so[sp] = o
+                    sf[sp] = fh[f, _SECOND]
+                    sm[sp] = mb
+                    sp += 1
+                f = fh[f, _FIRST]
+                m = ma
+            elif sb != _OUT:
+                f = fh[f, _SECOND]
+                m = mb
+            else:
+                tile = -2
+                break
+        if tile < 0:
+            continue
+        unknown = m & _UNKNOWN
+        cut = (m >> _CUT) & _UNKNOWN
+        if unknown:
+            outside = False
+            for p in range(sides):
+                if unknown & (1 << p):
+                    s, r = _sr(box, o, planes, tile_planes[tile, p])
+                    tests += 1
+                    if s < -r:
+                        outside = True
+                        break
+                    if s < r:
+                        cut |= 1 << p
+            if outside:
+                continue
+        if cut == 0 or child_count[o] == 0 or (parts[o] and _angle(box, o, view, regions)
+                                                < fine):
+            if k == cap:
+                return -1, tests
+            out_n[k] = o
+            out_t[k] = tile
+            k += 1
+            continue
+        tp = 0  # cull o's subtree to this tile, over the planes o is cut by
+        for c in range(child_start[o] + child_count[o] - 1, child_start[o] - 1, -1):
+            ts[tp] = children[c]
+            tm[tp] = cut
+            tp += 1
+        while tp > 0:
+            tp -= 1
+            i = ts[tp]
+            mm = tm[tp]
+            outside = False
+            for p in range(sides):  # four for a grid, six for screens
+                if mm & (1 << p):
+                    s, r = _sr(box, i, planes, tile_planes[tile, p])
+                    tests += 1
+                    if s < -r:
+                        outside = True
+                        break
+                    if s >= r:
+                        mm &= ~(1 << p)
+            if outside:
+                continue
+            if mm == 0 or child_count[i] == 0 or (parts[i] and _angle(box, i, view, regions)
+                                                  < fine):
+                if k == cap:
+                    return -1, tests
+                out_n[k] = i
+                out_t[k] = tile
+                k += 1
+                continue
+            for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
+                ts[tp] = children[c]
+                tm[tp] = mm
+                tp += 1
     return k, tests
 
 
@@ -1115,15 +1017,12 @@ class _Buffers:
 
     def run(self, kernel, *args):
         """Call ``kernel(*args, out_n, out_t)``, doubling the outputs until they hold it all:
-        ``(nodes, regions, tests)``; ``None`` when the kernel says (``-2``) that another of
-        its buffers is full."""
+        ``(nodes, regions, tests)``."""
         while True:
             out_n, out_t = self.get("out_n", 4096), self.get("out_t", 4096)
             k, tests = kernel(*args, out_n, out_t)
             if k >= 0:
                 return out_n[:k], out_t[:k], tests
-            if k == -2:
-                return None
             self.arrays["out_n"] = np.empty(2 * len(out_n), np.int64)
             self.arrays["out_t"] = np.empty(2 * len(out_t), np.int64)
 
@@ -1226,22 +1125,13 @@ class Culler:
         ``PARALLEL_TESTS`` tests, over its parts in threads at once (their tiles are disjoint,
         so the pairs are those of one call, each tile's in the same order)."""
         parts = self._parts if self._last_tests >= PARALLEL_TESTS else []
-        n = len(args[5])  # the records
 
         def task(k, *_):
             buf = self._buffers[k]
-            while True:
-                blocks = buf.get("block_o", 4 * n)
-                done = buf.run(_adaptive, *args, parts[k] if parts else self._everywhere,
-                               blocks, buf.get("block_m", len(blocks)),
-                               buf.get("side_o", n + 1), buf.get("side_m", n + 1),
-                               buf.get("stack_n", stack), buf.get("stack_m", stack),
-                               buf.get("tile_n", stack), buf.get("tile_m", stack),
-                               buf.get("fh_stack", 4 * len(self._fh)).reshape(-1, 4))
-                if done is not None:
-                    return done
-                buf.get("block_o", 2 * len(blocks))  # the blocks outgrew their buffer
-                buf.get("block_m", 2 * len(blocks))
+            return buf.run(_adaptive, *args, parts[k] if parts else self._everywhere,
+                           buf.get("stack_n", stack), buf.get("stack_m", stack),
+                           buf.get("stack_o", stack), buf.get("tile_n", stack),
+                           buf.get("tile_m", stack))
 
         if not parts:
             return task(0)
