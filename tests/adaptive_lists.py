@@ -1,7 +1,7 @@
 """Digests of what ``adaptive`` lists, frame by frame, on random and real scenes over grids,
-screens walls and stereo frames: the record that a change to its kernel keeps its answers
-(``tests/test_cull_blocks.py``). Written by the scalar kernel this one replaced (``main`` at
-e1ba9f6), with
+screens walls and stereo frames (``tests/test_cull_lists.py``). Written by the scalar kernel
+of ``main`` at e1ba9f6; a block kernel was held to them (docs/fanout.md, the box-plane test).
+A change that means to change the lists rewrites them, and says so:
 
     python -m tests.adaptive_lists          # rewrites tests/data/adaptive-lists.json
 """
