@@ -161,7 +161,10 @@ def _separated(box, i, corners, h, u, local) -> bool:
     already tested). Worked in the box's frame: the corners' coordinates along its axes once,
     then each axis is a few products. The edges: the four from near to far, and two of the near
     face's (the other two are parallel to them on a tile's frustum; on any other, fewer axes
-    only find fewer separations). ``h``, ``u``, ``local``: scratch."""
+    only find fewer separations). First, though, an edge from near to far that passes inside
+    the box shrunk by the margin shows that the two meet (no axis can then find a gap beyond
+    the margin, so the answer is the same, sooner): most boxes tested do meet the frustum,
+    and on 64 x 64 this skips the axes for most of them. ``h``, ``u``, ``local``: scratch."""
     for a in range(3):
         h[a] = math.sqrt(box[i, 4 + 3 * a] ** 2 + box[i, 5 + 3 * a] ** 2 + box[i, 6 + 3 * a] ** 2)
         if h[a] == 0.0:
@@ -176,6 +179,9 @@ def _separated(box, i, corners, h, u, local) -> bool:
             local[c, a] = ((corners[c, 0] - box[i, 0]) * u[a, 0] + (corners[c, 1] - box[i, 1])
                            * u[a, 1] + (corners[c, 2] - box[i, 2]) * u[a, 2])
     gap = MARGIN * scale
+    for e in range(4):  # most boxes tested meet the frustum: show it, and skip the axes
+        if _crosses(local, 2 * e, 2 * e + 1, h, gap):
+            return False
     for a in range(3):  # the box's own axes
         lo = np.inf
         hi = -np.inf
@@ -213,3 +219,30 @@ def _separated(box, i, corners, h, u, local) -> bool:
             if lo > reach or hi < -reach:
                 return True
     return False
+
+
+@njit(cache=True, inline="always")
+def _crosses(local, p, q, h, gap) -> bool:
+    """Whether the segment from corner ``p`` to corner ``q`` (``local``: the box's frame)
+    passes inside the box of half extents ``h - gap`` (the slab test)."""
+    t0 = 0.0
+    t1 = 1.0
+    for a in range(3):
+        half = h[a] - gap
+        if not half > 0.0:
+            return False
+        start = local[p, a]
+        step = local[q, a] - start
+        if step == 0.0:
+            if abs(start) >= half:
+                return False
+            continue
+        enter = (-half - start) / step
+        leave = (half - start) / step
+        if enter > leave:
+            enter, leave = leave, enter
+        t0 = max(t0, enter)
+        t1 = min(t1, leave)
+        if not t0 < t1:
+            return False
+    return True
