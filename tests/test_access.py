@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import msgpack
 import pytest
+from hypothesis import given, settings, strategies as st
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 from starlette.websockets import WebSocketDisconnect
@@ -272,3 +273,35 @@ def test_a_stream_whose_credentials_disagree_is_refused(client, wall, headers, q
     with client.websocket_connect(f"/walls/{wall['id']}/tiles/0/stream?token={good}",
                                   headers={"Authorization": f"Bearer {good}"}) as ws:
         assert msgpack.unpackb(ws.receive_bytes())["frame"] == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 300), st.lists(st.lists(st.integers(0, 299), max_size=5), max_size=6),
+       st.integers(0, 3))
+def test_a_walls_credentials_kept_compactly_grant_what_they_were_issued_for(tiles, nodes, pad):
+    """``credentials.Issued`` (one array of digests, one of tiles) answers for every issued
+    token exactly what a dict of digests to grants did, nothing for any other token (one
+    that shares a digest's first 8 bytes too), and writes the same rows."""
+    import json
+
+    from wallcull import credentials as cr
+
+    groups = [g for g in nodes if all(0 <= t < tiles for t in g)]
+    taken: set[int] = set()
+    groups = [g for g in groups if not taken.intersection(g) and not taken.update(g)]
+    shown, issued = cr.issue("w1", tiles, groups)
+    want = {cr.digest(shown["driver"]): cr.Grant("w1", cr.DRIVER)}
+    want.update({cr.digest(n["token"]): cr.Grant("w1", cr.NODE, frozenset(n["tiles"]))
+                 for n in shown["nodes"]})
+    assert len(issued) == len(want) == 1 + len(cr.node_groups(tiles, groups))
+    for token in [shown["driver"], *(n["token"] for n in shown["nodes"])]:
+        assert issued.find(cr.raw_digest(token)) == want[cr.digest(token)]
+    assert issued.find(cr.raw_digest("wcn_not-issued")) is None
+    near = cr.raw_digest(shown["driver"])[:8] + bytes([pad]) * 24  # same prefix, not it
+    assert issued.find(near) is None
+    assert issued.nodes() == sorted(sorted(g.tiles) for g in want.values() if g.role == cr.NODE)
+    rows = {d: (role, json.loads(t)) for d, role, t in issued.rows()}
+    assert rows == {d: (g.role, sorted(g.tiles)) for d, g in want.items()}
+    again = cr.Issued("w1", [bytes.fromhex(d) for d in rows],
+                      [None if role == cr.DRIVER else t for role, t in rows.values()])
+    assert list(again.rows()) == list(issued.rows())

@@ -5,11 +5,13 @@ fits computed here."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 import msgpack
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 
@@ -284,3 +286,171 @@ def test_the_frame_stream_needs_the_drivers_credential(client, wall):
             with client.websocket_connect(f"/walls/{wid}/frames/stream{query}"):
                 pass
         assert exc.value.status_code == status
+
+
+# --------------------------------------------------------------------------- one NATS subject
+
+
+class _Broker:
+    """The NATS broker as the server's publisher sees it: every message published on the
+    subject goes, in order, to every subscriber's queue (as NATS delivers it)."""
+
+    def __init__(self):
+        self.queues: dict[str, list] = {}
+
+    async def publish(self, subject, data):
+        for queue in self.queues.values():
+            queue.append(data)
+
+
+class _Msg:
+    def __init__(self, subject, data):
+        self.subject, self.data, self.reply, self.answer = subject, data, "inbox", None
+
+    async def respond(self, data):
+        self.answer = data
+
+
+class _Subject:
+    """The real NATS bridge (its publisher task, its ack and full handlers) on one node
+    subject of a wall, with render nodes (``NodeState``) that take its messages in order."""
+
+    def __init__(self, scene):
+        from wallcull.fit import FitOptions
+        from wallcull.server.metrics import Metrics
+        from wallcull.server.nats import NatsBridge
+        from wallcull.service import Walls
+
+        self.walls = Walls()
+        self.session = self.walls.create(scene, Wall.from_dict(WALL), "adaptive", "obb", False,
+                                          64, FitOptions(), nodes=[list(range(6))])
+        self.bridge = NatsBridge("nats://unused", self.walls, Metrics())
+        self.bridge.nc = self.broker = _Broker()
+        self.path = frames(scene, 60)
+        self.nodes: dict[str, NodeState] = {}
+        self.misses: list[tuple[str, int, int]] = []
+
+    def subject(self, kind):
+        return self.bridge.subject(self.session.id, kind, 0)
+
+    async def start(self):
+        self.bridge.watch(self.session)
+        await asyncio.sleep(0)
+
+    async def post(self, publish: bool = True) -> int:
+        """Post the next frame; with ``publish``, let the publisher take it (else the next
+        post comes first, and the publisher skips this one, as it does when frames come
+        faster than it runs)."""
+        number, _ = self.session.post_frame(self.path[self.session.latest + 1])
+        # the publisher runs at the loop's next turns (it publishes nothing when every
+        # subscriber has left the window)
+        for _ in range(100 if publish else 0):
+            if self.bridge.nodes[self.session.id, "0"].sent >= number:
+                break
+            await asyncio.sleep(0)
+        return number
+
+    async def join(self, name: str) -> int:
+        """Subscribe, ask for full lists, draw them and acknowledge: the frame drawn."""
+        self.broker.queues[name], self.nodes[name] = [], NodeState()
+        msg = _Msg(self.subject("full"), msgpack.packb({"node": name}))
+        await self.bridge._full(msg)
+        return await self._draw(name, msgpack.unpackb(msg.answer))
+
+    async def take(self, name: str) -> int | None:
+        """The node takes the next message of its queue: draws it and acknowledges, skips
+        it (published before its full lists), or misses its base (then joins again)."""
+        message = msgpack.unpackb(self.broker.queues[name].pop(0))
+        node = self.nodes[name]
+        if message["frame"] <= node.frame:
+            return None
+        if not node.holds(message["base"]):
+            self.misses.append((name, message["frame"], message["base"]))
+            return await self.join(name)
+        return await self._draw(name, message)
+
+    async def _draw(self, name: str, message: dict) -> int:
+        self.nodes[name].take(message)
+        await self.bridge._ack(_Msg(self.subject("ack"), msgpack.packb(
+            {"ack": message["frame"], "node": name})))
+        return message["frame"]
+
+    async def close(self):
+        self.session.close()
+        await asyncio.gather(*self.bridge.tasks.values(), return_exceptions=True)
+
+
+def _on_one_subject(scene, script) -> list:
+    async def run():
+        subject = _Subject(scene)
+        await subject.start()
+        try:
+            await script(subject)
+        finally:
+            await subject.close()
+        return subject.misses
+
+    return asyncio.run(run())
+
+
+def test_a_slow_node_that_is_forgotten_and_comes_back_holds_every_base(scene):
+    """The failure seen once beside four CPU hogs, step by step: node A falls more than the
+    window behind, so the subject's deltas go against what B acknowledged (A, taking them in
+    order, drops every frame before that base); frames then slow down, A comes back within the
+    window with an acknowledgement older than that base, and the next delta went against it:
+    a frame A had dropped. Every delta's base is now at least every base sent before."""
+    async def script(s):
+        await s.post()
+        await s.join("a")
+        for _ in range(3):
+            await s.post()
+            await s.take("a")
+        assert await s.join("b") == 3
+        for _ in range(9):  # A is silent; B keeps up, and A leaves the window at frame 12
+            await s.post()
+            await s.take("b")
+        for _ in range(5):  # A catches up to frame 8 (frames 4 to 11 are against 3)
+            await s.take("a")
+        await s.post()  # frame 13: A is within the window again
+        while s.broker.queues["a"]:
+            await s.take("a")  # frame 12 is against 11 (A drops 8), then frame 13
+
+    assert _on_one_subject(scene, script) == []
+
+
+def test_a_frame_only_the_newcomer_holds_is_no_base(scene):
+    """A newcomer's full lists are the newest frame when it asks; when frames come faster than
+    the publisher runs, that frame may never be published on the subject, so the other nodes
+    do not hold it, and a delta against it (the oldest acknowledgement) missed on them."""
+    async def script(s):
+        await s.post()
+        await s.join("a")
+        await s.post(publish=False)  # frame 1: B's full lists, skipped by the publisher
+        assert await s.join("b") == 1
+        await s.post()  # frame 2: full lists (B's since is 1); A draws it first
+        await s.take("a")
+        await s.post()  # frame 3: the oldest acknowledgement is B's, frame 1
+        for name in "ab":
+            while s.broker.queues[name]:
+                await s.take(name)
+
+    assert _on_one_subject(scene, script) == []
+
+
+@settings(max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.sampled_from("ppsabcc"), min_size=10, max_size=90))
+def test_nodes_on_one_subject_hold_every_base_whatever_the_interleaving(scene, steps):
+    """Three nodes on one subject, frames posted (``p``), or posted and skipped by the
+    publisher (``s``), and each node taking its next message (``a``, ``b``, ``c``; joining
+    first) in any order: no node ever gets a delta against a frame it does not hold."""
+    async def script(s):
+        for step in steps:
+            if step in "ps" and s.session.latest < len(s.path) - 2:
+                await s.post(step == "p" or s.session.latest < 0)
+            elif step in "abc" and s.session.latest >= 0:
+                if step not in s.nodes:
+                    await s.join(step)
+                elif s.broker.queues[step]:
+                    await s.take(step)
+
+    assert _on_one_subject(scene, script) == []

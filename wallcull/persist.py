@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Callable
 from pathlib import Path
 
-from .credentials import Grant
+from .credentials import DRIVER, Issued
 from .errors import InputError
 
 SCHEMA = """
@@ -69,7 +69,7 @@ class WallRow:
     created: float
     spec: dict
     last_frame: int
-    grants: dict[str, Grant]
+    grants: Issued
 
 
 class StateFolder:
@@ -138,13 +138,16 @@ class StateFolder:
                                      ).fetchall()
         except sqlite3.DatabaseError as exc:
             raise self._corrupt(str(exc)) from None
-        grants: dict[str, dict[str, Grant]] = {}
-        out = []
+        found: dict[str, tuple[list, list]] = {}  # wall -> its digests, whose each is
         try:
             for d, wall, role, tiles in creds:
-                grants.setdefault(wall, {})[d] = Grant(wall, role, frozenset(json.loads(tiles)))
+                digests, groups = found.setdefault(wall, ([], []))
+                digests.append(bytes.fromhex(d))
+                groups.append(None if role == DRIVER else json.loads(tiles))
+            grants = {wall: Issued(wall, *both) for wall, both in found.items()}
         except (TypeError, ValueError) as exc:
-            raise self._corrupt(f"a credential's tiles do not parse: {exc}") from None
+            raise self._corrupt(f"a credential does not parse: {exc}") from None
+        out = []
         for wid, created, spec, last in rows:
             try:
                 spec = json.loads(spec)
@@ -152,7 +155,7 @@ class StateFolder:
                 spec = exc
             if not isinstance(spec, dict):
                 raise self._corrupt(f"the spec of wall {wid} is not a JSON object: {spec}")
-            out.append(WallRow(wid, created, spec, last, grants.get(wid, {})))
+            out.append(WallRow(wid, created, spec, last, grants.get(wid, Issued(wid, [], []))))
         return out
 
     def _write(self, work: Callable[[sqlite3.Connection], None]) -> None:
@@ -176,13 +179,13 @@ class StateFolder:
                 raise StateWriteFailed(507 if full else 503, self.failure) from None
         self.failure = None
 
-    def add_wall(self, wid: str, created: float, spec: dict, grants: dict[str, Grant]) -> None:
+    def add_wall(self, wid: str, created: float, spec: dict, issued: Issued) -> None:
         def add(db):  # one transaction: the wall with its credentials, or nothing
             db.execute("INSERT INTO walls (id, created, spec) VALUES (?, ?, ?)",
                        (wid, created, json.dumps(spec)))
             db.executemany(
                 "INSERT INTO credentials (digest, wall, role, tiles) VALUES (?, ?, ?, ?)",
-                [(d, wid, g.role, json.dumps(sorted(g.tiles))) for d, g in grants.items()])
+                ((d, wid, role, tiles) for d, role, tiles in issued.rows()))
         self._write(add)
 
     def remove_wall(self, wid: str) -> None:

@@ -402,8 +402,7 @@ class WallSession:
     #: the state folder writes it down, so that a restart never reuses a number
     on_number: Callable[[int], None] | None = None
     streams: Counter = field(default_factory=Counter)  # open streams per tile
-    digests: set = field(default_factory=set)  # of its credentials
-    nodes: list = field(default_factory=list)  # the tiles of each node credential
+    issued: credentials.Issued | None = None  # its credentials' digests (the server's)
     credentials: dict | None = None  # as issued, to be shown once (never kept on disk)
     gone: asyncio.Event = field(default_factory=asyncio.Event)  # set when it is deleted
     #: time.monotonic() of its newest frame, acknowledgement or stream (``--wall-ttl``)
@@ -425,6 +424,11 @@ class WallSession:
     @property
     def scene(self) -> Scene:
         return self.session.scene
+
+    @property
+    def nodes(self) -> list[list[int]]:
+        """The tiles of each node credential."""
+        return [] if self.issued is None else self.issued.nodes()
 
     @property
     def latest(self) -> int:
@@ -671,13 +675,6 @@ class WallSession:
         return self.barrier_state(number)
 
 
-def _describe_grants(session: WallSession, grants: dict[str, Grant]) -> None:
-    """What a wall keeps of its credentials: their digests, and each node's tiles."""
-    session.digests = set(grants)
-    session.nodes = sorted(sorted(g.tiles) for g in grants.values()
-                           if g.role == credentials.NODE)
-
-
 def check_history(wall, history: int) -> None:
     if history * wall.tiles > MAX_TILE_FRAMES:
         raise InputError(f"a history of {history} frames of {wall.tiles} tiles is more than "
@@ -706,7 +703,7 @@ class Walls:
         self.limit = limit
         self.state = state
         self.sessions: dict[str, WallSession] = {}
-        self.grants: dict[str, Grant] = {}  # credential digest -> what it holds, every wall's
+        self.grants: dict[str, credentials.Issued] = {}  # wall id -> its credentials
         #: walls of the state folder waiting for their scene: id -> (row, why)
         self.unavailable: dict[str, tuple[WallRow, str]] = {}
         self.reserved = 0  # walls being made
@@ -750,14 +747,13 @@ class Walls:
         wall is the server's once :meth:`register` is called (on the event loop)."""
         session = self.make(secrets.token_hex(6), scene, wall, method, bounds, pseudo_groups,
                             history, fit, settings, occlusion)
-        session.credentials, grants = credentials.issue(session.id, wall.tiles, nodes)
-        _describe_grants(session, grants)
+        session.credentials, session.issued = credentials.issue(session.id, wall.tiles, nodes)
         if self.state is not None:
-            self.state.add_wall(session.id, session.created, spec_of(session), grants)
-        return session, grants
+            self.state.add_wall(session.id, session.created, spec_of(session), session.issued)
+        return session, session.issued
 
-    def register(self, session: WallSession, grants: dict[str, Grant]) -> None:
-        self._add(session, grants)
+    def register(self, session: WallSession, issued: credentials.Issued) -> None:
+        self._add(session, issued)
 
     @staticmethod
     def make(wid: str, scene: Scene, wall, method: str, bounds: str,
@@ -769,7 +765,7 @@ class Walls:
                           occlusion=OcclusionOptions.parse(occlusion))
         return WallSession(wid, session, protocol.History(history))
 
-    def _add(self, session: WallSession, grants: dict[str, Grant]) -> None:
+    def _add(self, session: WallSession, issued: credentials.Issued) -> None:
         if self.state is not None:
             state, wid = self.state, session.id
 
@@ -783,9 +779,8 @@ class Walls:
                     log.warning("%s", exc)
 
             session.on_number = written
-        if not session.digests:  # (build() does this in its thread)
-            _describe_grants(session, grants)
-        self.grants.update(grants)
+        session.issued = issued
+        self.grants[session.id] = issued
         self.sessions[session.id] = session
 
     def check_specs(self) -> None:
@@ -818,7 +813,7 @@ class Walls:
             return []
         for row in self.state.walls():
             self.unavailable[row.id] = (row, "not restored yet")
-            self.grants.update(row.grants)
+            self.grants[row.id] = row.grants
         return await self.retry(store)
 
     async def retry(self, store: SceneStore) -> list[str]:
@@ -852,9 +847,12 @@ class Walls:
 
     def grant(self, token: str) -> Grant | None:
         """What an issued credential holds, or None."""
-        found = self.grants.get(credentials.digest(token))
-        return found if found is not None and (found.wall in self.sessions or
-                                               found.wall in self.unavailable) else None
+        raw = credentials.raw_digest(token)
+        for wid, issued in self.grants.items():
+            found = issued.find(raw)
+            if found is not None:
+                return found if wid in self.sessions or wid in self.unavailable else None
+        return None
 
     def get(self, wid: str) -> WallSession:
         try:
@@ -872,9 +870,8 @@ class Walls:
         if wid in self.unavailable:
             if self.state is not None:
                 self.state.remove_wall(wid)
-            row, _ = self.unavailable.pop(wid)
-            for d in row.grants:
-                self.grants.pop(d, None)
+            self.unavailable.pop(wid)
+            self.grants.pop(wid, None)
             return
         session = self.get(wid)
         if self.state is not None:
@@ -886,8 +883,7 @@ class Walls:
         session = self.get(wid)
         session.close()
         del self.sessions[wid]
-        for d in session.digests:
-            self.grants.pop(d, None)
+        self.grants.pop(wid, None)
 
     def idle(self, ttl: float) -> list[str]:
         """The walls with no stream open and no frame or acknowledgement for ``ttl`` s."""

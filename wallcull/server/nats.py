@@ -19,9 +19,14 @@ not acknowledged any of the last ``WINDOW`` frames published to it is published 
 
 Several nodes may take the same subject (two machines mirroring the same tiles): each names
 itself in its acknowledgements and full requests (``{"ack": n, "node": "a1b2"}``; a node that
-does not is one nameless subscriber), and a delta is against a frame every subscriber that
-acknowledged within the window holds: the oldest of their acknowledgements, if none of them
-joined after it; else the message has full lists.
+does not is one nameless subscriber), and a delta is against a frame every subscriber holds:
+the oldest acknowledgement of those that acknowledged within the window, if that frame was
+published on the subject (a newcomer's full lists may be a frame the others never got: it is
+a base only while the nodes that got it are the only ones listening), and no
+base published before it and no full lists answered since are newer (a node drops the frames
+before each delta's base, and holds none from before its full lists; a slow node that left the
+window takes the deltas meant for the others in order, so it comes back holding only frames
+from their bases on); else the message has full lists.
 
 Access control on a broker is the broker's (accounts and subject permissions); the server's
 own tokens guard its HTTP and WebSocket API.
@@ -31,6 +36,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections import deque
 from dataclasses import dataclass, field
 
 import msgpack
@@ -64,22 +70,48 @@ class _Node:
     tiles: np.ndarray
     sent: int = -1
     subscribers: dict = field(default_factory=dict)  # name (or None) -> _Subscriber
+    #: no base may be older: every subscriber, forgotten ones too (a slow node is not a dead
+    #: one), dropped the frames before the newest base published, and one answered full lists
+    #: holds none from before them
+    floor: int = -1
+    #: the newest frames published on the subject: the only ones every subscriber received
+    published: deque = field(default_factory=lambda: deque(maxlen=WINDOW))
+    #: the newest full lists answered, and to whom: a base too while only they listen
+    answered: int = -1
+    holders: set = field(default_factory=set)
+    #: a subscriber left the window: it may still listen (slow, not dead) and hold less
+    left: bool = False
 
     def base(self) -> tuple[bool, int | None]:
-        """Whether to publish the next frame, and the base every live subscriber holds
-        (None: full lists). Subscribers silent for the window are forgotten."""
+        """Whether to publish the next frame, and the base every subscriber holds (None: full
+        lists). Subscribers silent for the window are forgotten."""
         low = self.sent - WINDOW + 1
         live = {k: v for k, v in self.subscribers.items() if self.sent < 0
                 or max(v.acked, v.since) >= low}
+        self.left |= len(live) < len(self.subscribers)
         self.subscribers = live
         if not live:
             return self.sent < 0, None
         oldest = min(v.acked for v in live.values())
-        joined = max(v.since for v in live.values())
-        return True, oldest if oldest >= 0 and oldest >= joined else None
+        held = oldest in self.published or (oldest == self.answered and not self.left
+                                             and live.keys() <= self.holders)
+        return True, oldest if oldest >= self.floor and held else None
+
+    def sent_frame(self, number: int, base: int | None) -> None:
+        """Frame ``number`` was published on the subject, a delta against ``base``."""
+        self.sent = number
+        self.published.append(number)
+        if base is not None:
+            self.floor = max(self.floor, base)
 
     def take(self, name, ack: int | None = None, since: int | None = None) -> None:
         """An acknowledgement (``ack``) or a full request answered with frame ``since``."""
+        if since is not None:
+            self.floor = max(self.floor, since)
+            if since != self.answered:
+                self.answered, self.holders = since, set()
+            if len(self.holders) < MAX_SUBSCRIBERS:
+                self.holders.add(name)
         found = self.subscribers.get(name)
         if found is None:
             if len(self.subscribers) >= MAX_SUBSCRIBERS:
@@ -149,7 +181,7 @@ class NatsBridge:
                                                        held=base)
                     await self.nc.publish(node.subject, data)
                     self.metrics.packet(delta, len(data), "nats")
-                    node.sent = number
+                    node.sent_frame(number, base if delta else None)
                 last = number
         except NotFound:
             pass  # the wall was deleted

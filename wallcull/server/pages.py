@@ -285,12 +285,16 @@ async def console_stream(ws: WebSocket, wid: str):
     try:
         sent, sent_at = None, 0.0
         while not any(w.done() for w in waits):
-            text, same = await _status(session)
-            if same != sent or time.monotonic() - sent_at > CONSOLE_QUIET:
-                if not trusted:
-                    await state.open_budget.spend(len(text))
+            if (await _status(session))[1] != sent or \
+                    time.monotonic() - sent_at > CONSOLE_QUIET:
+                if not trusted:  # its turn waited for holding no status: the newest is sent
+                    await state.open_budget.spend(len((await _status(session))[0]))
+                text, sent = await _status(session)
                 await ws.send_text(text)
-                sent, sent_at = same, time.monotonic()
+                # no status held between sends: 32 consoles, each holding the one it sent
+                # last (2 MB at 256 x 256, a new one every CONSOLE_PERIOD), held 128 MB
+                del text
+                sent_at = time.monotonic()
             await asyncio.wait(waits, timeout=CONSOLE_PERIOD,
                                return_when=asyncio.FIRST_COMPLETED)
         if session.closed and ws.application_state == WebSocketState.CONNECTED:
@@ -307,8 +311,8 @@ async def console_stream(ws: WebSocket, wid: str):
 NO_TILES = np.zeros(0, np.int64)
 
 
-async def _status(session) -> tuple[str, str]:
-    """A wall's console status as JSON, and the same without its time (to see whether it
+async def _status(session) -> tuple[str, int]:
+    """A wall's console status as JSON, and a hash of it without its time (to see whether it
     changed): computed at most once per ``CONSOLE_PERIOD`` for all of the wall's consoles,
     in a worker thread (a 256 x 256 wall's is 2 MB)."""
     cached = session.__dict__.get("_console")
@@ -321,10 +325,10 @@ async def _status(session) -> tuple[str, str]:
     return cached[1], cached[2]
 
 
-def _status_texts(session) -> tuple[str, str]:
-    """The status as JSON, and the same without its time; encoded a piece at a time, so that
-    the worker thread lets the event loop run between pieces."""
+def _status_texts(session) -> tuple[str, int]:
+    """The status as JSON, and a hash of it without its time; encoded a piece at a time, so
+    that the worker thread lets the event loop run between pieces."""
     status = session.status()
     now = status.pop("time")
-    same = encode_in_pieces(status, binary=False).decode()
-    return f'{same[:-1]},"time":{json.dumps(now)}}}', same
+    same = encode_in_pieces(status, binary=False)
+    return (same[:-1] + f',"time":{json.dumps(now)}}}'.encode()).decode(), hash(same)
