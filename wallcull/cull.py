@@ -1095,8 +1095,7 @@ class Culler:
             self._inherit = (border | 48).astype(np.int64)
             self._force = (15 & ~border).astype(np.int64)
             self._fh, self._unfold = _fh_table(wall)
-            self._fh_stereo = self._fh.copy()  # two eyes: the planes of a split differ
-            self._fh_stereo[self._fh[:, _TILE] < 0, _MODE] = _OVERLAP
+            self._fh_stereo = None  # made by the first stereo frame (8 MB on 256 x 256)
             self._near_bit = 1 << 4  # the primary planes are L, R, T, B, near, far
             self._unknown_at_root = 0
         else:
@@ -1173,6 +1172,9 @@ class Culler:
         if wall.kind == "grid":
             primary = self._primary_planes
             if frame.stereo is not None:
+                if self._fh_stereo is None:  # two eyes: the planes of a split differ
+                    self._fh_stereo = self._fh.copy()
+                    self._fh_stereo[self._fh[:, _TILE] < 0, _MODE] = _OVERLAP
                 fh = self._fh_stereo
             elif wall.gap[0] == 0.0 or wall.gap[1] == 0.0:
                 # Equal and opposite split planes: one test decides both sides. Use the exact
