@@ -484,14 +484,17 @@ class FrustumHierarchy:
     @classmethod
     def build(cls, wall: Wall) -> "FrustumHierarchy":
         lay = wall.layout
-        rows_out: list[list[int]] = []
+        # 2 tiles - 1 nodes (every split has two children), written in place: a 256 x 256
+        # wall's as Python lists took 24 MB more at their peak than this table's 10 MB
+        table = np.full((2 * wall.tiles - 1, 10), -1, np.int64, order="F")
+        count = 0
 
         def add(c0, c1, r0, r1, depth) -> int:
-            index = len(rows_out)
-            rows_out.append([c0, c1, r0, r1, -1, -1, -1, -1, -1, depth])
+            nonlocal count
+            index, count = count, count + 1
             nc, nr = c1 - c0, r1 - r0
             if nc == 1 and nr == 1:
-                rows_out[index][8] = r0 * wall.cols + c0
+                table[index] = c0, c1, r0, r1, -1, -1, -1, -1, r0 * wall.cols + c0, depth
                 return index
             if nc >= nr:
                 k = c0 + (nc + 1) // 2
@@ -503,12 +506,11 @@ class FrustumHierarchy:
                 a = add(c0, c1, r0, k, depth + 1)
                 b = add(c0, c1, k, r1, depth + 1)
                 planes = lay.B(k - 1), lay.T(k)
-            rows_out[index][4:8] = [a, b, *planes]
+            table[index] = c0, c1, r0, r1, a, b, *planes, -1, depth
             return index
 
         add(0, wall.cols, 0, wall.rows, 0)
-        table = np.array(rows_out, dtype=np.int64)
-        return cls(*(np.ascontiguousarray(table[:, i]) for i in range(10)))
+        return cls(*(table[:, i] for i in range(10)))  # columns of a Fortran array: contiguous
 
     def __len__(self) -> int:
         return len(self.tile)
