@@ -17,6 +17,7 @@ import hashlib
 import json
 import secrets
 from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -43,21 +44,50 @@ class Issued:
 
     def __init__(self, wall: str, digests: Iterable[bytes], groups: Iterable[list[int] | None]):
         """``digests[k]`` (32 bytes) is the driver's when ``groups[k]`` is None, else the
-        node's of those tiles."""
-        self.wall = wall
+        node's of those tiles (as the state database's rows have them)."""
         groups = list(groups)
         raw = np.frombuffer(b"".join(digests), np.uint8).reshape(-1, 32)
         if len(raw) != len(groups):
             raise ValueError("one digest per credential")
-        nodes = sorted(sorted(g) for g in groups if g is not None)
-        where = {tuple(g): k for k, g in enumerate(nodes)}  # (each tile is one node's)
-        holder = np.array([-1 if g is None else where[tuple(sorted(g))] for g in groups],
-                          np.int32)
+        nodes = [g for g in groups if g is not None]
+        start = np.cumsum([0] + [len(g) for g in nodes], dtype=np.int64)
+        tiles = np.fromiter((t for g in nodes for t in g), np.int64, int(start[-1]))
+        holder = np.cumsum([g is not None for g in groups]) - 1
+        holder[[g is None for g in groups]] = -1
+        self._keep(wall, raw, holder, start, tiles)
+
+    @classmethod
+    def of_nodes(cls, wall: str, driver: bytes, nodes: bytes, start: np.ndarray,
+                 tiles: np.ndarray) -> "Issued":
+        """The driver's digest, and the nodes' (``nodes``: 32 bytes each) of the tiles
+        ``tiles[start[k]:start[k + 1]]``."""
+        raw = np.frombuffer(driver + nodes, np.uint8).reshape(-1, 32)
+        out = cls.__new__(cls)
+        out._keep(wall, raw, np.arange(-1, len(raw) - 1), start, tiles)
+        return out
+
+    def _keep(self, wall, raw, holder, start, tiles) -> None:
+        """Digests ``raw (n, 32)`` of holders ``holder`` (-1: the driver; k: node k, of tiles
+        ``tiles[start[k]:start[k + 1]]``, no tile twice): kept sorted by digest, the nodes by
+        their first tile, each node's tiles sorted."""
+        self.wall = wall
+        size = np.diff(start)
+        node_of = np.repeat(np.arange(len(size)), size)
+        tiles = np.asarray(tiles, np.int64)[np.lexsort((tiles, node_of))]  # sorted in each
+        first = np.full(len(size), -1)  # (a node of no tiles: first, as sorted lists sort)
+        first[size > 0] = tiles[start[:-1][size > 0]]
+        by_first = np.argsort(first, kind="stable")
+        rank = np.empty(len(size), np.int64)
+        rank[by_first] = np.arange(len(size))
+        self._start = np.concatenate([[0], np.cumsum(size[by_first])]).astype(np.int64)
+        move = np.repeat(start[by_first] - self._start[:-1], size[by_first])
+        self._tiles = tiles[np.arange(len(tiles)) + move].astype(np.int32)
+        holder = np.asarray(holder, np.int64)
+        holder = np.where(holder < 0, -1, rank[np.maximum(holder, 0)] if len(size) else -1)
         prefix = raw[:, :8].copy().view(">u8").ravel().astype(np.uint64)
         order = np.argsort(prefix, kind="stable")
-        self._prefix, self._digests, self._holder = prefix[order], raw[order], holder[order]
-        self._start = np.cumsum([0] + [len(g) for g in nodes], dtype=np.int64)
-        self._tiles = np.fromiter((t for g in nodes for t in g), np.int32, int(self._start[-1]))
+        self._prefix, self._digests = prefix[order], raw[order]
+        self._holder = holder[order].astype(np.int32)
 
     def __len__(self) -> int:
         return len(self._holder)
@@ -102,9 +132,11 @@ def same_digest(a: str, b: str) -> bool:
     return secrets.compare_digest(a.encode(), b.encode())
 
 
-def node_groups(tiles: int, nodes: Iterable[Iterable[int]] | None) -> list[list[int]]:
-    """The tiles of each node: ``nodes`` as given (each tile at most once), then a node of its
-    own for every tile no group names."""
+def node_groups(tiles: int, nodes: Iterable[Iterable[int]] | None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The tiles of each node, ``(start, tiles)``: node ``k``'s are ``tiles[start[k]:start[k +
+    1]]``, ``nodes`` as given (each tile at most once), then a node of its own for every tile
+    no group names (arrays: 65,536 of them on a 256 x 256 wall)."""
     groups, seen = [], set()
     for group in nodes or ():
         group = sorted(set(group))
@@ -116,14 +148,39 @@ def node_groups(tiles: int, nodes: Iterable[Iterable[int]] | None) -> list[list[
             raise InputError(f"tiles {sorted(twice)} are given to two nodes")
         seen.update(group)
         groups.append(group)
-    return groups + [[t] for t in range(tiles) if t not in seen]
+    alone = np.ones(tiles, bool)
+    alone[list(seen)] = False
+    rest = np.flatnonzero(alone)
+    size = np.concatenate([[len(g) for g in groups], np.ones(len(rest), np.int64)])
+    start = np.concatenate([[0], np.cumsum(size)]).astype(np.int64)
+    return start, np.concatenate([np.array([t for g in groups for t in g], np.int64), rest])
+
+
+class Shown(Sequence):
+    """A new wall's node credentials, shown once: ``{"tiles": [...], "token": "wcn_..."}``
+    each, made when read (the answer is encoded a piece at a time: a 256 x 256 wall's 65,536
+    as dicts took 13 MB more)."""
+
+    def __init__(self, start: np.ndarray, tiles: np.ndarray, tokens: list[str]):
+        self._start, self._tiles, self._tokens = start.tolist(), tiles.tolist(), tokens
+
+    def __len__(self) -> int:
+        return len(self._tokens)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        k = range(len(self))[k]  # negative indices, and IndexError
+        return {"tiles": self._tiles[self._start[k]:self._start[k + 1]],
+                "token": self._tokens[k]}
 
 
 def issue(wall: str, tiles: int, nodes=None) -> tuple[dict, Issued]:
-    """New credentials of a wall: the tokens to hand out once, and what the server keeps."""
+    """New credentials of a wall: the tokens to hand out once (the nodes' a :class:`Shown`),
+    and what the server keeps."""
     driver = "wcd_" + secrets.token_urlsafe(24)
-    shown = [{"tiles": group, "token": "wcn_" + secrets.token_urlsafe(24)}
-             for group in node_groups(tiles, nodes)]
-    issued = Issued(wall, [raw_digest(driver), *(raw_digest(n["token"]) for n in shown)],
-                    [None, *(n["tiles"] for n in shown)])
-    return {"driver": driver, "nodes": shown}, issued
+    start, flat = node_groups(tiles, nodes)
+    tokens = ["wcn_" + secrets.token_urlsafe(24) for _ in range(len(start) - 1)]
+    issued = Issued.of_nodes(wall, raw_digest(driver),
+                             b"".join(raw_digest(token) for token in tokens), start, flat)
+    return {"driver": driver, "nodes": Shown(start, flat, tokens)}, issued

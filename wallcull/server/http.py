@@ -7,6 +7,7 @@ import asyncio
 import base64
 import json
 import time
+from collections.abc import Sequence
 from typing import Any, Callable
 
 from fastapi import Depends, Request
@@ -47,7 +48,7 @@ async def reply_large(request: Request, build: Callable[[], Any]) -> Response:
 def encode_in_pieces(obj: Any, binary: bool) -> bytes:
     """The bytes :func:`reply` would send for ``obj``, long lists encoded a piece at a time;
     numpy arrays (rows) are encoded as the nested lists ``tolist`` would give, a piece of
-    rows at a time."""
+    rows at a time, and other sequences (rows made when read) as lists."""
     import msgpack
     import numpy as np
 
@@ -68,7 +69,11 @@ def encode_in_pieces(obj: Any, binary: bool) -> bytes:
                 walk(item)
             if not binary:
                 parts.append(b"}")
-        elif isinstance(value, (list, np.ndarray)) and len(value) > PIECE:
+        elif isinstance(value, Sequence) and not isinstance(value, (str, bytes, list, tuple)) \
+                and len(value) <= PIECE:  # rows made when read (credentials.Shown)
+            walk(list(value))
+        elif isinstance(value, (list, np.ndarray, Sequence)) and len(value) > PIECE \
+                and not isinstance(value, (str, bytes)):
             parts.append(_msgpack_header(len(value)) if binary else b"[")
             for k in range(0, len(value), PIECE):
                 piece = value[k:k + PIECE]

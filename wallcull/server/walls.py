@@ -67,8 +67,10 @@ async def create_wall(request: Request, state: State,
     state.warming.add(warming)
     warming.add_done_callback(state.warming.discard)
     issued, session.credentials = session.credentials, None  # shown once
-    return await _reply(request, session, lambda: {**session.info(), "credentials": issued},
-                        201)
+    # in pieces whatever the wall's size: the nodes' credentials are made as they are encoded
+    response = await reply_large(request, lambda: {**session.info(), "credentials": issued})
+    response.status_code = 201
+    return response
 
 
 async def _reply(request: Request, session, build, status: int = 200):
