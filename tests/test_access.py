@@ -305,3 +305,31 @@ def test_a_walls_credentials_kept_compactly_grant_what_they_were_issued_for(tile
     again = cr.Issued("w1", [bytes.fromhex(d) for d in rows],
                       [None if role == cr.DRIVER else t for role, t in rows.values()])
     assert list(again.rows()) == list(issued.rows())
+
+
+@pytest.mark.parametrize("accept", ["application/json", "application/msgpack"])
+def test_a_big_walls_credentials_are_shown_whole_and_each_holds_its_tiles(client, accept):
+    """More node credentials than the answer encodes in one piece (they are made as it is
+    encoded): every tile once, every token its own, in JSON and msgpack, and a token far
+    down the list reads its own tile's packet and no other's."""
+    from wallcull.server.http import PIECE
+
+    big = {**WALL, "cols": 80, "rows": 60, "tile_size": [0.06, 0.03]}
+    assert 80 * 60 > PIECE + 2
+    r = client.post("/walls", json={"wall": big, "scene": "fatehpur", "nodes": [[5, 7, 6]]},
+                    headers={**OPERATOR, "Accept": accept})
+    assert r.status_code == 201, r.text
+    info = msgpack.unpackb(r.content) if "msgpack" in accept else r.json()
+    wid, nodes = info["id"], info["credentials"]["nodes"]
+    try:
+        assert len(nodes) == 80 * 60 - 2 and nodes[0]["tiles"] == [5, 6, 7]
+        assert sorted(t for n in nodes for t in n["tiles"]) == list(range(80 * 60))
+        assert len({n["token"] for n in nodes}) == len(nodes)
+        client.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=OPERATOR)
+        late = nodes[PIECE + 1]
+        tile = late["tiles"][0]
+        for t, status in ((tile, 200), ((tile + 1) % (80 * 60), 403)):
+            assert client.get(f"/walls/{wid}/tiles/{t}/packets/0",
+                              headers=bearer(late["token"])).status_code == status
+    finally:
+        client.delete(f"/walls/{wid}", headers=OPERATOR)
