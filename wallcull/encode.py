@@ -418,25 +418,25 @@ class _FitArrays:
         offsets = np.cumsum([0] + [len(s.casters) for s in shadows])
         S = (
             np.array([s.kind for s in shadows], np.int64).reshape(L, tiles),
-            np.array([s.view for s in shadows]).reshape(L, tiles, 4, 4),
-            np.array([s.projection for s in shadows]).reshape(L, tiles, 4, 4),
+            _stacked([s.view for s in shadows], (L, tiles, 4, 4)),
+            _stacked([s.projection for s in shadows], (L, tiles, 4, 4)),
             *(np.array([getattr(s, k) for s in shadows]).reshape(L, tiles)
               for k in ("near", "far", "coverage")),
             np.array([s.casters_start + o for s, o in zip(shadows, offsets)],
                      np.int64).reshape(L, tiles + 1),
-            np.concatenate([s.casters for s in shadows] or [np.zeros(0, np.int64)]),
+            _joined([s.casters for s in shadows]),
             *_pack_each([s.light.name for s in shadows]),
             *_pack_each([s.cube_views.tolist() if s.cube_views is not None else []
                          for s in shadows]))
         offsets = np.cumsum([0] + [len(m.visible) for m in mirrors])
         M = (
             np.array([m.shown for m in mirrors], np.bool_).reshape(Q, tiles),
-            np.array([_views(m.view) for m in mirrors]).reshape(Q, *vshape),
+            _stacked([_views(m.view) for m in mirrors], (Q, *vshape)),
             *_pack_each([m.view.tolist() if shared else [] for m in mirrors]),
-            np.array([m.projection for m in mirrors]).reshape(Q, tiles, 4, 4),
+            _stacked([m.projection for m in mirrors], (Q, tiles, 4, 4)),
             np.array([m.visible_start + o for m, o in zip(mirrors, offsets)],
                      np.int64).reshape(Q, tiles + 1),
-            np.concatenate([m.visible for m in mirrors] or [np.zeros(0, np.int64)]),
+            _joined([m.visible for m in mirrors]),
             *_pack_each([m.mirror.name for m in mirrors]))
         E = len(eyes)
         e_views = np.array([_views(e.view) for e in eyes]).reshape(E, *vshape)
@@ -463,6 +463,21 @@ def _no_parts(tiles: int, shared: bool) -> tuple[tuple, tuple, tuple]:
         for a in part:
             a.flags.writeable = False
     return parts
+
+
+def _stacked(arrays: list, shape: tuple) -> np.ndarray:
+    """``arrays`` (float64, of one shape) as one array of ``shape``; with one, that array
+    itself, not a copy (a 256 x 256 wall's per-tile matrices are 8 MB an array, a frame)."""
+    if len(arrays) == 1 and arrays[0].flags.c_contiguous and arrays[0].dtype == np.float64:
+        return arrays[0].reshape(shape)
+    return np.array(arrays, np.float64).reshape(shape)
+
+
+def _joined(lists: list) -> np.ndarray:
+    """Id lists (int64) end to end; one list itself, not a copy."""
+    if len(lists) == 1 and lists[0].dtype == np.int64:
+        return lists[0]
+    return np.concatenate(lists or [np.zeros(0, np.int64)])
 
 
 def fit_arrays(record) -> _FitArrays:
