@@ -104,7 +104,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     (every tile's entry of the node messages, a delta against the previous frame as a
     streaming node gets it) and their ``total``, and ``encode_packets`` (every tile's packet,
     as a per-tile stream gets it; see :data:`STAGES`). ``occlusion``: the occlusion setting,
-    timed as the ``occlude`` stage, with the triangles the tiles draw."""
+    timed as the ``occlude`` stage. Also the triangles the tiles draw, a frame on average."""
     session = Session(scene, wall, method, bounds, pseudo_groups,
                       fit or (FitOptions() if stages else None), occlusion=occlusion)
     history, tiles, packet_bytes = History(4), np.arange(wall.tiles), []
