@@ -38,11 +38,12 @@ def reply(request: Request, payload: Any, status: int = 200, headers=None) -> Re
                     media_type=protocol.JSON)
 
 
-async def reply_large(request: Request, build: Callable[[], Any]) -> Response:
+async def reply_large(request: Request, build: Callable[[], Any], status: int = 200
+                      ) -> Response:
     """:func:`reply` with ``build()`` and its encoding done in a worker thread, in pieces."""
     binary = protocol.wants_msgpack(request.headers.get("accept"))
     body = await background(lambda: encode_in_pieces(build(), binary))
-    return Response(body, 200, media_type=protocol.MSGPACK if binary else protocol.JSON)
+    return Response(body, status, media_type=protocol.MSGPACK if binary else protocol.JSON)
 
 
 def encode_in_pieces(obj: Any, binary: bool) -> bytes:
@@ -69,11 +70,8 @@ def encode_in_pieces(obj: Any, binary: bool) -> bytes:
                 walk(item)
             if not binary:
                 parts.append(b"}")
-        elif isinstance(value, Sequence) and not isinstance(value, (str, bytes, list, tuple)) \
-                and len(value) <= PIECE:  # rows made when read (credentials.Shown)
-            walk(list(value))
-        elif isinstance(value, (list, np.ndarray, Sequence)) and len(value) > PIECE \
-                and not isinstance(value, (str, bytes)):
+        elif isinstance(value, (np.ndarray, Sequence)) and not isinstance(value, (str, bytes)) \
+                and len(value) > PIECE:
             parts.append(_msgpack_header(len(value)) if binary else b"[")
             for k in range(0, len(value), PIECE):
                 piece = value[k:k + PIECE]
@@ -88,6 +86,8 @@ def encode_in_pieces(obj: Any, binary: bool) -> bytes:
                 parts.append(b"]")
         elif isinstance(value, np.ndarray):
             walk(value.tolist())
+        elif isinstance(value, Sequence) and not isinstance(value, (str, bytes, list, tuple)):
+            walk(list(value))  # rows made when read (credentials.Shown)
         elif binary:
             parts.append(msgpack.packb(value, use_bin_type=True))
         else:

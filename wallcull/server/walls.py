@@ -68,9 +68,7 @@ async def create_wall(request: Request, state: State,
     warming.add_done_callback(state.warming.discard)
     issued, session.credentials = session.credentials, None  # shown once
     # in pieces whatever the wall's size: the nodes' credentials are made as they are encoded
-    response = await reply_large(request, lambda: {**session.info(), "credentials": issued})
-    response.status_code = 201
-    return response
+    return await reply_large(request, lambda: {**session.info(), "credentials": issued}, 201)
 
 
 async def _reply(request: Request, session, build, status: int = 200):
@@ -78,9 +76,7 @@ async def _reply(request: Request, session, build, status: int = 200):
     its credentials when it is created, are megabytes at 256 x 256)."""
     if session.wall.tiles <= LARGE_WALL:
         return reply(request, build(), status)
-    response = await reply_large(request, build)
-    response.status_code = status
-    return response
+    return await reply_large(request, build, status)
 
 
 @router.get("/walls", operation_id="listWalls", response_model=WallList)
