@@ -232,6 +232,46 @@ class WsNode:
 # --------------------------------------------------------------------------- codecs
 
 
+@pytest.mark.parametrize("binary", [False, True])
+def test_answers_in_pieces_leave_nothing_for_the_garbage_collector(binary):
+    """An answer encoded in pieces is freed as soon as it is dropped: no reference cycle
+    keeps its pieces (a 256 x 256 wall's console status, four a second, grew the server by
+    megabytes a second until the collector's next full pass)."""
+    import gc
+
+    from wallcull.server.http import encode_in_pieces
+
+    answer = {"rows": np.arange(3 * 5000.0).reshape(-1, 3), "nested": {"more": list(range(9000))},
+              "latency": np.array([1.5, np.nan] * 3000)}
+    gc.collect()
+    gc.disable()
+    try:
+        body = encode_in_pieces(answer, binary)
+        found = gc.collect()
+    finally:
+        gc.enable()
+    assert found == 0
+    decoded = msgpack.unpackb(body) if binary else json.loads(body)
+    assert decoded["rows"] == answer["rows"].tolist()
+    assert decoded["latency"][:4] == [1.5, None, 1.5, None]
+
+
+def test_the_heap_is_set_unless_the_environment_chose(tmp_path):
+    """glibc's arenas and mapping threshold (wallcull.server.heap), and none of it when the
+    environment names its own."""
+    import subprocess
+    import sys
+
+    code = "from wallcull.server import heap; print(heap.tune())"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=True).stdout
+    assert out.strip() == "{'arenas': 2, 'mmap_threshold': 1048576}"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "MALLOC_ARENA_MAX": "4"},
+                         capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "{}"
+
+
 def test_json_and_msgpack_requests_and_responses(client, fatehpur):
     body = msgpack.packb({"wall": WALL, "scene": "fatehpur", "history": 16})
     r = client.post("/walls", content=body, headers={**AUTH, "Content-Type": MP, "Accept": MP})
@@ -450,6 +490,25 @@ def test_frames_in_order_with_numbers(client, wid):
     assert r.status_code == 404 and "skipped" in r.json()["detail"]
     assert client.get(f"/walls/{wid}/tiles/0/packets/6", headers=AUTH).status_code == 200
     assert client.get(f"/walls/{wid}").json()["latest"] == 2**40
+
+
+def test_console_status_columns(client, wid, fatehpur):
+    """The console's status: each column one value per tile, a latency not known as null."""
+    number = post_frame(client, wid)["frame"]
+    r = client.post(f"/walls/{wid}/tiles/2/ack", json={"frame": number}, headers=AUTH)
+    assert r.status_code == 204, r.text
+    with client.websocket_connect(f"/walls/{wid}/console/stream?token={TOKEN}") as ws:
+        status = json.loads(ws.receive_text())
+    tiles = Wall.from_dict(WALL).tiles
+    lists = reference(fatehpur, WALL, FRAME)
+    assert status["frame"] == number
+    assert status["count"] == [len(v) for v in lists]
+    assert status["ack"] == [number if t == 2 else -1 for t in range(tiles)]
+    assert status["streams"] == [0] * tiles
+    assert status["latency_ms"][2] >= 0
+    assert status["latency_ms"][:2] + status["latency_ms"][3:] == [None] * (tiles - 1)
+    assert status["state"][2] == "acked"
+    assert set(status["state"][:2] + status["state"][3:]) == {"offline"}
 
 
 def test_a_refused_frame_applies_none_of_its_updates(client, wid, fatehpur):

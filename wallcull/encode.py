@@ -751,8 +751,10 @@ class NodeEntries:
     ``head_pairs`` of them)."""
 
     def __init__(self, data: bytes, start: np.ndarray, head: bytes, head_pairs: int):
-        self.data, self.start, self.head, self.head_pairs = data, start.tolist(), head, head_pairs
-        self.counted = np.concatenate([[0], np.cumsum(np.diff(start) > 0)]).tolist()
+        # offsets read one by one as Python ints, as fast as from lists, at 8 bytes each
+        # rather than 36 (a 256 x 256 wall's as lists took 5 MB a frame)
+        self.data, self.start, self.head, self.head_pairs = data, _offsets(start), head, head_pairs
+        self.counted = _offsets(np.concatenate([[0], np.cumsum(np.diff(start) > 0)]))
         self._view = memoryview(data)
 
     def body(self, tiles: np.ndarray) -> tuple[int, bytes | memoryview]:
@@ -764,6 +766,10 @@ class NodeEntries:
                     self._view[self.start[first]:self.start[last + 1]])
         parts = [self._view[self.start[t]:self.start[t + 1]] for t in tiles.tolist()]
         return sum(len(part) > 0 for part in parts), b"".join(parts)
+
+
+def _offsets(values: np.ndarray) -> memoryview:
+    return memoryview(np.ascontiguousarray(values, np.int64))
 
 
 def node_entries(history, number: int, base: int | None) -> NodeEntries:

@@ -731,6 +731,7 @@ async def huge(consoles: int = 32, hold: float = 12.0, seconds: float = 5.0) -> 
                     auth=True)
                 out["frame_packets" if packets else "frame"] = {
                     "status": r.status, "seconds": time.perf_counter() - t,
+                    "rss_mb": (s.ps.memory_info().rss - rss) / MiB,
                     "detail": r.detail()[:120] if r.status >= 400 else None}
         received = [0] * consoles
         stop = asyncio.Event()
@@ -750,7 +751,8 @@ async def huge(consoles: int = 32, hold: float = 12.0, seconds: float = 5.0) -> 
         results = await asyncio.gather(*tasks, return_exceptions=True)
         out["consoles"] = {"opened": consoles, "seconds": hold,
                            "failed": sum(isinstance(r, Exception) for r in results),
-                           "mb_received": sum(received) / MiB}
+                           "mb_received": sum(received) / MiB,
+                           "rss_mb": (s.ps.memory_info().rss - rss) / MiB}
         async with Connection(s.url, TOKEN) as conn:
             await conn.request("DELETE", f"/walls/{wid}", auth=True)
         return out

@@ -36,6 +36,7 @@ from ..errors import InputError, optional
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from .. import warm
+from . import heap
 from ..workers import background
 from ..persist import StateWriteFailed
 from ..service import Conflict, Gone, NotFound, SceneStore, Unavailable, Walls, settled
@@ -260,6 +261,7 @@ def seconds_setting(text: str | None, what: str) -> float | None:
 
 def make_app_from_env() -> FastAPI:
     """For ``uvicorn wallcull.server:make_app_from_env --factory`` (Docker and friends)."""
+    heap.tune()
     return create_app(**settings_from_env())
 
 
@@ -270,6 +272,7 @@ def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info", **
 
     from .guard import protocol
 
+    heap.tune()
     app = create_app(**settings)
     limits = app.state.server.limits
     uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False,
