@@ -37,6 +37,7 @@ from wallcull.paths import camera_path
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
 from wallcull.server import create_app
+from wallcull.server.messages import ConsoleStatus
 from wallcull.wall import Wall
 
 from .test_protocol import Holder
@@ -499,6 +500,7 @@ def test_console_status_columns(client, wid, fatehpur):
     assert r.status_code == 204, r.text
     with client.websocket_connect(f"/walls/{wid}/console/stream?token={TOKEN}") as ws:
         status = json.loads(ws.receive_text())
+    ConsoleStatus.model_validate(status)  # the AsyncAPI document's schema
     tiles = Wall.from_dict(WALL).tiles
     lists = reference(fatehpur, WALL, FRAME)
     assert status["frame"] == number
