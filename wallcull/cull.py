@@ -1410,23 +1410,31 @@ def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarra
     scene = state.scene
     box = packed(state)
     force = (np.int64(1) << region_size) - 1
-    stack = (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
+    stack = state.__dict__.get("_region_stack")
+    if stack is None:  # the deepest a depth-first traversal's stack gets
+        stack = state.__dict__["_region_stack"] = \
+            (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
     root = np.zeros(1, np.int64)
     ranges = workers.chunks(count, work)
     pool = state.__dict__.setdefault("_region_buffers", [])  # kept: outputs grow once
     pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
+    inherit = np.zeros(count, np.int64)
 
     def chunk(k, a, b):  # regions [a, b), on buffers of their own
         buf = pool[k]
-        nodes, which, tests = buf.run(
+        return buf.run(
             _oh, root, root, scene.child_start, scene.leaf_child_count, scene.children, box,
-            planes, region_planes[a:b], region_size[a:b], force[a:b], np.zeros(b - a, np.int64),
+            planes, region_planes[a:b], region_size[a:b], force[a:b], inherit[a:b],
             buf.get("stack_n", stack), buf.get("stack_m", stack))
-        return nodes, which + a, tests
 
-    parts = workers.run(chunk, ranges) if count else [(np.zeros(0, np.int64),) * 2 + (0,)]
-    start, ordered = _by_region(np.concatenate([p[0] for p in parts]),
-                                np.concatenate([p[1] for p in parts]), count)
+    parts = workers.run(chunk, ranges)
+    # The kernel lists region after region, each in preorder (see :func:`_by_region`): the
+    # pairs are already in CSR order.
+    ordered = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+    start = np.zeros(count + 1, np.int64)
+    for (a, b), (_, which, _) in zip(ranges, parts):
+        start[a + 1:b + 1] = np.bincount(which, minlength=b - a)
+    np.cumsum(start, out=start)
     return Regions(scene, start, ordered, int(sum(p[2] for p in parts)))
 
 

@@ -34,6 +34,7 @@ from functools import cached_property, lru_cache
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from . import lowilie
 from . import settings as cfg
@@ -208,16 +209,12 @@ def shadow_set(state: SceneState, light: cfg.Light, visibility: Visibility,
     planes (not its near plane), and the near plane is then pulled in to the nearest caster.
     A tile whose receivers no single frustum from the light holds (the light is among them)
     gets a cube map, with the casters in the cube around the light."""
-    bounds = state.bounds
     spot = None
     if light.kind == "spot":
         spot = (light.direction, math.cos(math.radians(light.angle)))
-    fits = lowilie.fit_boxes(light.position, bounds, visibility.start, visibility.nodes,
+    fits = lowilie.fit_boxes(light.position, state.bounds, visibility.start, visibility.nodes,
                              *light.resolution, effort, spot)
-    status = fits["status"]
-    tiles = len(status)
-    kind = np.where(status == lowilie.OK, FRUSTUM,
-                    np.where((status == lowilie.EMPTY) | (status == lowilie.UNLIT), NONE, CUBE))
+    kind = _KIND_OF_STATUS[fits["status"]]
     view, projection = fits["view"], fits["projection"]
     near, far = fits["near"], fits["far"]
     cubes = np.flatnonzero(kind == CUBE)  # the light among the receivers: a cube map
@@ -230,39 +227,89 @@ def shadow_set(state: SceneState, light: cfg.Light, visibility: Visibility,
         projection[cubes, 3, 2] = -1.0
     # One culling pass for every tile's caster region: the fitted frustum's side and far
     # planes (rows of projection @ view, Gribb-Hartmann), or the cube around the light.
-    shaded = np.flatnonzero(kind != NONE)
-    frustum_tiles = kind[shaded] == FRUSTUM
+    shaded = np.flatnonzero(kind)
     pv = projection[shaded] @ view[shaded]
-    rows = np.stack([pv[:, 3] + pv[:, 0], pv[:, 3] - pv[:, 0], pv[:, 3] + pv[:, 1],
-                     pv[:, 3] - pv[:, 1], pv[:, 3] - pv[:, 2], np.zeros_like(pv[:, 3])], axis=1)
-    rows /= np.maximum(np.linalg.norm(rows[..., :3], axis=2, keepdims=True), 1e-300)
-    box = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
-    radius = far[shaded][~frustum_tiles, None]
-    rows[~frustum_tiles, :, :3] = box
-    rows[~frustum_tiles, :, 3] = radius - box @ light.position
-    receivers = np.diff(visibility.start)[shaded]  # what a region's cull costs, roughly
-    regions = cull_regions(state, rows.reshape(-1, 4),
-                           np.arange(6 * len(shaded)).reshape(-1, 6),
-                           np.where(frustum_tiles, 5, 6),
-                           np.concatenate([[0], np.cumsum(receivers)]))
+    position = np.asarray(light.position, np.float64)
+    planes, regions, sizes, work = _caster_regions(pv, kind, shaded, far, position,
+                                                   visibility.start)
+    regions = cull_regions(state, planes, regions, sizes, work)
     # near: the nearest caster, along each frustum's view axis
-    forward = -view[shaded, 2, :3]
-    lo, _ = node_depths(state, regions.start, regions.nodes, forward,
-                        np.broadcast_to(light.position, forward.shape).copy(), (np.nan, np.nan))
-    fitted = shaded[frustum_tiles]
-    f = far[fitted]
-    nearest = np.where(np.isnan(lo[frustum_tiles]), f * 0.5, lo[frustum_tiles])
-    near[fitted] = np.maximum(nearest * (1 - 1e-6), f * 1e-6)
-    n, f = near[shaded], far[shaded]  # the depth rows, from each (new) near and far
-    projection[shaded, 2, 2] = -(f + n) / (f - n)
-    projection[shaded, 2, 3] = -2 * f * n / (f - n)
+    lo, _ = node_depths(state, regions.start, regions.nodes, -view[shaded, 2, :3],
+                        position[None], (np.nan, np.nan))
+    _pull_near(lo, kind, shaded, near, far, projection)
     start, leaves = regions.leaf_lists()
-    counts = np.zeros(tiles, np.int64)
-    counts[shaded] = np.diff(start)
-    casters_start = np.concatenate([[0], np.cumsum(counts)])
-    cube_views = _cube_views(tuple(light.position)) if (kind == CUBE).any() else None
+    casters_start = _spread(start, shaded, len(kind))
+    cube_views = _cube_views(tuple(light.position)) if len(cubes) else None
     return ShadowSet(light, kind, view, projection, near, far, fits["coverage"], casters_start,
                      leaves, cube_views)
+
+
+#: A fit's status (:mod:`wallcull.lowilie`) to the kind of shadow it gives: ``OK`` a frustum,
+#: ``EMPTY`` and ``UNLIT`` none, any other (no single frustum holds the receivers) a cube map.
+_KIND_OF_STATUS = np.full(lowilie.BAD_DEPTH + 1, CUBE, np.int64)
+_KIND_OF_STATUS[[lowilie.OK, lowilie.EMPTY, lowilie.UNLIT]] = FRUSTUM, NONE, NONE
+
+
+@njit(cache=True)
+def _caster_regions(pv, kind, shaded, far, light, start):
+    """The caster regions of the ``shaded`` tiles, as :func:`~wallcull.cull.cull_regions`
+    takes them: six plane rows each (inward unit normals; a frustum uses its first five, its
+    side and far planes from ``pv``, the rows of projection @ view; a cube map all six, the
+    cube of half-width ``far`` around the light), and each tile's receivers as its cost."""
+    n = shaded.shape[0]
+    planes = np.zeros((6 * n, 4))
+    regions = np.arange(6 * n).reshape(n, 6)
+    sizes = np.empty(n, np.int64)
+    work = np.zeros(n + 1, np.int64)
+    for k in range(n):
+        t = shaded[k]
+        work[k + 1] = work[k] + start[t + 1] - start[t]
+        rows = planes[6 * k:6 * k + 6]
+        if kind[t] == CUBE:
+            sizes[k] = 6
+            for a in range(3):
+                rows[2 * a, a], rows[2 * a + 1, a] = 1.0, -1.0
+                rows[2 * a, 3], rows[2 * a + 1, 3] = far[t] - light[a], far[t] + light[a]
+            continue
+        sizes[k] = 5
+        for j in range(4):
+            rows[0, j], rows[1, j] = pv[k, 3, j] + pv[k, 0, j], pv[k, 3, j] - pv[k, 0, j]
+            rows[2, j], rows[3, j] = pv[k, 3, j] + pv[k, 1, j], pv[k, 3, j] - pv[k, 1, j]
+            rows[4, j] = pv[k, 3, j] - pv[k, 2, j]
+        for p in range(5):
+            norm = max(math.sqrt(rows[p, 0] * rows[p, 0] + rows[p, 1] * rows[p, 1]
+                                 + rows[p, 2] * rows[p, 2]), 1e-300)
+            for j in range(4):
+                rows[p, j] /= norm
+    return planes, regions, sizes, work
+
+
+@njit(cache=True)
+def _pull_near(lo, kind, shaded, near, far, projection):
+    """Each shadow frustum's near plane pulled in to ``lo``, the nearest of its casters (half
+    its far distance without any), and every shaded tile's depth rows from its near and far."""
+    for k in range(shaded.shape[0]):
+        t = shaded[k]
+        f = far[t]
+        if kind[t] == FRUSTUM:
+            nearest = f * 0.5 if math.isnan(lo[k]) else lo[k]
+            near[t] = max(nearest * (1 - 1e-6), f * 1e-6)
+        n = near[t]
+        projection[t, 2, 2] = -(f + n) / (f - n)
+        projection[t, 2, 3] = -2 * f * n / (f - n)
+
+
+@njit(cache=True)
+def _spread(start, shaded, tiles):
+    """CSR ``start`` over the ``shaded`` tiles, spread over all ``tiles`` (the others empty)."""
+    out = np.zeros(tiles + 1, np.int64)
+    k = 0
+    for t in range(tiles):
+        out[t + 1] = out[t]
+        if k < shaded.shape[0] and shaded[k] == t:
+            out[t + 1] += start[k + 1] - start[k]
+            k += 1
+    return out
 
 
 @lru_cache(maxsize=64)

@@ -354,11 +354,12 @@ def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
     :class:`ClipPlaneError`'s reasons; those rows are left as they were."""
     m = np.asarray(projections, dtype=np.float64)
     if m.ndim != 3 or m.shape[1:] != (4, 4) or \
-            not np.allclose(m[:, 3], (0.0, 0.0, -1.0, 0.0), rtol=0, atol=1e-12):
+            not (np.abs(m[:, 3] - (0.0, 0.0, -1.0, 0.0)) <= 1e-12).all():
         raise ValueError("oblique_near needs a perspective projection with row 4 = (0, 0, -1, 0)")
-    c = np.ascontiguousarray(np.broadcast_to(np.asarray(clip_plane, np.float64), (len(m), 4)))
-    if not (np.isfinite(c).all() and (np.linalg.norm(c[:, :3], axis=1) > 0).all()):
-        raise ValueError(f"clip plane {c[:1].tolist()} has no normal")
+    c = np.asarray(clip_plane, np.float64)  # checked before it is repeated for every matrix
+    if not (np.isfinite(c).all() and (np.linalg.norm(c[..., :3], axis=-1) > 0).all()):
+        raise ValueError(f"clip plane {c.reshape(-1, 4)[:1].tolist()} has no normal")
+    c = np.ascontiguousarray(np.broadcast_to(c, (len(m), 4)))
     out = m.copy()
     reason = np.zeros(len(m), np.int64)
     _oblique(m, c, rtol, out, reason)
