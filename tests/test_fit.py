@@ -251,6 +251,23 @@ def test_mirror_oblique_near_plane_is_the_mirror():
         assert (homog(m, under)[:, 2] < -1).all()
 
 
+@pytest.mark.parametrize("stereo", [None, 0.064])
+def test_threads_change_no_bit_of_a_frames_fits(monkeypatch, stereo):
+    """The shadow passes split among threads and the mirrors culled beside them give every
+    tile the same fits, bit for bit, as one thread doing it all in turn."""
+    frame = {**FRAME, **({"stereo": {"ipd": stereo}} if stereo else {})}
+    lit = {"lights": [{"name": "sun", "position": [12.0, 25.0, 8.0]},
+                      {"name": "lamp", "position": [0, 0.5, 0]}],
+           "mirrors": [MIRROR, {"name": "wall", "point": [0, 0, -15], "normal": [0, 0, 1]}]}
+    results = []
+    for threads in ("1", "2"):
+        monkeypatch.setenv("WALLCULL_THREADS", threads)
+        _, result = fitted(lit_scene(), lit, frame)
+        results.append([result.fits[t] for t in range(len(result.fits))])
+    assert any("mirrors" in t and "shadows" in t for t in results[0])
+    assert results[0] == results[1]
+
+
 def test_eye_behind_mirror_sees_nothing_in_it():
     scene = lit_scene()
     below = {"position": [0, -5, 30], "orientation": [1, 0, 0, 0]}

@@ -19,8 +19,9 @@ Per tile and frame:
   mirror's outline when it has one).
 
 Every tile of a frame is fitted at once: one compiled Low-Ilie pass per light over all tiles
-(:func:`wallcull.lowilie.fit_boxes`), and one object-hierarchy pass over every tile's caster
-region or mirror view (:func:`wallcull.cull.cull_regions`). The results stay arrays
+(:func:`wallcull.lowilie.fit_boxes`), one object-hierarchy pass over every tile's caster
+region (:func:`wallcull.cull.cull_regions`), and per mirror the wall's own cull of the
+reflected frusta, run beside the lights' passes. The results stay arrays
 (:class:`Fits`, :class:`ShadowSet`, :class:`MirrorSet`) that read as per-tile dicts. Lists are
 leaf ids, as in packets. A scene without lights or mirrors never reaches the code for them.
 """
@@ -36,7 +37,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from . import lowilie
+from . import lowilie, workers
 from . import settings as cfg
 from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
 from .projection import (frustum_extents, look_at, oblique_near_many, rigid_inverse,
@@ -387,15 +388,19 @@ class MirrorSight:
         oblique, refused = oblique_near_many(projections, clip)
         return views @ refl, oblique, refused == 0
 
-    def tiles(self, culler: Culler, frusta: Frusta, views: np.ndarray,
-              projections: np.ndarray) -> MirrorSet:
-        """The reflected view of every tile (its frustum's planes and projection)."""
+    def seen(self, culler: Culler, frusta: Frusta) -> tuple[np.ndarray, np.ndarray]:
+        """The leaves every tile sees in the mirror, CSR ``(start, leaves)``."""
         # Seen in the mirror, in world space: the tile frusta reflected, in front of the
         # mirror, within the pyramid from the reflected eye through the outline. The reflected
         # table keeps the wall's layout, so the wall's own culling (frustum hierarchy
         # included) does it, with the mirror's planes bounding every tile.
-        vis = culler.cull_reflected(frusta, self.mirror.reflection, self.outline)
-        start, leaves = vis.leaf_lists()
+        return culler.cull_reflected(frusta, self.mirror.reflection, self.outline).leaf_lists()
+
+    def tiles(self, seen: tuple[np.ndarray, np.ndarray], views: np.ndarray,
+              projections: np.ndarray) -> MirrorSet:
+        """The reflected view of every tile (its frustum's planes and projection), showing
+        the leaves it has ``seen`` (:meth:`seen`)."""
+        start, leaves = seen
         view, oblique, ok = self.matrices(views, projections)
         shown = (np.diff(start) > 0) & ok
         counts = np.where(shown, np.diff(start), 0)
@@ -552,20 +557,28 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
         return (tile_views(wall, frame, eye),
                 tile_projections(wall, frame, near, far, options.reversed_z, eye), near, far)
 
-    out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
-    if frame.stereo is not None:
-        out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
-    if scene_settings is None or scene_settings.empty or visibility is None:
-        return out  # nothing declared: nothing computed, nothing sent
-    for light in scene_settings.lights:
-        out.shadows.append(shadow_set(state, light, visibility, options.shadow_fit))
-    for mirror in scene_settings.mirrors:
-        sight = MirrorSight.of(mirror, frame)
-        if sight is None:
-            continue  # no eye sees the mirror's reflective side: no tile shows anything in it
+    declared = not (scene_settings is None or scene_settings.empty or visibility is None)
+    sights = [MirrorSight.of(m, frame) for m in scene_settings.mirrors] if declared else []
+    sights = [s for s in sights if s is not None]  # None: no eye sees the reflective side
+    seen = list  # no mirror seen: nothing to wait for
+    if sights:
+        # What the mirrors show is culled beside the rest: on two cores, while a shadow pass
+        # waits for its threads, the other core culls the mirrors.
         frusta = frusta or Frusta.build(wall, frame)
         culler = culler or Culler(state, wall)
-        out.mirrors.append(sight.tiles(culler, frusta, out.view, out.projection))
+        seen = workers.aside(lambda: [s.seen(culler, frusta) for s in sights])
+    try:
+        out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
+        if frame.stereo is not None:
+            out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
+        for light in scene_settings.lights if declared else ():
+            out.shadows.append(shadow_set(state, light, visibility, options.shadow_fit))
+    finally:  # the mirrors' culls use the culler's buffers: never left running after a frame
+        lists = seen()
+    if not declared:
+        return out  # nothing declared: nothing computed, nothing sent
+    for sight, seen_lists in zip(sights, lists):
+        out.mirrors.append(sight.tiles(seen_lists, out.view, out.projection))
         for eye in out.eyes:
             eye.mirrors.append(sight.matrices(eye.view, eye.projection))
     return out

@@ -10,6 +10,7 @@ thread is not split: handing it over costs more than it saves.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, Sequence
 
@@ -31,6 +32,7 @@ def count() -> int:
 
 
 _pool: ThreadPoolExecutor | None = None
+_lock = threading.Lock()
 _pool_size = 0
 
 
@@ -53,11 +55,29 @@ def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int
     global _pool, _pool_size
     if len(ranges) <= 1:
         return [task(k, *r) for k, r in enumerate(ranges)]
-    if _pool is None or _pool_size < len(ranges) - 1:
-        _pool_size = len(ranges) - 1
-        _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="wallcull-kernel")
-    futures = [_pool.submit(task, k, *r) for k, r in enumerate(ranges) if k]
+    with _lock:  # a task run :func:`aside` may split its work too
+        if _pool is None or _pool_size < len(ranges) - 1:
+            _pool_size = len(ranges) - 1
+            _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="wallcull-kernel")
+        pool = _pool
+    futures = [pool.submit(task, k, *r) for k, r in enumerate(ranges) if k]
     return [task(0, *ranges[0])] + [f.result() for f in futures]
+
+
+_aside: ThreadPoolExecutor | None = None
+
+
+def aside(task: Callable[[], object]) -> Callable[[], object]:
+    """Start ``task()`` in a thread of its own, beside whatever the caller does next (which may
+    split its own kernels with :func:`run`: the task never holds up their pool), and return a
+    function that waits for its result. With one thread it runs when its result is asked for."""
+    global _aside
+    if count() == 1:
+        return task
+    with _lock:
+        if _aside is None:
+            _aside = ThreadPoolExecutor(count(), thread_name_prefix="wallcull-aside")
+    return _aside.submit(task).result
 
 
 _background: ThreadPoolExecutor | None = None
