@@ -1083,6 +1083,7 @@ class Culler:
         self.fine = fine
         scene = state.scene
         self._tree = (scene.child_start, scene.child_count, scene.children)
+        self._leaf_tree = (scene.child_start, scene.leaf_child_count, scene.children)
         tiles = wall.tiles
         if wall.kind == "grid":
             lay = wall.layout
@@ -1112,6 +1113,7 @@ class Culler:
                                  | (scene.is_leaf & (scene.child_count > 0))).astype(np.uint8)
         self._separate: list = []  # scratch of drop_all
         self._units = (scene.units, *scene.unit_range)
+        self._leaf_units = (scene.leaves, *scene.leaf_range)
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
         self._depth_bound = height * max(int(scene.child_count.max()), 2)
         self._everywhere = np.ones(len(self._fh), np.uint8)
@@ -1149,7 +1151,10 @@ class Culler:
                        extra: np.ndarray) -> Visibility:
         """Per-tile node lists of a mirror's view: the frame's frusta reflected by
         ``reflection (4, 4)`` (their layout and hierarchy stay the wall's), bounded besides by
-        ``extra`` planes ``(k, 4)`` (the mirror's plane and outline) that every tile shares."""
+        ``extra`` planes ``(k, 4)`` (the mirror's plane and outline) that every tile shares.
+        The lists stop at leaves, never their clusters: a mirror's list is leaves, each drawn
+        whole, and its clusters would only cost time (a leaf none of whose clusters the tile
+        sees may be listed, as a caster is)."""
         return self._each_eye(frusta, reflection, extra)
 
     def _each_eye(self, frusta: Frusta, reflection, extra) -> Visibility:
@@ -1160,6 +1165,9 @@ class Culler:
 
     def _traverse(self, frusta: Frusta, reflection, extra) -> Visibility:
         frame, wall = frusta.frame, self.wall
+        # a mirror's view down to leaves (see cull_reflected), the frame's own to clusters
+        tree, units = (self._leaf_tree, self._leaf_units) if reflection is not None else \
+            (self._tree, self._units)
         planes = frusta.planes
         forward = -frame.rotation[:, 2]  # the view direction
         eye = frame.to_world(frusta.eye)
@@ -1203,26 +1211,26 @@ class Culler:
         t0 = time.perf_counter()
         stack_n, stack_m = buf.get("stack_n", stack), buf.get("stack_m", stack)
         roots, masks = buf.get("roots", n), buf.get("masks", n)
-        count, primary_tests = _primary(*self._tree, box, planes, primary, roots, masks,
+        count, primary_tests = _primary(*tree, box, planes, primary, roots, masks,
                                         stack_n, stack_m)
         roots, masks = roots[:count], masks[:count]
         regions = None if wall.kind == "grid" else self._tile_planes
         if self.method == "naive":
-            nodes, tiles, tests = buf.run(_naive, roots, masks, *self._units, box, planes,
+            nodes, tiles, tests = buf.run(_naive, roots, masks, *units, box, planes,
                                           self._tile_planes, self._force, self._inherit)
         elif self.method == "oh":
-            nodes, tiles, tests = buf.run(_oh, roots, masks, *self._tree, box, planes,
+            nodes, tiles, tests = buf.run(_oh, roots, masks, *tree, box, planes,
                                           self._tile_planes, self._size, self._force,
                                           self._inherit, stack_n, stack_m)
         elif self.method == "fh":
-            nodes, tiles, tests = buf.run(_fh, roots, masks, *self._units, box, planes, fh,
+            nodes, tiles, tests = buf.run(_fh, roots, masks, *units, box, planes, fh,
                                           self._near_bit, regions, stack_n)
         elif self.pseudo_groups:
-            nodes, tiles, tests = _pseudo(roots, masks, *self._tree, box, planes, fh,
+            nodes, tiles, tests = _pseudo(roots, masks, *tree, box, planes, fh,
                                           self._near_bit, self._tile_sides)
         else:
             nodes, tiles, tests = self._run_adaptive(
-                (roots, masks, *self._tree, box, planes, fh, self._unfold, self._tile_sides,
+                (roots, masks, *tree, box, planes, fh, self._unfold, self._tile_sides,
                  view, pitch[0], pitch[1], self._near_bit, self._unknown_at_root, regions,
                  self._parts_of_leaves, self.fine * tile_angle),
                 stack)
@@ -1230,7 +1238,7 @@ class Culler:
         listed = len(nodes)
         t1 = time.perf_counter()
         nodes, tiles = drop_all(nodes, tiles, listed, box, planes, self._tile_planes,
-                                self._tree[1], eye, SMALL * tile_angle, self._separate)
+                                tree[1], eye, SMALL * tile_angle, self._separate)
         kept = len(nodes)
         t2 = time.perf_counter()
         start, ordered = _by_region(nodes, tiles, wall.tiles)
