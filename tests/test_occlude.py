@@ -42,13 +42,13 @@ def _ray_depths(tris: np.ndarray, xy: np.ndarray, near: float = NEAR) -> np.ndar
     return np.where(hit, t, np.inf).min(axis=1)  # d has unit z: t is the depth
 
 
-def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=None, bands=1,
+def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=None, threads=1,
            reused=False):
     """Rasterize meshes ``[(points (view coordinates), faces), ...]`` as occluders, each a
     leaf of its own (its faces sharing an edge join across it), all its faces one unit, or
     ``units``: per mesh, runs ``(first, count)`` of its faces (its clusters chosen); in
-    ``bands`` of rows, one after the other (as threads do); ``reused``: with scratch that
-    served a frame before (the view shifted)."""
+    ``threads`` threads (each of every so many leaves, merged, as a frame's); ``reused``: with
+    scratch that served a frame before (the view shifted)."""
     from wallcull.instances import MeshTable
 
     rect = np.asarray(rect, float)
@@ -57,16 +57,13 @@ def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=Non
     owner = np.array([k for k, r in enumerate(runs) for _ in r], np.int64)
     first = np.array([a for r in runs for a, _ in r], np.int64)
     count = np.array([c for r in runs for _, c in r], np.int64)
-    scratch = occlude._scratch(len(table.faces), len(table.vertices), w * h)
+    scratch = [occlude._scratch(len(table.faces), len(table.vertices)) for _ in range(threads)]
     for frame in ([rect + 0.05, rect] if reused else [rect]):
         buf = np.zeros(w * h)
-        for band in range(bands):
-            occlude._rasterize(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
-                               np.repeat(np.eye(4)[None], len(meshes), 0), table.vertex_start,
-                               table.vertices, table.face_start, table.faces,
-                               table.face_neighbors, occlude._outward(table), np.eye(3, 4)[None],
-                               frame[None], np.array([[w, h]]), near, buf, np.array([0]),
-                               *scratch, band, bands)
+        occlude._raster(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
+                        np.repeat(np.eye(4)[None], len(meshes), 0), table,
+                        occlude._outward(table), np.eye(3, 4)[None], frame[None],
+                        np.array([[w, h]]), near, buf, np.array([0]), scratch, threads)
     return buf, rect
 
 
@@ -150,7 +147,8 @@ def test_a_mesh_covers_across_its_shared_edges_and_no_more(seed, n, fold, cluste
 def test_closed_meshes_through_the_near_plane_claim_only_what_they_cover(seed, count):
     """Boxes, spheres and cylinders at random, some through the near plane or around the eye,
     some mirrored (wound the other way): each claims only what its faces beyond the near plane
-    cover, at their depth or beyond (their back faces skipped)."""
+    cover, at their depth or beyond (their back faces skipped); so in threads; scratch that
+    served a frame before changes nothing."""
     rng = np.random.default_rng(seed)
     meshes = []
     for _ in range(count):
@@ -167,10 +165,11 @@ def test_closed_meshes_through_the_near_plane_claim_only_what_they_cover(seed, c
     buf, rect = raster(meshes)
     tris = np.concatenate([p[f] for p, f in meshes])
     check_claims(buf, rect, tris, rng=rng)
-    banded, _ = raster(meshes, bands=3)  # in bands of rows (threads): the same buffer
-    np.testing.assert_array_equal(banded, buf)
-    again, _ = raster(meshes, bands=3, reused=True)  # and with scratch of a frame before
-    np.testing.assert_array_equal(again, buf)
+    threaded, _ = raster(meshes, threads=3)  # leaves in threads, merged: as conservative
+    check_claims(threaded, rect, tris, rng=rng)
+    again, _ = raster(meshes, threads=3, reused=True)  # with scratch of a frame before: the same
+    np.testing.assert_array_equal(again, threaded)
+    np.testing.assert_array_equal(raster(meshes, reused=True)[0], buf)
 
 
 def test_the_rasterizer_is_not_vacuous():
@@ -207,8 +206,9 @@ def test_the_rasterizer_is_not_vacuous():
 @given(seed=st.integers(0, 2**32 - 1), count=st.integers(2, 6))
 def test_cells_gather_over_patches(seed, count):
     """Squares side by side, overlapping on the image by a little more than two cells (a
-    quarter texel each), at random depths, rasterized in any order: where no single one
-    covers a texel, their cells together do, at the farthest of their depths."""
+    quarter texel each), at random depths, rasterized in any order, in one thread or two:
+    where no single one covers a texel, their cells together do, at the farthest of their
+    depths."""
     rng = np.random.default_rng(seed)
     xs = np.sort(rng.uniform(-0.5, 0.5, count - 1))
     edges = np.r_[-0.7, xs, 0.7]
@@ -220,11 +220,12 @@ def test_cells_gather_over_patches(seed, count):
         sq = np.array([[x0, -0.5, -1], [x1, -0.5, -1], [x1, 0.5, -1], [x0, 0.5, -1]]) * z
         meshes.append((sq, np.array([[0, 1, 2], [0, 2, 3]])))
     order = rng.permutation(count)
-    buf, rect = raster([meshes[k] for k in order])
     tris = np.concatenate([p[f] for p, f in meshes])
-    check_claims(buf, rect, tris, rng=rng)
-    # every texel inside the region is claimed: 24 x 16 texels over x, y in +-0.6, +-0.4
-    assert (buf.reshape(16, 24)[3:13, 1:23] > 0).all()
+    for threads in (1, 2):  # in threads, cells gathered in each fill texels when merged
+        buf, rect = raster([meshes[k] for k in order], threads=threads)
+        check_claims(buf, rect, tris, rng=rng)
+        # every texel inside the region is claimed: 24 x 16 texels over x, y in +-0.6, +-0.4
+        assert (buf.reshape(16, 24)[3:13, 1:23] > 0).all()
 
 
 def boxes_behind_a_wall() -> Scene:

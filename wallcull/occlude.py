@@ -62,8 +62,6 @@ SETTINGS = ("off", *MODES)
 
 #: Nodes are hidden only this far (relative) beyond the occluders' depth.
 DEPTH_MARGIN = 1e-3
-#: Rows of texels a thread rasterizes at least.
-BAND = 8
 #: The most texels on a side of one buffer.
 MAX_TEXELS = 1024
 
@@ -169,7 +167,7 @@ class Occluder:
         self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
-        self._scratch: list = []  # per thread: _rasterize's (see _scratch)
+        self._scratch: list = []  # per thread: _setup's (see _scratch)
         self._buffers: list = []  # per thread: _prune's slot and records
 
     def wanted(self, frame: Frame) -> bool:
@@ -240,22 +238,15 @@ class Occluder:
         m = scene.meshes
         offsets, total = _levels(views.size)
         izlo = np.zeros(total)  # per texel 1 / the depth beyond which all is hidden; 0: none
-        # a leaf's units together (its patches), the nearest leaves first (their cells
-        # gather first in the texels they cover in part)
+        # a leaf's units together (its patches), the nearest leaves first (they make most
+        # farther patches skippable, and their cells gather first where they cover in part)
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
-        units, owner = units[order], owner[order]
-        bands = min(workers.count(), max(1, int(views.size[:, 1].min()) // BAND))
-        for k in range(bands):
-            if k == len(self._scratch) or self._scratch[k][2].shape[1] < total:
-                self._scratch[k:k + 1] = [_scratch(len(m.faces), len(m.vertices), total)]
-
-        def band(k, *_):  # rows of every view, in threads
-            _rasterize(units, owner, first, count, scene.mesh_of, state.world, m.vertex_start,
-                       m.vertices, m.face_start, m.faces, m.face_neighbors, self._outward,
-                       views.affine, views.rect, views.size, self.wall.near, izlo, offsets[:, 0],
-                       *self._scratch[k], k, bands)
-
-        workers.run(band, [(k, k + 1) for k in range(bands)])
+        threads = max(1, min(workers.count(), len(units) // workers.MIN_CHUNK))
+        while len(self._scratch) < threads:
+            self._scratch.append(_scratch(len(m.faces), len(m.vertices)))
+        _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
+                self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
+                offsets[:, 0], self._scratch, threads)
         izhi = izlo.copy()
         _pyramids(izlo, izhi, views.size, offsets)
         return Depth(views, box, units, offsets, izlo, izhi)
@@ -275,13 +266,11 @@ class Depth:
     izhi: np.ndarray
 
 
-def _scratch(faces: int, vertices: int, texels: int) -> list:
-    """:func:`_rasterize`'s scratch for a mesh table of ``faces`` and ``vertices`` and buffers
-    of ``texels`` (all levels): kept from frame to frame, its marks compared with stamps that only
-    grow, so that a frame neither allocates nor clears it."""
-    return [np.zeros((2, faces), np.int64), np.zeros((2, vertices), np.int64),
-            np.zeros((4, texels), np.int64), np.zeros((3, texels), np.uint64),
-            np.zeros((2, texels)), np.zeros(2, np.int64)]
+def _scratch(faces: int, vertices: int) -> tuple:
+    """:func:`_setup`'s scratch for a mesh table of ``faces`` and ``vertices``: kept from frame
+    to frame, its marks compared with stamps that only grow, so that a frame neither allocates
+    nor clears it."""
+    return np.zeros((2, faces), np.int64), np.zeros((2, vertices), np.int64), np.zeros(1, np.int64)
 
 
 def _occluding(scene) -> np.ndarray:
@@ -494,47 +483,66 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
     return out[:n]
 
 
-@njit(cache=True, nogil=True)
-def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
-               faces, neighbors, outward, affine, rect, size, near, buf, at, face_marks,
-               vertex_marks, texel_marks, texel_cells, texel_depths, stamps, band, bands):
+def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine, rect, size,
+            near, buf, at, scratch, threads):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
-    count[u]``; a leaf's units next to each other, the nearest leaves first) into level 0 of
-    each view's buffer ``buf`` (view ``v``'s texels from ``at[v]``, row-major),
-    conservatively (see :func:`_commit`).
+    count[u]`` of the mesh table ``meshes``; a leaf's units next to each other, the nearest
+    leaves first) into level 0 of each view's buffer ``buf`` (view ``v``'s texels from
+    ``at[v]``, row-major), conservatively: their patches set up (:func:`_setup`) and drawn
+    (:func:`_draw`). In ``threads`` threads, each of every so many leaves, into buffers of
+    their own, then merged (:func:`_merge`): threads drawing bands of rows would each set up
+    and walk every patch crossing their rows. ``outward``: see :func:`_outward`;
+    ``scratch``: per thread, see :func:`_scratch`."""
+    leaf = np.cumsum(np.r_[0, owner[1:] != owner[:-1]])  # the leaves in order
 
-    A leaf's chosen faces that face the same way form *patches*: faces joined across edges
-    whose two faces lie on either side of the edge as seen from the eye. Every other edge of
-    a patch (of one face only, between two faces folding over each other on the image, to a
-    face not chosen or facing the other way) is part of its *outline*, and so are the cuts of
-    the near plane through its faces (what lies nearer is never drawn: it does not occlude).
-    ``neighbors``: per face of the mesh table, the face across each edge, -1 for none;
-    ``outward``: per mesh, +1 (-1) when it is closed and its faces wind counter-clockwise
-    (clockwise) seen from outside, 0 when it is not closed: a closed mesh's back faces lie
-    behind its front faces and are skipped. Only the rows of band ``band`` of ``bands`` of
-    each view are written (one thread per band). The rest: scratch kept between frames (see
-    :func:`_scratch`), marked with the ``stamps`` of leaves and patches (updated)."""
+    def part(k, *_):
+        mine = leaf % threads == k
+        patches = _setup(units[mine], owner[mine], first, count, mesh_of, world,
+                         meshes.vertex_start, meshes.vertices, meshes.face_start, meshes.faces,
+                         meshes.face_neighbors, outward, affine, rect, size, near, *scratch[k])
+        out = buf if k == 0 else np.zeros_like(buf)
+        return (out, *_draw(*patches, size, out, at))
+
+    parts = workers.run(part, [(k, k + 1) for k in range(threads)])
+    for k in range(1, threads):
+        _merge(buf, *parts[0][1:], *parts[k])
+
+
+@njit(cache=True, nogil=True)
+def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
+           faces, neighbors, outward, affine, rect, size, near, face_marks, vertex_marks,
+           stamps):
+    """The *patches* of the occluders ``units`` in each view (see :func:`_raster`): a leaf's
+    chosen faces that face the same way, joined across edges whose two faces lie on either
+    side of the edge as seen from the eye. Every other edge of a patch (of one face only,
+    between two faces folding over each other on the image, to a face not chosen or facing the
+    other way) is part of its *outline*, and so are the cuts of the near plane through its
+    faces (what lies nearer is never drawn: it does not occlude). ``neighbors``: per face of
+    the mesh table, the face across each edge, -1 for none; ``outward``: per mesh, +1 (-1)
+    when it is closed and its faces wind counter-clockwise (clockwise) seen from outside, 0
+    when it is not closed: a closed mesh's back faces lie behind its front faces and are
+    skipped. The rest: scratch kept between frames (see :func:`_scratch`), marked with the
+    ``stamps`` of leaves (updated).
+
+    Returns the patches' polygons ``(P, 4, 3)`` (each face's part beyond the near plane, or
+    two whole faces across a side that make a convex quadrilateral: x, y in texels and 1 /
+    depth per corner), per polygon ``(P, 4)`` its corners, the sign of its area, which of its
+    sides are outline (bits) and whether it is two faces (1 / depth affine on corners 0, 1,
+    2 and on 0, 2, 3; else on all), and per patch ``(Q, 3)`` its polygons'
+    range and its view, and ``(Q, 5)`` its image's box (x0, x1, y0, y1) and its most 1 /
+    depth, all in the order they are to be drawn."""
     views = affine.shape[0]
     mark, slot_of = face_marks[0], face_marks[1]  # per face: the last leaf, its slot there
     vmark, vslot = vertex_marks[0], vertex_marks[1]  # per vertex: the same
-    seen = texel_marks[0]  # per texel: the last patch that touched it
-    cover = texel_marks[1]  # ... whose face covered its centre
-    edge = texel_marks[2]  # ... whose outline touched it, and then:
-    touched = texel_marks[3]  # (a list of the texels the patch touched)
-    outline_cells = texel_cells[0]  # the cells its outline touched
-    centre_cells = texel_cells[1]  # the cells whose centres its faces cover
-    work = texel_cells[2]  # cells covered by patches that covered it in part
-    low = texel_depths[0]  # the patch's least 1 / depth over the texel
-    work_low = texel_depths[1]  # ... and the least 1 / depth of those in ``work``
-    for v in range(views):  # this frame's rows: nothing gathered yet
-        w = size[v, 0]
-        r0 = at[v] + size[v, 1] * band // bands * w
-        r1 = at[v] + size[v, 1] * (band + 1) // bands * w
-        work[r0:r1] = 0
-        work_low[r0:r1] = np.inf
-    stamp, patch = stamps[0], stamps[1]
-    scratch = np.empty((4, 9))
-    spans = np.empty((2, SUB), np.int64)
+    stamp = stamps[0]
+    total = 0
+    for q in range(units.shape[0]):
+        total += count[units[q]]
+    polys = np.empty((total * views, 4, 3))
+    info = np.empty((total * views, 4), np.int64)
+    patches = np.empty((total * views, 3), np.int64)
+    boxes = np.empty((total * views, 5))
+    np_ = nq = 0
     cap = 64
     vlist = np.empty(3 * cap, np.int64)  # per vertex slot: the vertex
     vview = np.empty((3 * cap, 3))  # ... its view coordinates
@@ -548,7 +556,9 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
     face_of = np.empty(cap, np.int64)
     inner = np.empty(cap, np.int64)  # which of its edges lie inside its patch (bits)
     done = np.empty(cap, np.bool_)
+    paired = np.empty(cap, np.bool_)  # drawn as a polygon already, with another or alone
     queue = np.empty(cap, np.int64)
+    quad = np.empty((4, 3))
     m_ = np.empty((3, 4))
     q = 0
     cut = near * (1 + NEAR_MARGIN)
@@ -573,6 +583,7 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
             face_of = np.empty(cap, np.int64)
             inner = np.empty(cap, np.int64)
             done = np.empty(cap, np.bool_)
+            paired = np.empty(cap, np.bool_)
             queue = np.empty(cap, np.int64)
         stamp += 1
         m = mesh_of[leaf]
@@ -606,10 +617,8 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                 for c in range(4):
                     m_[r, c] = a[r, 0] * w[0, c] + a[r, 1] * w[1, c] + a[r, 2] * w[2, c] \
                         + (a[r, 3] if c == 3 else 0.0)
-            wv, hv = size[v, 0], size[v, 1]
-            j0, j1 = hv * band // bands, hv * (band + 1) // bands  # its rows [j0, j1)
-            sx = wv / (rect[v, 1] - rect[v, 0])
-            sy = hv / (rect[v, 3] - rect[v, 2])
+            sx = size[v, 0] / (rect[v, 1] - rect[v, 0])
+            sy = size[v, 1] / (rect[v, 3] - rect[v, 2])
             for x in range(nv):  # the vertices, once each
                 p = vertices[vlist[x]]
                 px = m_[0, 0] * p[0] + m_[0, 1] * p[1] + m_[0, 2] * p[2] + m_[0, 3]
@@ -622,8 +631,6 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                     vimage[x, 0] = (px / d - rect[v, 0]) * sx
                     vimage[x, 1] = (py / d - rect[v, 2]) * sy
                     vimage[x, 2] = 1.0 / d
-            if _idle(vimage, vdepth, nv, cut, wv, j0, j1, at[v], buf):
-                continue
             for s in range(n):
                 facing[s] = 0
                 c0, c1, c2 = corner[s, 0], corner[s, 1], corner[s, 2]
@@ -673,26 +680,69 @@ def _rasterize(units, owner, first, count, mesh_of, world, vertex_start, vertice
                                 done[t] = True
                                 queue[size_] = t
                                 size_ += 1
-                patch += 1
-                _outlines(queue, size_, sides, label, inner, poly, wv, j0, j1, at[v], edge,
-                          outline_cells, centre_cells, low, buf, patch, False)  # its texels
-                k = 0
+                patches[nq, 0] = np_
+                x0 = y0 = np.inf
+                x1 = y1 = nearest = -np.inf
+                for r in range(size_):
+                    paired[queue[r]] = False
                 for r in range(size_):
                     s = queue[r]
-                    k = _fill(poly[s], sides[s], facing[s], wv, j0, j1, at[v], seen, cover, edge,
-                              centre_cells, low, buf, touched, k, patch, scratch, spans)
-                # its cells, where the patch may bring texels nearer
-                _outlines(queue, size_, sides, label, inner, poly, wv, j0, j1, at[v], edge,
-                          outline_cells, centre_cells, low, buf, patch, True)
-                _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work,
-                        work_low, buf, patch)
+                    if paired[s]:
+                        continue
+                    paired[s] = True
+                    ns = sides[s]
+                    outline = 0
+                    for e in range(ns):
+                        lab = label[s, e]
+                        if lab == 3 or not inner[s] >> lab & 1:
+                            outline |= 1 << e
+                    polys[np_, :ns] = poly[s, :ns]
+                    split = 0
+                    for e in range(3 if ns == 3 else 0):
+                        # with the whole face across an inner side, if they make a convex
+                        # quadrilateral (a wall's, a pipe's side): one polygon, two planes
+                        t = slot_of[neighbors[face_of[s], e]] if inner[s] >> e & 1 else s
+                        if paired[t] or sides[t] != 3:
+                            continue
+                        e1, e2 = (e + 1) % 3, (e + 2) % 3
+                        for c in range(3):  # t's corners c, c + 1: s's e + 1, e
+                            if corner[t, c] == corner[s, e1] and \
+                                    corner[t, (c + 1) % 3] == corner[s, e]:
+                                quad[0], quad[1] = poly[s, e], poly[t, (c + 2) % 3]
+                                quad[2], quad[3] = poly[s, e1], poly[s, e2]
+                                if _convex(quad, facing[s]):
+                                    polys[np_] = quad
+                                    outline = ((1 - (inner[t] >> (c + 1) % 3 & 1))
+                                               | (1 - (inner[t] >> (c + 2) % 3 & 1)) << 1
+                                               | (1 - (inner[s] >> e1 & 1)) << 2
+                                               | (1 - (inner[s] >> e2 & 1)) << 3)
+                                    paired[t] = True
+                                    ns, split = 4, 1
+                        if split:
+                            break
+                    for e in range(ns):
+                        x0, x1 = min(x0, polys[np_, e, 0]), max(x1, polys[np_, e, 0])
+                        y0, y1 = min(y0, polys[np_, e, 1]), max(y1, polys[np_, e, 1])
+                        nearest = max(nearest, polys[np_, e, 2])
+                    info[np_, 0], info[np_, 1], info[np_, 2], info[np_, 3] = \
+                        ns, facing[s], outline, split
+                    np_ += 1
+                patches[nq, 1], patches[nq, 2] = np_, v
+                boxes[nq, 0], boxes[nq, 1], boxes[nq, 2] = x0, x1, y0
+                boxes[nq, 3], boxes[nq, 4] = y1, nearest
+                nq += 1
         q = q1
-    stamps[0], stamps[1] = stamp, patch
+    stamps[0] = stamp
+    return polys[:np_], info[:np_], patches[:nq], boxes[:nq]
 
 
-#: Cells across a texel each way along an outline: a texel's cells are bits of a mask.
+#: Cells across a texel each way: a texel's cells are bits of a mask, a row of a patch's
+#: cells bits of 64-bit words (``_PER_WORD`` texels a word).
 SUB = 4
+_PER_WORD = 64 // SUB
 _FULL = np.uint64((1 << SUB * SUB) - 1)
+_ONES = np.uint64(0xFFFFFFFFFFFFFFFF)
+_ROW = np.uint64((1 << SUB) - 1)
 #: Twice the least area (texels) of an occluder triangle on the image.
 AREA_MIN = 1e-9
 #: Occluders are cut this far (relative) beyond the near plane.
@@ -704,44 +754,308 @@ SIDE_MARGIN = 1e-9
 TOUCH = 1e-6
 
 
+@njit(cache=True, nogil=True)
+def _draw(polys, info, patches, boxes, size, buf, at):
+    """Draw the patches (see :func:`_setup`) into each view's buffer ``buf``, in order;
+    returns the cells gathered in texels they did not fill (see :func:`_merge`).
+
+    A patch claims a texel whole when every one of its ``SUB x SUB`` cells is claimed: the
+    cell's centre lies in one of the patch's faces, and no edge of the patch's outline touches
+    the cell. Such a cell lies wholly inside the patch (the outline holds every edge of its
+    border: an edge inside it has the patch on both sides, and so does a vertex all of whose
+    edges are inside, its faces winding around it), and so does the texel. A texel claimed
+    whole hides everything behind the patch's farthest depth over it (1 / depth is affine on
+    each face: its least over the face's part in the texel is at a corner of that part's
+    box): ``buf`` keeps the nearest such depth (its reciprocal). Cells claimed in part gather
+    in ``work`` with the farthest depth of the patches that claimed them, until they fill the
+    texel. A patch that is nowhere nearer than the buffer over its box, or whose box holds no
+    whole cell, is skipped (it could claim nothing: its depth would be no nearer)."""
+    work = np.zeros(buf.shape[0], np.uint64)  # cells gathered per texel
+    work_low = np.full(buf.shape[0], np.inf)  # ... their least 1 / depth
+    rows = cols = 16
+    cover = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells a face's centre covers
+    edge = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells the outline touches
+    low = np.empty((rows, cols))  # the patch's least 1 / depth per texel
+    live = np.empty((rows, 2), np.int64)  # per row, the texels where it may claim
+    ed = np.empty((11, 4))
+    for q in range(patches.shape[0]):
+        v = patches[q, 2]
+        w, h = size[v, 0], size[v, 1]
+        x0, x1, y0, y1, nearest = boxes[q, 0], boxes[q, 1], boxes[q, 2], boxes[q, 3], boxes[q, 4]
+        # no whole cell in its box within the view (a vertex near the eye's plane may
+        # project far beyond)
+        cx0, cx1 = max(x0, -1.0), min(x1, w + 1.0)
+        cy0, cy1 = max(y0, -1.0), min(y1, h + 1.0)
+        if math.ceil(cx0 * SUB) + 1 > math.floor(cx1 * SUB) or \
+                math.ceil(cy0 * SUB) + 1 > math.floor(cy1 * SUB):
+            continue
+        r0, r1 = max(0, int(math.floor(cy0 - TOUCH))), min(h - 1, int(math.floor(cy1 + TOUCH)))
+        c0, c1 = max(0, int(math.floor(cx0 - TOUCH))), min(w - 1, int(math.floor(cx1 + TOUCH)))
+        if r0 > r1 or c0 > c1:
+            continue
+        # per row, the texels between the first and the last where it may be nearer than
+        # the buffer (elsewhere it claims nothing, and nothing there is drawn)
+        if r1 - r0 + 1 > live.shape[0]:
+            live = np.empty((2 * (r1 - r0 + 1), 2), np.int64)
+        first_row, last_row = r1 + 1, r0 - 1
+        for j in range(r0, r1 + 1):
+            row = at[v] + j * w
+            a, b = c0, c1
+            while a <= c1 and not buf[row + a] < nearest:
+                a += 1
+            while b > a and not buf[row + b] < nearest:
+                b -= 1
+            live[j - r0, 0], live[j - r0, 1] = a, b
+            if a <= b:
+                first_row, last_row = min(first_row, j), j
+        if first_row > last_row:
+            continue
+        live_ = live[first_row - r0:]
+        r0, r1 = first_row, last_row
+        nr, nc = r1 - r0 + 1, c1 - c0 + 1
+        words = nc // _PER_WORD + 1
+        if nr > rows or nc > cols:
+            rows, cols = max(rows, nr), max(cols, nc)
+            cover = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)
+            edge = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)
+            low = np.empty((rows, cols))
+        cover[:SUB * nr, :words] = 0
+        edge[:SUB * nr, :words] = 0
+        low[:nr, :nc] = np.inf
+        for p in range(patches[q, 0], patches[q, 1]):
+            _cover(polys[p], info[p, 0], info[p, 1], info[p, 3], r0, r1, c0, live_, cover, low,
+                   ed)
+        for p in range(patches[q, 0], patches[q, 1]):
+            ns, outline = info[p, 0], info[p, 2]
+            for e in range(ns):
+                if outline >> e & 1:
+                    e1 = e + 1 if e + 1 < ns else 0
+                    _edge(polys[p, e, 0], polys[p, e, 1], polys[p, e1, 0], polys[p, e1, 1], r0,
+                          r1, c0, live_, edge)
+        _claim(cover, edge, low, r0, nr, c0, live_, at[v] + c0, w, buf, work, work_low)
+    return work, work_low
+
+
+@njit(cache=True, nogil=True)
+def _merge(buf, work, work_low, other, other_work, other_low):
+    """Merge into ``buf`` and the cells it gathered (``work``, ``work_low``, see
+    :func:`_draw`) a buffer drawn from other patches and its cells: each texel takes the
+    nearer claim, and cells gathered on both sides that together fill a texel claim it at
+    the farther of their depths."""
+    for t in range(buf.shape[0]):
+        buf[t] = max(buf[t], other[t])
+        if other_work[t]:
+            work[t] |= other_work[t]
+            work_low[t] = min(work_low[t], other_low[t])
+            if work[t] == _FULL:
+                buf[t] = max(buf[t], work_low[t])
+                work[t] = np.uint64(0)
+                work_low[t] = np.inf
+
+
 @njit(cache=True, inline="always")
-def _idle(vimage, vdepth, nv, cut, w, j0, j1, at, buf):
-    """Whether a leaf whose ``nv`` vertices project to ``vimage`` can change nothing in rows
-    ``[j0, j1)`` of the buffer ``buf``: a texel or cell it claims lies wholly inside its
-    image, so within its vertices' box, and a claim changes ``buf`` only where the leaf is
-    nearer than it (see :func:`_commit`; its most 1 / depth is at a vertex). False when a
-    vertex lies before ``cut`` (its image is then not its vertices'). A fifth of the leaves
-    chosen, behind the nearer ones, end here before any of their faces is set up."""
-    x0 = y0 = np.inf
-    x1 = y1 = -np.inf
-    near = 0.0
-    for x in range(nv):
-        if not vdepth[x] > cut:
-            return False
-        x0, x1 = min(x0, vimage[x, 0]), max(x1, vimage[x, 0])
-        y0, y1 = min(y0, vimage[x, 1]), max(y1, vimage[x, 1])
-        near = max(near, vimage[x, 2])
-    # the box within the rows and columns written here (a vertex near the eye's plane may
-    # project far beyond)
-    x0, x1 = max(x0, -1.0), min(x1, w + 1.0)
-    y0, y1 = max(y0, j0 - 1.0), min(y1, j1 + 1.0)
-    # no whole cell (of SUB x SUB a texel) fits within it
-    if math.ceil(x0 * SUB) + 1 > math.floor(x1 * SUB) or \
-            math.ceil(y0 * SUB) + 1 > math.floor(y1 * SUB):
-        return True
-    i0, i1 = max(0, int(math.floor(x0))), min(w - 1, int(math.floor(x1)))
-    for j in range(max(j0, int(math.floor(y0))), min(j1 - 1, int(math.floor(y1))) + 1):
-        row = at + j * w
-        for t in range(row + i0, row + i1 + 1):
-            if buf[t] < near:
-                return False
-    return True
+def _bits(row, lo, hi):
+    """Set bits ``lo`` to ``hi`` (inclusive) of the words ``row``."""
+    a, b = lo >> 6, hi >> 6
+    if a == b:
+        row[a] |= (_ONES >> np.uint64(63 - (hi - lo))) << np.uint64(lo & 63)
+        return
+    row[a] |= _ONES << np.uint64(lo & 63)
+    for k in range(a + 1, b):
+        row[k] = _ONES
+    row[b] |= _ONES >> np.uint64(63 - (hi & 63))
+
+
+@njit(cache=True, inline="always")
+def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
+    """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
+    area; ``split``: two faces, see :func:`_setup`) into its patch's texels of rows ``[r0,
+    r1]`` (``cover``'s and ``low``'s first, from column ``c0``), within each row's ``live``
+    columns: every texel it touches (or nearly) takes the least 1 / depth of the polygon over
+    the texel into ``low``, and the cells whose centres lie inside it are set in ``cover``.
+    ``ed (11, 4)``: scratch."""
+    y_lo, y_hi = np.inf, -np.inf
+    for c in range(ns):
+        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
+    # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective);
+    # two faces: each one's plane, the least of the two a bound over both
+    ga, gb, gc = _plane(p[0], p[1], p[2])
+    ga2, gb2, gc2 = _plane(p[0], p[2], p[3]) if split else (ga, gb, gc)
+    least = np.inf
+    for c in range(ns):
+        least = min(least, p[c, 2])
+    # each side: inside where side (ex (y - ay) - ey (x - ax)) >= 0 (a centre on an edge the
+    # outline holds is in a cell the outline touches, by a margin: rounding claims nothing
+    # there, and one on an inner edge is in both faces); as a bound on x, x >= q y + o (the
+    # left sides, ``ed[0:2, :nl]``) or x <= q y + o (the right ones, ``ed[2:4, :nr]``), or
+    # on y alone (the level ones, where q y + o >= 0: ``ed[4:6, :nv]``); and each side from
+    # its lower end up, for the rows' extent: x, y, the other end's y and x, dx / dy
+    # (``ed[6:11]``)
+    nl = nr = nv = 0
+    for e in range(ns):
+        e1 = e + 1 if e + 1 < ns else 0
+        ax, ay = p[e, 0], p[e, 1]
+        ex, ey = p[e1, 0] - ax, p[e1, 1] - ay
+        A = -side * ey
+        B = side * ex
+        C = side * (ey * ax - ex * ay)
+        if A > 0:
+            ed[0, nl], ed[1, nl] = -B / A, -C / A
+            nl += 1
+        elif A < 0:
+            ed[2, nr], ed[3, nr] = -B / A, -C / A
+            nr += 1
+        else:
+            ed[4, nv], ed[5, nv] = B, C
+            nv += 1
+        if ey >= 0:
+            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = ax, ay, p[e1, 1], p[e1, 0]
+        else:
+            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = p[e1, 0], p[e1, 1], ay, ax
+        ed[10, e] = ex / ey if ey != 0 else 0.0
+    for J in range(max(r0, int(math.floor(y_lo - TOUCH))),
+                   min(r1, int(math.floor(y_hi + TOUCH))) + 1):
+        y0, y1 = max(J - TOUCH, y_lo), min(J + 1 + TOUCH, y_hi)  # the polygon's rows in it
+        lo, hi = np.inf, -np.inf
+        for e in range(ns):
+            ax, ay, by = ed[6, e], ed[7, e], ed[8, e]
+            if by < y0 or ay > y1:
+                continue
+            if by > ay:
+                x0 = ax + ed[10, e] * (max(y0, ay) - ay)
+                x1 = ax + ed[10, e] * (min(y1, by) - ay)
+            else:
+                x0, x1 = ax, ed[9, e]
+            lo, hi = min(lo, x0, x1), max(hi, x0, x1)
+        r = J - r0
+        g0, g1 = live[r, 0], live[r, 1]
+        if not lo <= hi or g0 > g1:
+            continue
+        i0 = max(g0, int(math.floor(max(lo, g0 - 1.0) - TOUCH)))
+        i1 = min(g1, int(math.floor(min(hi, g1 + 1.0) + TOUCH)))
+        if i0 > i1:
+            continue
+        # the least over the polygon's part in each texel, within its box there
+        _least(low[r], i0, i1, c0, lo, hi, least, ga, min(gb * y0, gb * y1) + gc)
+        if split:
+            _least(low[r], i0, i1, c0, lo, hi, least, ga2, min(gb2 * y0, gb2 * y1) + gc2)
+        for k in range(SUB):  # the cells whose centres on this cell row lie inside
+            y = J + (k + 0.5) / SUB
+            xl, xr = -1e9, 1e9
+            for e in range(nl):
+                xl = max(xl, ed[0, e] * y + ed[1, e])
+            for e in range(nr):
+                xr = min(xr, ed[2, e] * y + ed[3, e])
+            for e in range(nv):
+                if ed[4, e] * y + ed[5, e] < 0:
+                    xr = -2e9
+            if xl <= xr:
+                a = max(int(math.ceil(xl * SUB - 0.5)), SUB * i0)
+                b = min(int(math.floor(xr * SUB - 0.5)), SUB * i1 + SUB - 1)
+                if a <= b:
+                    _bits(cover[SUB * r + k], a - SUB * c0, b - SUB * c0)
+
+
+@njit(cache=True, inline="always")
+def _plane(a, b, c):
+    """The plane through ``a, b, c`` (x, y, 1 / depth): ``ga, gb, gc`` with 1 / depth = ga x +
+    gb y + gc."""
+    area = _cross(a, b, c)
+    ga = ((b[2] - a[2]) * (c[1] - a[1]) - (c[2] - a[2]) * (b[1] - a[1])) / area
+    gb = ((b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])) / area
+    return ga, gb, a[2] - ga * a[0] - gb * a[1]
+
+
+@njit(cache=True, inline="always")
+def _least(out, i0, i1, c0, lo, hi, least, ga, gy):
+    """Lower ``out[i - c0]`` for texels ``i0`` to ``i1`` of a row to the least of plane ``ga x
+    + gy`` over ``[max(i, lo), min(i + 1, hi)]``, and no less than ``least``."""
+    if ga >= 0:
+        for i in range(i0, i1 + 1):
+            out[i - c0] = min(out[i - c0], max(least, ga * max(i, lo) + gy))
+    else:
+        for i in range(i0, i1 + 1):
+            out[i - c0] = min(out[i - c0], max(least, ga * min(i + 1, hi) + gy))
+
+
+@njit(cache=True, inline="always")
+def _edge(ax, ay, bx, by, r0, r1, c0, live, edge):
+    """Set in ``edge`` the cells of rows ``[r0, r1]`` (its first, from column ``c0``), within
+    each row's ``live`` columns, that segment ``a b`` (texel coordinates) touches, or
+    nearly."""
+    if ay > by:
+        ax, ay, bx, by = bx, by, ax, ay
+    dy = by - ay
+    slope = (bx - ax) / dy if dy > 0 else 0.0
+    for J in range(max(r0, int(math.floor(max(ay - TOUCH, r0 - 1.0)))),
+                   min(r1, int(math.floor(min(by + TOUCH, r1 + 1.0)))) + 1):
+        g0, g1 = live[J - r0, 0], live[J - r0, 1]
+        if g0 > g1:
+            continue
+        for k in range(SUB):  # the cell rows of this texel row
+            y0 = J + k / SUB
+            if y0 > by + TOUCH or y0 + 1.0 / SUB < ay - TOUCH:
+                continue
+            lo, hi = _along(ax, ay, bx, by, slope, y0 - TOUCH, y0 + 1.0 / SUB + TOUCH)
+            a = max(SUB * g0, int(math.floor((max(lo, g0 - 1.0) - TOUCH) * SUB)))
+            b = min(SUB * g1 + SUB - 1, int(math.floor((min(hi, g1 + 1.0) + TOUCH) * SUB)))
+            if a <= b:
+                _bits(edge[SUB * (J - r0) + k], a - SUB * c0, b - SUB * c0)
+
+
+@njit(cache=True, inline="always")
+def _claim(cover, edge, low, r0, nr, c0, live, at, w, buf, work, work_low):
+    """A patch's claims (see :func:`_draw`) from its cells (``cover`` and not ``edge``) and
+    depths ``low`` over its ``nr`` rows from ``r0`` (from column ``c0``), within each row's
+    ``live`` columns; ``at``: the buffer's index of texel ``(c0, 0)``."""
+    for r in range(nr):
+        row = at + (r0 + r) * w
+        g0, g1 = live[r, 0] - c0, live[r, 1] - c0
+        if g0 > g1:
+            continue
+        for word in range(g0 // _PER_WORD, g1 // _PER_WORD + 1):
+            any_ = np.uint64(0)
+            for k in range(SUB):
+                any_ |= cover[SUB * r + k, word] & ~edge[SUB * r + k, word]
+            if any_ == 0:
+                continue
+            for n in range(max(0, g0 - _PER_WORD * word), min(_PER_WORD, g1 + 1 - _PER_WORD * word)):
+                shift = np.uint64(SUB * n)
+                claimed = np.uint64(0)
+                for k in range(SUB):
+                    claimed |= ((cover[SUB * r + k, word] & ~edge[SUB * r + k, word]) >> shift
+                                & _ROW) << np.uint64(SUB * k)
+                i = _PER_WORD * word + n
+                t = row + i
+                z = low[r, i]
+                if claimed == 0 or not z > buf[t]:
+                    continue  # nothing, or nothing nearer
+                if claimed == _FULL:
+                    buf[t] = z
+                    continue
+                work[t] |= claimed
+                work_low[t] = min(work_low[t], z)
+                if work[t] == _FULL:
+                    if work_low[t] > buf[t]:
+                        buf[t] = work_low[t]
+                    work[t] = np.uint64(0)
+                    work_low[t] = np.inf
 
 
 @njit(cache=True, inline="always")
 def _cross(a, b, c):
     """Twice the signed area of ``a, b, c`` on the image (their x, y)."""
     return (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])
+
+
+@njit(cache=True, inline="always")
+def _convex(q, side):
+    """Whether quadrilateral ``q`` (x, y) turns the way of ``side`` (+1: counter-clockwise) at
+    each corner, by a margin."""
+    for k in range(4):
+        if not side * _cross(q[k - 1], q[k], q[(k + 1) % 4]) > AREA_MIN:
+            return False
+    return True
 
 
 @njit(cache=True, inline="always")
@@ -807,69 +1121,6 @@ def _put(out, k, x, y, d, rect, sx, sy):
 
 
 @njit(cache=True, inline="always")
-def _outlines(queue, size_, sides, label, inner, poly, w, j0, j1, at, edge, outline_cells,
-              centre_cells, low, buf, patch, cells):
-    """:func:`_outline` over the outline of the patch of faces ``queue[:size_]``: each face's
-    sides that are not inner edges (``inner``'s bits), and its cuts by the near plane (label
-    3)."""
-    for r in range(size_):
-        s = queue[r]
-        ns = sides[s]
-        for e in range(ns):
-            lab = label[s, e]
-            if lab == 3 or not inner[s] >> lab & 1:
-                e1 = e + 1 if e + 1 < ns else 0
-                _outline(poly[s, e, 0], poly[s, e, 1], poly[s, e1, 0], poly[s, e1, 1], w, j0,
-                         j1, at, edge, outline_cells, centre_cells, low, buf, patch, cells)
-
-
-@njit(cache=True, inline="always")
-def _outline(ax, ay, bx, by, w, j0, j1, at, edge, outline_cells, centre_cells, low, buf, patch,
-             cells):
-    """Mark the texels of rows ``[j0, j1)`` that segment ``a b`` (texel coordinates) touches,
-    or nearly; with
-    ``cells``, the cells it touches in those texels where the patch may bring the buffer
-    nearer (``low`` beyond ``buf``: elsewhere it claims nothing)."""
-    if ay > by:
-        ax, ay, bx, by = bx, by, ax, ay
-    dy = by - ay
-    slope = (bx - ax) / dy if dy > 0 else 0.0
-    for J in range(max(j0, int(math.floor(max(ay - TOUCH, -1.0)))),
-                   min(j1 - 1, int(math.floor(min(by + TOUCH, j1 + 1.0)))) + 1):
-        lo, hi = _along(ax, ay, bx, by, slope, J - TOUCH, J + 1 + TOUCH)
-        if hi < -TOUCH or lo > w + TOUCH:
-            continue
-        i0 = max(0, int(math.floor(lo - TOUCH)))
-        i1 = min(w - 1, int(math.floor(hi + TOUCH)))
-        row = at + J * w
-        if not cells:
-            for t in range(row + i0, row + i1 + 1):
-                if edge[t] != patch:
-                    edge[t] = patch
-                    outline_cells[t] = 0
-                    centre_cells[t] = 0
-            continue
-        worth = False
-        for t in range(row + i0, row + i1 + 1):
-            worth = worth or low[t] > buf[t]
-        if not worth:
-            continue
-        for k in range(SUB):  # the cell rows of this texel row
-            y0 = J + k / SUB
-            if y0 > by + TOUCH or y0 + 1.0 / SUB < ay - TOUCH:
-                continue
-            lo, hi = _along(ax, ay, bx, by, slope, y0 - TOUCH, y0 + 1.0 / SUB + TOUCH)
-            c0 = max(SUB * i0, int(math.floor((lo - TOUCH) * SUB)))
-            c1 = min(SUB * i1 + SUB - 1, int(math.floor((hi + TOUCH) * SUB)))
-            for I in range(c0 // SUB, c1 // SUB + 1):
-                t = row + I
-                if low[t] > buf[t]:
-                    l_, h_ = max(c0 - I * SUB, 0), min(c1 - I * SUB, SUB - 1)
-                    run = (np.uint64(1) << np.uint64(h_ - l_ + 1)) - np.uint64(1)
-                    outline_cells[t] |= run << np.uint64(k * SUB + l_)
-
-
-@njit(cache=True, inline="always")
 def _along(ax, ay, bx, by, slope, y0, y1):
     """The x extent of segment ``a b`` (``ay <= by``; ``slope``: dx / dy, or 0 when level)
     within the rows ``y0`` to ``y1``."""
@@ -878,157 +1129,6 @@ def _along(ax, ay, bx, by, slope, y0, y1):
         x1 = ax + slope * (min(max(y1, ay), by) - ay)
         return min(x0, x1), max(x0, x1)
     return min(ax, bx), max(ax, bx)
-
-
-@njit(cache=True, inline="always")
-def _fill(p, ns, side, w, j0, j1, at, seen, cover, edge, centre_cells, low, buf, touched, k,
-          patch, ed, spans):
-    """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
-    area) into the patch's texels of rows ``[j0, j1)``: every texel it touches (or nearly) takes the least 1 / depth
-    of the polygon over the texel into ``low``; the texels whose centres lie inside it are
-    marked in ``cover``, and in those its outline touches, the cells whose centres do in
-    ``centre_cells``. New texels of the patch are listed in ``touched`` (``k`` of them so
-    far; returns the new count). ``ed (4, >= ns)`` and ``spans (2, SUB)``: scratch."""
-    y_lo, y_hi = np.inf, -np.inf
-    for c in range(ns):
-        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
-    if y_hi < j0 - 1 or y_lo > j1 + 1:
-        return k  # none of it in these rows
-    area = _cross(p[0], p[1], p[2])
-    # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective)
-    ga = ((p[1, 2] - p[0, 2]) * (p[2, 1] - p[0, 1]) - (p[2, 2] - p[0, 2]) * (p[1, 1] - p[0, 1])) / area
-    gb = ((p[1, 0] - p[0, 0]) * (p[2, 2] - p[0, 2]) - (p[2, 0] - p[0, 0]) * (p[1, 2] - p[0, 2])) / area
-    gc = p[0, 2] - ga * p[0, 0] - gb * p[0, 1]
-    least = np.inf
-    for c in range(ns):
-        least = min(least, p[c, 2])
-    # each side: inside where side (ex (y - ay) - ey (x - ax)) >= 0 (a centre on an edge the
-    # outline holds is on a texel or cell the outline touches, by a margin: rounding claims
-    # nothing there, and one on an inner edge is in both faces); as a bound on x,
-    # x >= q y + o (kind 1) or x <= q y + o (kind 2), or on y alone (kind 0: where
-    # q y + o >= 0)
-    for e in range(ns):
-        e1 = e + 1 if e + 1 < ns else 0
-        ax, ay = p[e, 0], p[e, 1]
-        ex, ey = p[e1, 0] - ax, p[e1, 1] - ay
-        A = -side * ey
-        B = side * ex
-        C = side * (ey * ax - ex * ay)
-        ed[3, e] = ex / ey if ey != 0 else 0.0  # dx / dy along it, for its rows' extent
-        if A != 0:
-            ed[0, e] = 1.0 if A > 0 else 2.0
-            ed[1, e] = -B / A
-            ed[2, e] = -C / A
-        else:
-            ed[0, e] = 0.0
-            ed[1, e] = B
-            ed[2, e] = C
-    for J in range(max(j0, int(math.floor(y_lo - TOUCH))),
-                   min(j1 - 1, int(math.floor(y_hi + TOUCH))) + 1):
-        y0, y1 = max(J - TOUCH, y_lo), min(J + 1 + TOUCH, y_hi)  # the polygon's rows in it
-        lo, hi = np.inf, -np.inf
-        for e in range(ns):
-            e1 = e + 1 if e + 1 < ns else 0
-            ax, ay, bx, by = p[e, 0], p[e, 1], p[e1, 0], p[e1, 1]
-            if ay > by:
-                ax, ay, bx, by = bx, by, ax, ay
-            if by < y0 or ay > y1:
-                continue
-            if by > ay:
-                x0 = ax + ed[3, e] * (max(y0, ay) - ay)
-                x1 = ax + ed[3, e] * (min(y1, by) - ay)
-            else:
-                x0, x1 = ax, bx
-            lo, hi = min(lo, x0, x1), max(hi, x0, x1)
-        if lo > hi or hi < -TOUCH or lo > w + TOUCH:
-            continue
-        i0 = max(0, int(math.floor(lo - TOUCH)))
-        i1 = min(w - 1, int(math.floor(hi + TOUCH)))
-        c0, c1 = _centres(ed, ns, J + 0.5, 1.0)
-        gy = min(gb * y0, gb * y1) + gc
-        row = at + J * w
-        cells = False
-        for i in range(i0, i1 + 1):
-            # the least over the polygon's part in the texel, within its box there
-            z = max(least, ga * (max(i, lo) if ga >= 0 else min(i + 1, hi)) + gy)
-            t = row + i
-            if seen[t] != patch:
-                seen[t] = patch
-                low[t] = z
-                touched[k] = t
-                k += 1
-            elif z < low[t]:
-                low[t] = z
-            if c0 <= i <= c1:
-                cover[t] = patch
-            # on the outline: which of its cells' centres are inside, where the patch may
-            # bring the texel nearer (its least 1 / depth there is at most z)
-            if edge[t] == patch and z > buf[t]:
-                if not cells:
-                    for r in range(SUB):
-                        spans[0, r], spans[1, r] = _centres(ed, ns, J + (r + 0.5) / SUB, SUB)
-                    cells = True
-                bits = np.uint64(0)
-                for r in range(SUB):
-                    l_, h_ = max(spans[0, r] - i * SUB, 0), min(spans[1, r] - i * SUB, SUB - 1)
-                    if l_ <= h_:
-                        run = (np.uint64(1) << np.uint64(h_ - l_ + 1)) - np.uint64(1)
-                        bits |= run << np.uint64(r * SUB + l_)
-                centre_cells[t] |= bits
-    return k
-
-
-@njit(cache=True, inline="always")
-def _centres(ed, ns, y, scale):
-    """The first and last column (texels, or cells for ``scale`` = SUB) whose centre on row
-    line ``y`` (texels) lies in the polygon whose sides are ``ed[:, :ns]`` (see
-    :func:`_fill`); first > last: none."""
-    xl, xr = -1e9, 1e9
-    for e in range(ns):
-        kind = ed[0, e]
-        if kind == 1.0:
-            xl = max(xl, ed[1, e] * y + ed[2, e])
-        elif kind == 2.0:
-            xr = min(xr, ed[1, e] * y + ed[2, e])
-        elif ed[1, e] * y + ed[2, e] < 0:
-            return 1, 0
-    if not xl <= xr:
-        return 1, 0
-    return int(math.ceil(xl * scale - 0.5)), int(math.floor(xr * scale - 0.5))
-
-
-@njit(cache=True, inline="always")
-def _commit(touched, k, cover, edge, outline_cells, centre_cells, low, work, work_low, buf,
-            patch):
-    """A patch's claims. A texel (or a cell of it) whose centre one of the patch's faces
-    covers, and that no edge of its outline touches, lies wholly inside the patch: the outline
-    holds every edge of its border (an edge inside it has the patch on both sides, and so does
-    a vertex all of whose edges are inside, its faces winding around it). A texel claimed
-    whole hides everything behind the patch's farthest depth over it: ``buf`` keeps the
-    nearest such depth (its reciprocal). Cells claimed in part gather in ``work`` with the
-    farthest depth of the patches that claimed them, until they fill the texel (a patch no
-    nearer than the buffer over a texel adds nothing there: their depth would be no nearer)."""
-    for r in range(k):
-        t = touched[r]
-        if edge[t] == patch:
-            if not low[t] > buf[t]:
-                continue  # its cells were not marked: nothing to gain there
-            claimed = centre_cells[t] & ~outline_cells[t]
-        elif cover[t] == patch:
-            claimed = _FULL
-        else:
-            continue
-        if claimed == _FULL:
-            if low[t] > buf[t]:
-                buf[t] = low[t]
-        elif claimed:
-            work[t] |= claimed
-            work_low[t] = min(work_low[t], low[t])
-            if work[t] == _FULL:
-                if work_low[t] > buf[t]:
-                    buf[t] = work_low[t]
-                work[t] = np.uint64(0)
-                work_low[t] = np.inf
 
 
 @njit(cache=True)
