@@ -13,14 +13,16 @@ Conservative on both sides, so that dropping never removes a pixel:
 * occluders claim only what they cover *wholly*. A leaf's chosen faces that face the eye form
   *patches*, faces joined across the edges they share (when the two lie either side of the
   edge on the image); the patch's other edges, and the near plane's cuts through its faces,
-  are its *outline*. A texel whose centre a face of the patch covers and that no edge of the
-  outline touches (by a margin) lies wholly inside the patch; a texel the outline touches is
-  split into ``SUB x SUB`` cells, claimed the same way, and cells claimed by several patches
-  gather in a mask until they fill the texel. A texel claimed keeps the nearest of the
-  *farthest* depths of what claimed it (depth's reciprocal is affine on each face, so the
-  farthest is at a corner of the face's part in the texel): everything beyond it, over the
-  whole texel, is hidden. Faces before the near plane are cut off; a closed mesh's back faces
-  are skipped (its front faces hide them);
+  are its *outline*. Texels are split into ``SUB x SUB`` cells, a row of cells bits of a
+  word: a cell whose centre a face of the patch covers and that no edge of the outline
+  touches (by a margin) lies wholly inside the patch, and a texel all of whose cells are
+  claimed so is claimed whole; cells claimed by several patches gather in a mask until they
+  fill the texel. A texel claimed keeps the nearest of the *farthest* depths of what claimed
+  it (depth's reciprocal is affine on each face, so the farthest is at a corner of the face's
+  part in the texel): everything beyond it, over the whole texel, is hidden. Faces before the
+  near plane are cut off; a closed mesh's back faces are skipped (its front faces hide them);
+  two faces across a side that make a convex quadrilateral are drawn as one polygon (a
+  wall's, a pipe's sides), each keeping its own depths;
 * a node's bound is projected whole (its box's eight corners, grown by its ball): the texels
   of its rectangle within the tile, and its nearest depth. It is hidden when that depth lies
   beyond the buffer's farthest over the rectangle (read from a max pyramid of the buffer, at the
@@ -34,8 +36,9 @@ Occluders are the units (clusters, or whole leaves) under the frame's lists whos
 the most image per triangle, weighted by the share of the box their faces fill (a wall before
 a pipe, a floor before a grating), within a budget of triangles, and never nodes the scene's
 settings mark transparent (``{"occlusion": {"exclude": [node names]}}``, their subtrees with
-them). They are rasterized nearest leaf first, so that a leaf that cannot bring any texel of
-its image nearer is skipped whole. What mirrors and lights see is culled apart
+them). They are rasterized nearest leaf first, so that a patch that cannot bring any texel of
+its image nearer is skipped whole, and in threads, each of every so many leaves into a buffer
+of its own, then merged. What mirrors and lights see is culled apart
 (:mod:`wallcull.fit`) and never occlusion-culled.
 """
 
