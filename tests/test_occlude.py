@@ -262,6 +262,8 @@ def test_what_a_wall_hides_is_dropped():
     assert {f"hidden{k}" for k in range(6)} <= names(vis)
     assert names(out) == {"wall", "beside"}
     assert out.stats["occluded"] > 0 and out.stats["occluder_triangles"] > 0
+    none = Occluder(state, wall, OcclusionOptions(budget=0)).occlude(vis, frame)  # no occluder
+    assert none.stats["occluder_units"] == 0 and names(none) == names(vis)
 
 
 def render_or_skip(w, h):

@@ -496,7 +496,7 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
     their own, then merged (:func:`_merge`): threads drawing bands of rows would each set up
     and walk every patch crossing their rows. ``outward``: see :func:`_outward`;
     ``scratch``: per thread, see :func:`_scratch`."""
-    leaf = np.cumsum(np.r_[0, owner[1:] != owner[:-1]])  # the leaves in order
+    leaf = np.cumsum(np.diff(owner, prepend=owner[:1]) != 0)  # the leaves in order
 
     def part(k, *_):
         mine = leaf % threads == k
@@ -776,7 +776,7 @@ def _draw(polys, info, patches, boxes, size, buf, at):
     work = np.zeros(buf.shape[0], np.uint64)  # cells gathered per texel
     work_low = np.full(buf.shape[0], np.inf)  # ... their least 1 / depth
     rows = cols = 16
-    cover = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells a face's centre covers
+    cover = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells faces' centres cover
     edge = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells the outline touches
     low = np.empty((rows, cols))  # the patch's least 1 / depth per texel
     live = np.empty((rows, 2), np.int64)  # per row, the texels where it may claim
@@ -1022,13 +1022,14 @@ def _claim(cover, edge, low, r0, nr, c0, live, at, w, buf, work, work_low):
                 any_ |= cover[SUB * r + k, word] & ~edge[SUB * r + k, word]
             if any_ == 0:
                 continue
-            for n in range(max(0, g0 - _PER_WORD * word), min(_PER_WORD, g1 + 1 - _PER_WORD * word)):
+            first = _PER_WORD * word
+            for n in range(max(0, g0 - first), min(_PER_WORD, g1 + 1 - first)):
                 shift = np.uint64(SUB * n)
                 claimed = np.uint64(0)
                 for k in range(SUB):
                     claimed |= ((cover[SUB * r + k, word] & ~edge[SUB * r + k, word]) >> shift
                                 & _ROW) << np.uint64(SUB * k)
-                i = _PER_WORD * word + n
+                i = first + n
                 t = row + i
                 z = low[r, i]
                 if claimed == 0 or not z > buf[t]:
