@@ -257,7 +257,7 @@ def test_answers_in_pieces_leave_nothing_for_the_garbage_collector(binary):
     assert decoded["latency"][:4] == [1.5, None, 1.5, None]
 
 
-def test_the_heap_is_set_unless_the_environment_chose(tmp_path):
+def test_the_heap_is_set_unless_the_environment_chose():
     """glibc's arenas and mapping threshold (wallcull.server.heap), and none of it when the
     environment names its own."""
     import subprocess

@@ -10,6 +10,8 @@ import time
 from collections.abc import Sequence
 from typing import Any, Callable
 
+import msgpack
+import numpy as np
 from fastapi import Depends, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
@@ -61,9 +63,6 @@ def _encode_into(parts: list, value: Any, binary: bool) -> None:
     nested in it: a nested function that calls itself is a reference cycle, which kept every
     answer's pieces (a 256 x 256 wall's console status: 1.4 MB, four a second) until the
     garbage collector's next full pass."""
-    import msgpack
-    import numpy as np
-
     if isinstance(value, dict):
         parts.append(_msgpack_header(len(value), map_=True) if binary else b"{")
         for k, (key, item) in enumerate(value.items()):
@@ -100,8 +99,6 @@ def _encode_into(parts: list, value: Any, binary: bool) -> None:
 
 def _rows(array) -> list:
     """``array.tolist()``, with None for a float's NaN (JSON has no NaN)."""
-    import numpy as np
-
     rows = array.tolist()
     if array.dtype.kind == "f" and array.ndim == 1 and np.isnan(array).any():
         rows = [None if x != x else x for x in rows]
@@ -109,8 +106,6 @@ def _rows(array) -> list:
 
 
 def _msgpack_header(n: int, map_: bool = False) -> bytes:
-    import msgpack
-
     packer = msgpack.Packer()
     return packer.pack_map_header(n) if map_ else packer.pack_array_header(n)
 
