@@ -113,7 +113,7 @@ def fitted(scene, raw_settings, frame=FRAME):
 def test_nothing_declared_nothing_computed(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("fitting code ran for a scene that declares nothing")
-    monkeypatch.setattr(fitmod, "shadow_set", boom)
+    monkeypatch.setattr(fitmod, "shadow_sets", boom)
     monkeypatch.setattr(fitmod.MirrorSight, "of", boom)
     _, result = fitted(lit_scene(), {})
     assert all(set(t) == {"view", "projection", "near", "far"} for t in result.fits)
@@ -266,6 +266,37 @@ def test_threads_change_no_bit_of_a_frames_fits(monkeypatch, stereo):
         results.append([result.fits[t] for t in range(len(result.fits))])
     assert any("mirrors" in t and "shadows" in t for t in results[0])
     assert results[0] == results[1]
+
+
+def test_lights_fitted_together_as_each_alone(monkeypatch):
+    """All lights' fits and caster culls run as one pass each (split among threads across the
+    lights' boundaries): every tile gets, bit for bit, what each light fitted alone gives."""
+    monkeypatch.setenv("WALLCULL_THREADS", "2")
+    scene = Scene.from_trimesh(random_scene(7, leaves=120))
+    wall = Wall.from_dict({"cols": 4, "rows": 3, "tile_size": [0.5, 0.4], "distance": 1.0,
+                           "far": 200.0})
+    centre = scene.leaf_points[0].mean(0)
+    frame = Frame.make(centre + [0, 4, 30], [1, 0, 0, 0], [0, 0, 0], wall)
+    lights = [{"name": "sun", "position": (centre + [40, 60, 30]).tolist(),
+               "resolution": [1024, 512]},
+              {"name": "lamp", "position": centre.tolist()},  # among the receivers: cube maps
+              {"name": "spot", "type": "spot", "position": (centre + [-15, 20, 10]).tolist(),
+               "direction": [0.5, -1.0, -0.3], "angle": 25}]
+
+    def shadows(declared):
+        session = Session(scene, wall, fit=FitOptions(), settings={"lights": declared})
+        fits = session.frame(frame).fits
+        return [{s["light"]: s for s in fits[t].get("shadows", [])} for t in range(wall.tiles)]
+
+    together = shadows(lights)
+    for light in lights:
+        alone = shadows([light])
+        for t in range(wall.tiles):
+            assert together[t].get(light["name"]) == alone[t].get(light["name"])
+    kinds = {"cube" if s.get("cube") else "frustum" for tile in together for s in tile.values()}
+    assert kinds == {"cube", "frustum"}
+    casters = [{tuple(s["casters"]) for s in tile.values()} for tile in together]
+    assert any(len(c) == 3 for c in casters)  # each light's own casters
 
 
 def test_eye_behind_mirror_sees_nothing_in_it():

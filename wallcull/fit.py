@@ -18,10 +18,10 @@ Per tile and frame:
   near plane at the mirror, and the leaves culled against the reflected frustum (bounded by the
   mirror's outline when it has one).
 
-Every tile of a frame is fitted at once: one compiled Low-Ilie pass per light over all tiles
-(:func:`wallcull.lowilie.fit_boxes`), one object-hierarchy pass over every tile's caster
-region (:func:`wallcull.cull.cull_regions`), and per mirror the wall's own cull of the
-reflected frusta, run beside the lights' passes. The results stay arrays
+Every tile of a frame is fitted at once: one compiled Low-Ilie pass over all lights and tiles
+(:func:`wallcull.lowilie.fit_lights`), one object-hierarchy pass over every light's and
+tile's caster region (:func:`wallcull.cull.cull_regions`), and per mirror the wall's own cull
+of the reflected frusta, run beside the lights' passes. The results stay arrays
 (:class:`Fits`, :class:`ShadowSet`, :class:`MirrorSet`) that read as per-tile dicts. Lists are
 leaf ids, as in packets. A scene without lights or mirrors never reaches the code for them.
 """
@@ -202,47 +202,72 @@ class ShadowSet:
         return out
 
 
-def shadow_set(state: SceneState, light: cfg.Light, visibility: Visibility,
-               effort: str = "refined") -> ShadowSet:
-    """The light's frustum for every tile: fitted around the bounds of what the tile shows
+def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visibility,
+                effort: str = "refined") -> list[ShadowSet]:
+    """Each light's frustum for every tile: fitted around the bounds of what the tile shows
     (the shadow receivers), with the casters that can shade them. Casters anywhere between the
     light and the receivers shade them: they are culled against the frustum's side and far
     planes (not its near plane), and the near plane is then pulled in to the nearest caster.
     A tile whose receivers no single frustum from the light holds (the light is among them)
-    gets a cube map, with the casters in the cube around the light."""
-    spot = None
-    if light.kind == "spot":
-        spot = (light.direction, math.cos(math.radians(light.angle)))
-    fits = lowilie.fit_boxes(light.position, state.bounds, visibility.start, visibility.nodes,
-                             *light.resolution, effort, spot)
-    kind = _KIND_OF_STATUS[fits["status"]]
-    view, projection = fits["view"], fits["projection"]
-    near, far = fits["near"], fits["far"]
-    cubes = np.flatnonzero(kind == CUBE)  # the light among the receivers: a cube map
-    if len(cubes):
-        far[cubes] = farthest(state, visibility.start, visibility.nodes,
-                              light.position)[cubes] * (1 + 1e-6)
-        near[cubes] = far[cubes] * 1e-4
-        projection[cubes] = 0.0
-        projection[cubes, 0, 0] = projection[cubes, 1, 1] = 1.0
-        projection[cubes, 3, 2] = -1.0
-    # One culling pass for every tile's caster region: the fitted frustum's side and far
-    # planes (rows of projection @ view, Gribb-Hartmann), or the cube around the light.
-    shaded = np.flatnonzero(kind)
-    pv = projection[shaded] @ view[shaded]
-    position = np.asarray(light.position, np.float64)
-    planes, regions, sizes, work = _caster_regions(pv, kind, shaded, far, position,
-                                                   visibility.start)
-    regions = cull_regions(state, planes, regions, sizes, work)
-    # near: the nearest caster, along each frustum's view axis
-    lo, _ = node_depths(state, regions.start, regions.nodes, -view[shaded, 2, :3],
-                        position[None], (np.nan, np.nan))
-    _pull_near(lo, kind, shaded, near, far, projection)
-    start, leaves = regions.leaf_lists()
-    casters_start = _spread(start, shaded, len(kind))
-    cube_views = _cube_views(tuple(light.position)) if len(cubes) else None
-    return ShadowSet(light, kind, view, projection, near, far, fits["coverage"], casters_start,
-                     leaves, cube_views)
+    gets a cube map, with the casters in the cube around the light. All lights' fits are one
+    pass, and all their caster regions another: each pass split among threads once."""
+    if not lights:
+        return []
+    spots = [(light.direction, math.cos(math.radians(light.angle)))
+             if light.kind == "spot" else None for light in lights]
+    fits = lowilie.fit_lights([light.position for light in lights], state.bounds,
+                              visibility.start, visibility.nodes,
+                              [light.resolution for light in lights], effort, spots)
+    shaded, caster_regions, out = [], [], []
+    for k, light in enumerate(lights):
+        kind = _KIND_OF_STATUS[fits["status"][k]]
+        view, projection = fits["view"][k], fits["projection"][k]
+        near, far = fits["near"][k], fits["far"][k]
+        cubes = np.flatnonzero(kind == CUBE)  # the light among the receivers: a cube map
+        if len(cubes):
+            far[cubes] = farthest(state, visibility.start, visibility.nodes,
+                                  light.position)[cubes] * (1 + 1e-6)
+            near[cubes] = far[cubes] * 1e-4
+            projection[cubes] = 0.0
+            projection[cubes, 0, 0] = projection[cubes, 1, 1] = 1.0
+            projection[cubes, 3, 2] = -1.0
+        # each tile's caster region: the fitted frustum's side and far planes (rows of
+        # projection @ view, Gribb-Hartmann), or the cube around the light
+        lit = np.flatnonzero(kind)
+        caster_regions.append(_caster_regions(projection[lit] @ view[lit], kind, lit, far,
+                                              np.asarray(light.position, np.float64),
+                                              visibility.start))
+        shaded.append(lit)
+        cube_views = _cube_views(tuple(light.position)) if len(cubes) else None
+        out.append(ShadowSet(light, kind, view, projection, near, far, fits["coverage"][k],
+                             None, None, cube_views))
+    # one culling pass for every light's regions, one depth pass for their nearest casters
+    planes, regions, sizes, work = _joined(caster_regions)
+    culled = cull_regions(state, planes, regions, sizes, work)
+    forward = np.concatenate([-s.view[lit, 2, :3] for s, lit in zip(out, shaded)])
+    origin = np.repeat([light.position for light in lights], [len(lit) for lit in shaded], axis=0)
+    lo, _ = node_depths(state, culled.start, culled.nodes, forward, origin, (np.nan, np.nan))
+    start, leaves = culled.leaf_lists()
+    first = 0
+    for s, lit in zip(out, shaded):
+        last = first + len(lit)
+        _pull_near(lo[first:last], s.kind, lit, s.near, s.far, s.projection)
+        mine = start[first:last + 1]
+        s.casters_start = _spread(mine - mine[0], lit, len(s.kind))
+        s.casters = leaves[mine[0]:mine[-1]]
+        first = last
+    return out
+
+
+def _joined(parts: list) -> tuple:
+    """Several lights' :func:`_caster_regions` as one set of regions (in order)."""
+    planes = np.concatenate([p[0] for p in parts])
+    base = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    regions = np.concatenate([p[1] + b for p, b in zip(parts, base)])
+    sizes = np.concatenate([p[2] for p in parts])
+    done = np.cumsum([0] + [p[3][-1] for p in parts[:-1]])  # each light's costs after the last's
+    work = np.concatenate([[0]] + [p[3][1:] + d for p, d in zip(parts, done)])
+    return planes, regions, sizes, work
 
 
 #: A fit's status (:mod:`wallcull.lowilie`) to the kind of shadow it gives: ``OK`` a frustum,
@@ -571,8 +596,9 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
         out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
         if frame.stereo is not None:
             out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
-        for light in scene_settings.lights if declared else ():
-            out.shadows.append(shadow_set(state, light, visibility, options.shadow_fit))
+        if declared:
+            out.shadows = shadow_sets(state, scene_settings.lights, visibility,
+                                      options.shadow_fit)
     finally:  # the mirrors' culls use the culler's buffers: never left running after a frame
         lists = seen()
     if not declared:

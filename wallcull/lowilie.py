@@ -46,7 +46,7 @@ from .projection import dot, frustum, look_at, matmul
 from .quad import COLLINEAR, OCTANTS, _greedy, _hull, _polygon_area, _refine
 
 __all__ = ["FitError", "FrustumFit", "fit_frustum", "float32_error", "bench_fit",
-           "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "fit_boxes"]
+           "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "fit_boxes", "fit_lights"]
 
 #: The widest sample frustum, half-angle in degrees. Beyond it (or when no cone around the
 #: points' mean direction holds them all) :func:`fit_frustum` raises :class:`FitError`.
@@ -727,23 +727,44 @@ def fit_boxes(eye, bounds, start: np.ndarray, nodes: np.ndarray, width: int, hei
     them. ``spot``: ``(direction, cos_angle)`` of a spot light, whose sets wholly behind it are
     ``UNLIT``. Returns arrays: ``status (Q,)`` (``OK``, ``EMPTY``, ``UNLIT``, or why no single
     frustum fits), ``view``, ``projection (Q, 4, 4)``, ``near``, ``far``, ``coverage (Q,)``."""
+    out = fit_lights([eye], bounds, start, nodes, [(width, height)], effort, [spot])
+    return {key: value[0] for key, value in out.items()}
+
+
+def fit_lights(eyes, bounds, start: np.ndarray, nodes: np.ndarray, sizes, effort: str = "refined",
+               spots=None) -> dict:
+    """:func:`fit_boxes` from several eyes (a frame's lights: ``eyes (L, 3)``, shadow maps of
+    ``sizes[l] = (width, height)``, ``spots[l]`` as ``spot`` or None) around the same sets, in
+    one pass split among threads: each light's arrays are row ``l`` of the ``(L, Q, ...)``
+    results. One pass rather than one per light: on a few cores, handing work to a thread and
+    waiting for it costs about a tenth of a millisecond each time."""
     if effort not in EFFORTS:
         raise ValueError(f"effort must be one of {', '.join(EFFORTS)}, got {effort!r}")
-    count = len(start) - 1
-    out = {"status": np.zeros(count, np.int64), "view": np.zeros((count, 4, 4)),
-           "projection": np.zeros((count, 4, 4)), "near": np.zeros(count),
-           "far": np.zeros(count), "coverage": np.zeros(count)}
-    direction, cos_angle = spot if spot is not None else (np.zeros(3), 1.0)
-    eye = np.asarray(eye, np.float64)
-    direction = np.asarray(direction, np.float64)
+    eyes = np.asarray(eyes, np.float64).reshape(-1, 3)
+    lights, count = len(eyes), len(start) - 1
+    spots = [None] * lights if spots is None else list(spots)
+    out = {"status": np.zeros((lights, count), np.int64), "view": np.zeros((lights, count, 4, 4)),
+           "projection": np.zeros((lights, count, 4, 4)), "near": np.zeros((lights, count)),
+           "far": np.zeros((lights, count)), "coverage": np.zeros((lights, count))}
+    # the sets of every light one after the other, split by their receivers
+    total = start[-1] - start[0]
+    work = np.append((start[:-1] - start[0] + total * np.arange(lights)[:, None]).ravel(),
+                     total * lights)
 
-    def chunk(k, a, b):  # sets [a, b): their outputs are views of the frame's arrays
-        _fit_boxes(eye, bounds.center, bounds.axes, bounds.half, bounds.radius, start[a:b + 1],
-                   nodes, float(width), float(height), EFFORTS.index(effort), spot is not None,
-                   direction, float(cos_angle), out["view"][a:b], out["projection"][a:b],
-                   out["near"][a:b], out["far"][a:b], out["coverage"][a:b], out["status"][a:b])
+    def chunk(k, a, b):  # sets [a, b) of the lights' sequence: views of the frame's arrays
+        for light in range(a // count, (b - 1) // count + 1):
+            lo, hi = max(a - light * count, 0), min(b - light * count, count)
+            spot = spots[light]
+            direction, cos_angle = spot if spot is not None else (np.zeros(3), 1.0)
+            width, height = sizes[light]
+            _fit_boxes(eyes[light], bounds.center, bounds.axes, bounds.half, bounds.radius,
+                       start[lo:hi + 1], nodes, float(width), float(height),
+                       EFFORTS.index(effort), spot is not None,
+                       np.asarray(direction, np.float64), float(cos_angle),
+                       *(out[key][light, lo:hi] for key in ("view", "projection", "near", "far",
+                                                            "coverage", "status")))
 
-    workers.run(chunk, workers.chunks(count, start))
+    workers.run(chunk, workers.chunks(lights * count, work))
     return out
 
 
