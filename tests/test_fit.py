@@ -54,6 +54,24 @@ def test_tight_depth_never_cuts_what_a_tile_shows(seed, reversed_z):
         assert abs(planes6[5, :3] @ p_far + planes6[5, 3]) < 1e-6 * tile["far"]
 
 
+@hsettings(max_examples=300, deadline=None)
+@given(value=st.floats(allow_nan=False, allow_infinity=False, width=64),
+       direction=st.sampled_from([-1.0, 1.0]))
+def test_depths_round_outward_to_the_nearest_float32(value, direction):
+    """A depth bound is a float32 on the outer side of the exact one, and the nearest such."""
+    rounded = fitmod.outward(value, direction)
+    assert rounded == value or (rounded - value) * direction > 0
+    if np.isfinite(rounded):
+        as32 = np.float32(rounded)
+        assert float(as32) == rounded
+        if rounded != value:  # the next float32 back lies beyond the exact value
+            with np.errstate(over="ignore"):  # past float32's largest: infinite
+                back = float(np.nextafter(as32, np.float32(-direction * np.inf)))
+            assert (back - value) * direction < 0
+    else:  # beyond float32's range
+        assert abs(value) > float(np.finfo(np.float32).max)
+
+
 def test_projections_match_the_toolkit_and_the_culler():
     wall = Wall.from_dict({"cols": 5, "rows": 3, "tile_size": [0.6, 0.34], "gap": [0.02, -0.05],
                            "distance": 2.0})

@@ -85,35 +85,59 @@ def tile_projections(wall, frame: Frame, near: np.ndarray, far: np.ndarray,
     gives the infinite projection. For screens, the rectangle in each tile's own eye space
     (the generalized perspective projection)."""
     eye = frame.eye if eye is None else np.asarray(eye, np.float64)
+    near, far = (np.ascontiguousarray(np.broadcast_to(d, wall.tiles), np.float64)
+                 for d in (near, far))
+    out = np.empty((wall.tiles, 4, 4))
     if wall.kind == "grid":
-        ex, ey, ez = eye
-        depth = np.full(wall.tiles, wall.distance + ez)
-        r, c = np.divmod(np.arange(wall.tiles), wall.cols)
-        x0, x1 = wall.col_edges[c, 0] - ex, wall.col_edges[c, 1] - ex
-        y0, y1 = wall.row_edges[r, 0] - ey, wall.row_edges[r, 1] - ey
-    else:
-        rel = wall.corners - eye  # bl, br, tl from the eye
-        u, v, n = wall.basis[:, 0], wall.basis[:, 1], wall.basis[:, 2]
-        depth = -(rel[:, 0] * n).sum(axis=1)
-        x0, x1 = (rel[:, 0] * u).sum(axis=1), (rel[:, 1] * u).sum(axis=1)
-        y0, y1 = (rel[:, 0] * v).sum(axis=1), (rel[:, 2] * v).sum(axis=1)
-    # 2n/(r-l) with l = x0 n / depth: the near distance cancels out of the x and y rows.
-    out = np.zeros((wall.tiles, 4, 4))
-    out[:, 0, 0] = 2 * depth / (x1 - x0)
-    out[:, 0, 2] = (x1 + x0) / (x1 - x0)
-    out[:, 1, 1] = 2 * depth / (y1 - y0)
-    out[:, 1, 2] = (y1 + y0) / (y1 - y0)
-    out[:, 3, 2] = -1.0
-    near, far = np.broadcast_to(near, wall.tiles), np.broadcast_to(far, wall.tiles)
-    finite = np.isfinite(far)  # an infinite far plane takes the limit (Lengyel eq. 5.53)
-    f, n = np.where(finite, far, 2.0), near
-    if reversed_z:
-        out[:, 2, 2] = np.where(finite, n / (f - n), 0.0)
-        out[:, 2, 3] = np.where(finite, n * f / (f - n), n)
-    else:
-        out[:, 2, 2] = np.where(finite, -(f + n) / (f - n), -1.0)
-        out[:, 2, 3] = np.where(finite, -2 * f * n / (f - n), -2 * n)
+        _grid_projections(wall.col_edges, wall.row_edges, wall.cols, float(eye[0]),
+                          float(eye[1]), wall.distance + float(eye[2]), near, far, reversed_z,
+                          out)
+        return out
+    rel = wall.corners - eye  # bl, br, tl from the eye
+    u, v, n = wall.basis[:, 0], wall.basis[:, 1], wall.basis[:, 2]
+    rect = np.stack([(rel[:, 0] * u).sum(axis=1), (rel[:, 1] * u).sum(axis=1),
+                     (rel[:, 0] * v).sum(axis=1), (rel[:, 2] * v).sum(axis=1),
+                     -(rel[:, 0] * n).sum(axis=1)], axis=1)
+    _screen_projections(rect, near, far, reversed_z, out)
     return out
+
+
+@njit(cache=True)
+def _grid_projections(col_edges, row_edges, cols, ex, ey, depth, near, far, reversed_z, out):
+    """:func:`_off_axis` for each tile of a grid, from the eye at ``ex, ey`` (display space),
+    ``depth`` before the wall."""
+    for t in range(out.shape[0]):
+        r, c = t // cols, t % cols
+        _off_axis(out[t], col_edges[c, 0] - ex, col_edges[c, 1] - ex, row_edges[r, 0] - ey,
+                  row_edges[r, 1] - ey, depth, near[t], far[t], reversed_z)
+
+
+@njit(cache=True)
+def _screen_projections(rect, near, far, reversed_z, out):
+    """:func:`_off_axis` for each screen: ``rect[t]`` = x0, x1, y0, y1, depth in its eye
+    space."""
+    for t in range(out.shape[0]):
+        _off_axis(out[t], rect[t, 0], rect[t, 1], rect[t, 2], rect[t, 3], rect[t, 4], near[t],
+                  far[t], reversed_z)
+
+
+@njit(cache=True, inline="always")
+def _off_axis(m, x0, x1, y0, y1, depth, n, f, reversed_z):
+    """``m``: the projection through ``[x0, x1] x [y0, y1]`` at ``depth`` (from the eye), with
+    near and far distances ``n``, ``f``."""
+    m[:, :] = 0.0
+    # 2n/(r-l) with l = x0 n / depth: the near distance cancels out of the x and y rows
+    m[0, 0] = 2 * depth / (x1 - x0)
+    m[0, 2] = (x1 + x0) / (x1 - x0)
+    m[1, 1] = 2 * depth / (y1 - y0)
+    m[1, 2] = (y1 + y0) / (y1 - y0)
+    m[3, 2] = -1.0
+    if not math.isfinite(f):  # an infinite far plane takes the limit (Lengyel eq. 5.53)
+        m[2, 2], m[2, 3] = (0.0, n) if reversed_z else (-1.0, -2 * n)
+    elif reversed_z:
+        m[2, 2], m[2, 3] = n / (f - n), n * f / (f - n)
+    else:
+        m[2, 2], m[2, 3] = -(f + n) / (f - n), -2 * f * n / (f - n)
 
 
 def depth_ranges(state: SceneState, wall, frame: Frame, visibility: Visibility,
@@ -128,29 +152,38 @@ def depth_ranges(state: SceneState, wall, frame: Frame, visibility: Visibility,
         forward = -wall.basis[:, 2] @ frame.rotation.T  # each screen's, into the world
     lo, hi = node_depths(state, visibility.start, visibility.nodes, forward,
                          frame.to_world(eye)[None], (np.nan, np.nan))
-    near = np.full(wall.tiles, wall.near)
-    far = np.full(wall.tiles, wall.far)
-    full = np.isfinite(lo)
-    if full.any():
-        lo, hi = lo[full], hi[full]
-        margin = DEPTH_MARGIN * np.abs(hi) + np.finfo(float).eps * np.maximum(np.abs(lo),
-                                                                              np.abs(hi))
-        near[full] = np.clip(outward(lo - margin, -np.inf), wall.near, wall.far)
-        far[full] = np.clip(outward(hi + margin, np.inf), wall.near, wall.far)
-        flat = far <= near  # a flat range still has two planes
-        far[flat] = outward(near[flat] * (1 + 1e-9) + 1e-300, np.inf)
+    near, far = np.empty(wall.tiles), np.empty(wall.tiles)
+    _tight(lo, hi, float(wall.near), float(wall.far), near, far)
     return near, far
 
 
-def outward(values: np.ndarray, direction: float) -> np.ndarray:
-    """``values`` rounded to float32 toward ``direction`` (-inf: down, inf: up): a tight depth
+@njit(cache=True)
+def _tight(lo, hi, wall_near, wall_far, near, far):
+    """Each tile's depth range from the depths ``lo``, ``hi`` its bounds span (NaN: none),
+    widened by a margin against rounding, rounded outward to float32 and clamped to the
+    wall's ``[wall_near, wall_far]`` (the wall's for a tile that shows nothing); a flat range
+    still has two planes."""
+    eps = np.finfo(np.float64).eps
+    for t in range(lo.shape[0]):
+        n, f = wall_near, wall_far
+        if math.isfinite(lo[t]):
+            margin = DEPTH_MARGIN * abs(hi[t]) + eps * max(abs(lo[t]), abs(hi[t]))
+            n = min(max(outward(lo[t] - margin, -1.0), wall_near), wall_far)
+            f = min(max(outward(hi[t] + margin, 1.0), wall_near), wall_far)
+            if f <= n:
+                f = outward(n * (1 + 1e-9) + 1e-300, 1.0)
+        near[t], far[t] = n, f
+
+
+@njit(cache=True)
+def outward(value: float, direction: float) -> float:
+    """``value`` rounded to float32 toward ``direction`` (-1: down, 1: up): a tight depth
     range stays conservative, and a node message carries each bound exactly in 5 bytes (a
-    depth buffer resolves no finer)."""
-    with np.errstate(over="ignore"):  # beyond float32: infinite, still outward
-        f32 = np.asarray(values, np.float32).astype(np.float64)
-    off = f32 < values if direction > 0 else f32 > values
-    f32[off] = np.nextafter(f32[off].astype(np.float32), np.float32(direction))
-    return f32
+    depth buffer resolves no finer). Beyond float32's range: infinite, still outward."""
+    rounded = np.float64(np.float32(value))
+    if rounded < value if direction > 0 else rounded > value:
+        rounded = np.float64(np.nextafter(np.float32(rounded), np.float32(direction * np.inf)))
+    return rounded
 
 
 def _csr_rows(start: np.ndarray, items: np.ndarray, t: int) -> list[int]:
