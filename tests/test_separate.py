@@ -8,13 +8,22 @@ from scipy.spatial.transform import Rotation
 
 from wallcull import oracle
 from wallcull.cull import RECORD
-from wallcull.separate import _corners, _separated as _separated_into
+from wallcull.separate import _corners as _corners_into, _separated as _separated_into
 
 from .randscene import random_wall
 
 
+def _corners(planes, rows, corners) -> bool:
+    """The frustum's corners into ``corners (8, 3)`` (the kernel's table of one tile)."""
+    table = np.empty((1, 8, 3))
+    ok = _corners_into(planes, rows[None], 0, table)
+    corners[:] = table[0]
+    return ok
+
+
 def _separated(box, i, corners) -> bool:
-    return _separated_into(box, i, corners, np.empty(3), np.empty((3, 3)), np.empty((8, 3)))
+    return _separated_into(box, i, corners[None], 0, np.empty(3), np.empty((3, 3)),
+                           np.empty((8, 3)))
 
 
 #: the oracle's planes (bottom, right, top, left, near, far) as the culler orders them

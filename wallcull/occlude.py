@@ -67,6 +67,10 @@ SETTINGS = ("off", *MODES)
 DEPTH_MARGIN = 1e-3
 #: The most texels on a side of one buffer.
 MAX_TEXELS = 1024
+#: Occluder triangles, and listed nodes to test, a thread is given at least: handing less
+#: to a thread, and merging what it drew, costs more than it saves.
+RASTER_CHUNK = 4096
+TEST_CHUNK = 512
 
 
 @dataclass(frozen=True)
@@ -109,53 +113,67 @@ class Views:
     tile_texels: np.ndarray  # (E, T, 4) int64
 
     @classmethod
-    def of(cls, wall, frame: Frame, texels: int) -> "Views":
+    def of(cls, wall, frame: Frame, texels: int, layout: "Layout | None" = None) -> "Views":
+        """The frame's views; ``layout``: :func:`layout` for the frame's eyes, if kept."""
+        basis, shift, rect, size, tile_view, tile_texels = layout or _layout(wall, frame.eyes,
+                                                                             texels)
         to_display = np.concatenate([frame.rotation.T, -(frame.rotation.T @ frame.position)[:, None]],
                                     axis=1)  # world -> display: R^T (p - t)
-        affine, rect, size, tile_view, tile_texels = [], [], [], [], []
-        for eye in frame.eyes:
-            if wall.kind == "grid":  # one view: the wall's plane, seen from the eye
-                depth = eye[2] + wall.distance
-                a = to_display.copy()
-                a[:, 3] -= eye
-                x0, x1 = wall.col_edges[0, 0], wall.col_edges[-1, 1]
-                y0, y1 = wall.row_edges[-1, 0], wall.row_edges[0, 1]
-                r = (np.array([x0, x1, y0, y1]) - eye[[0, 0, 1, 1]]) / depth
-                w = min(MAX_TEXELS, texels * wall.cols)
-                h = min(MAX_TEXELS, max(1, round(w * (r[3] - r[2]) / (r[1] - r[0]))))
-                views = [(a, r, (w, h))]
-                row, col = np.divmod(np.arange(wall.tiles), wall.cols)
-                boxes = (np.c_[wall.col_edges[col], wall.row_edges[row]]
-                         - eye[[0, 0, 1, 1]]) / depth
-                view = np.zeros(wall.tiles, np.int64)
-            else:  # a view per screen
-                views, boxes = [], []
-                for t in range(wall.tiles):
-                    basis = wall.basis[t]
-                    a = basis @ to_display
-                    a[:, 3] -= basis @ eye
-                    quad = (wall.quads[t] - eye) @ basis.T  # the screen in view coordinates
-                    xy = quad[:, :2] / -quad[:, 2:3]
-                    r = np.array([xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()])
-                    h = min(MAX_TEXELS, max(1, round(texels * wall.size[t, 1] / wall.size[t, 0])))
-                    views.append((a, r, (texels, h)))
-                    boxes.append(r)
-                boxes = np.array(boxes)
-                view = np.arange(wall.tiles)
-            base = len(affine)
-            for a, r, s in views:
-                affine.append(a)
-                rect.append(r)
-                size.append(s)
-            r, s = np.array(rect[base:])[view], np.array(size[base:])[view]
-            scale = s / (r[:, [1, 3]] - r[:, [0, 2]])  # texels per unit, across and up
-            lo = np.floor((boxes[:, [0, 2]] - r[:, [0, 2]]) * scale).astype(np.int64)
-            hi = np.ceil((boxes[:, [1, 3]] - r[:, [0, 2]]) * scale).astype(np.int64)
-            tile_view.append(base + view)
-            tile_texels.append(np.c_[np.maximum(lo[:, 0], 0), np.minimum(hi[:, 0], s[:, 0]),
-                                     np.maximum(lo[:, 1], 0), np.minimum(hi[:, 1], s[:, 1])])
-        return cls(np.array(affine), np.array(rect), np.array(size, np.int64),
-                   np.array(tile_view, np.int64), np.array(tile_texels, np.int64))
+        affine = basis @ to_display
+        affine[:, :, 3] -= shift
+        return cls(affine, rect, size, tile_view, tile_texels)
+
+
+#: What a frame's views take from its eyes and the wall alone (:func:`_layout`).
+Layout = tuple
+
+
+def _layout(wall, eyes: np.ndarray, texels: int) -> Layout:
+    """The views' parts that depend only on the wall and the eyes, kept while the eyes stay:
+    per view, display space to its own axes (``basis (V, 3, 3)``, then less ``shift (V, 3)``,
+    the eye in them), its rectangle and size; per eye and tile, its view and texels (see
+    :class:`Views`)."""
+    basis, shift, rect, size, tile_view, tile_texels = [], [], [], [], [], []
+    for eye in eyes:
+        if wall.kind == "grid":  # one view: the wall's plane, seen from the eye
+            depth = eye[2] + wall.distance
+            x0, x1 = wall.col_edges[0, 0], wall.col_edges[-1, 1]
+            y0, y1 = wall.row_edges[-1, 0], wall.row_edges[0, 1]
+            r = (np.array([x0, x1, y0, y1]) - eye[[0, 0, 1, 1]]) / depth
+            w = min(MAX_TEXELS, texels * wall.cols)
+            h = min(MAX_TEXELS, max(1, round(w * (r[3] - r[2]) / (r[1] - r[0]))))
+            views = [(np.eye(3), eye, r, (w, h))]
+            row, col = np.divmod(np.arange(wall.tiles), wall.cols)
+            boxes = (np.c_[wall.col_edges[col], wall.row_edges[row]]
+                     - eye[[0, 0, 1, 1]]) / depth
+            view = np.zeros(wall.tiles, np.int64)
+        else:  # a view per screen
+            views, boxes = [], []
+            for t in range(wall.tiles):
+                b = wall.basis[t]
+                quad = (wall.quads[t] - eye) @ b.T  # the screen in view coordinates
+                xy = quad[:, :2] / -quad[:, 2:3]
+                r = np.array([xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()])
+                h = min(MAX_TEXELS, max(1, round(texels * wall.size[t, 1] / wall.size[t, 0])))
+                views.append((b, b @ eye, r, (texels, h)))
+                boxes.append(r)
+            boxes = np.array(boxes)
+            view = np.arange(wall.tiles)
+        base = len(rect)
+        for b, e, r, wh in views:
+            basis.append(b)
+            shift.append(e)
+            rect.append(r)
+            size.append(wh)
+        r, wh = np.array(rect[base:])[view], np.array(size[base:])[view]
+        scale = wh / (r[:, [1, 3]] - r[:, [0, 2]])  # texels per unit, across and up
+        lo = np.floor((boxes[:, [0, 2]] - r[:, [0, 2]]) * scale).astype(np.int64)
+        hi = np.ceil((boxes[:, [1, 3]] - r[:, [0, 2]]) * scale).astype(np.int64)
+        tile_view.append(base + view)
+        tile_texels.append(np.c_[np.maximum(lo[:, 0], 0), np.minimum(hi[:, 0], wh[:, 0]),
+                                 np.maximum(lo[:, 1], 0), np.minimum(hi[:, 1], wh[:, 1])])
+    return (np.array(basis), np.array(shift), np.array(rect), np.array(size, np.int64),
+            np.array(tile_view, np.int64), np.array(tile_texels, np.int64))
 
 
 class Occluder:
@@ -171,7 +189,9 @@ class Occluder:
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
         self._scratch: list = []  # per thread: _setup's (see _scratch)
+        self._cells: list = []  # per thread: _draw's cells gathered and their depths
         self._buffers: list = []  # per thread: _prune's slot and records
+        self._layout: tuple = (None, None)  # the eyes and texels, and their views' layout
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
@@ -189,7 +209,8 @@ class Occluder:
         d = self.depth(vis, frame)
         views = d.views
         eyes = views.tile_view.shape[0]
-        ranges = workers.chunks(vis.tiles, vis.start)  # tiles in threads, of equal lists
+        # tiles in threads, of equal lists
+        ranges = workers.chunks(vis.tiles, vis.start, min_work=TEST_CHUNK)
         while len(self._buffers) < len(ranges):
             self._buffers.append([np.zeros((len(scene), 3), np.int64), None])
         stamp = self._frame
@@ -221,7 +242,10 @@ class Occluder:
     def depth(self, vis: Visibility, frame: Frame) -> "Depth":
         """The frame's occluders (chosen from ``vis``) rasterized."""
         box = packed(self.state)
-        views = Views.of(self.wall, frame, self.options.texels)
+        key = (frame.eyes.tobytes(), self.options.texels)
+        if self._layout[0] != key:
+            self._layout = (key, _layout(self.wall, frame.eyes, self.options.texels))
+        views = Views.of(self.wall, frame, self.options.texels, self._layout[1])
         return self.rasterize(self.choose(vis, views, box), views, box)
 
     def choose(self, vis: Visibility, views: Views, box: np.ndarray) -> np.ndarray:
@@ -244,12 +268,15 @@ class Occluder:
         # a leaf's units together (its patches), the nearest leaves first (they make most
         # farther patches skippable, and their cells gather first where they cover in part)
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
-        threads = max(1, min(workers.count(), len(units) // workers.MIN_CHUNK))
+        threads = max(1, min(workers.count(), int(count[units].sum()) // RASTER_CHUNK))
         while len(self._scratch) < threads:
             self._scratch.append(_scratch(len(m.faces), len(m.vertices)))
+        for k in range(threads):  # the cells each thread gathers, per texel (see _draw)
+            if k == len(self._cells) or len(self._cells[k][0]) != total:
+                self._cells[k:k + 1] = [(np.zeros(total, np.uint16), np.empty(total))]
         _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
                 self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
-                offsets[:, 0], self._scratch, threads)
+                offsets[:, 0], self._scratch, self._cells, threads)
         izhi = izlo.copy()
         _pyramids(izlo, izhi, views.size, offsets)
         return Depth(views, box, units, offsets, izlo, izhi)
@@ -487,7 +514,7 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
 
 
 def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine, rect, size,
-            near, buf, at, scratch, threads):
+            near, buf, at, scratch, cells, threads):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]`` of the mesh table ``meshes``; a leaf's units next to each other, the nearest
     leaves first) into level 0 of each view's buffer ``buf`` (view ``v``'s texels from
@@ -495,7 +522,7 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
     (:func:`_draw`). In ``threads`` threads, each of every so many leaves, into buffers of
     their own, then merged (:func:`_merge`): threads drawing bands of rows would each set up
     and walk every patch crossing their rows. ``outward``: see :func:`_outward`;
-    ``scratch``: per thread, see :func:`_scratch`."""
+    ``scratch``: per thread, see :func:`_scratch`; ``cells``: per thread, :func:`_draw`'s."""
     leaf = np.cumsum(np.diff(owner, prepend=owner[:1]) != 0)  # the leaves in order
 
     def part(k, *_):
@@ -504,7 +531,8 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
                          meshes.vertex_start, meshes.vertices, meshes.face_start, meshes.faces,
                          meshes.face_neighbors, outward, affine, rect, size, near, *scratch[k])
         out = buf if k == 0 else np.zeros_like(buf)
-        return (out, *_draw(*patches, size, out, at))
+        _draw(*patches, size, out, at, *cells[k])
+        return (out, *cells[k])
 
     parts = workers.run(part, [(k, k + 1) for k in range(threads)])
     for k in range(1, threads):
@@ -758,9 +786,10 @@ TOUCH = 1e-6
 
 
 @njit(cache=True, nogil=True)
-def _draw(polys, info, patches, boxes, size, buf, at):
+def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
     """Draw the patches (see :func:`_setup`) into each view's buffer ``buf``, in order;
-    returns the cells gathered in texels they did not fill (see :func:`_merge`).
+    ``work`` and ``work_low`` (scratch, of ``buf``'s size) are left with the cells gathered
+    in texels they did not fill, and their least 1 / depth (see :func:`_merge`).
 
     A patch claims a texel whole when every one of its ``SUB x SUB`` cells is claimed: the
     cell's centre lies in one of the patch's faces, and no edge of the patch's outline touches
@@ -773,8 +802,7 @@ def _draw(polys, info, patches, boxes, size, buf, at):
     in ``work`` with the farthest depth of the patches that claimed them, until they fill the
     texel. A patch that is nowhere nearer than the buffer over its box, or whose box holds no
     whole cell, is skipped (it could claim nothing: its depth would be no nearer)."""
-    work = np.zeros(buf.shape[0], np.uint64)  # cells gathered per texel
-    work_low = np.full(buf.shape[0], np.inf)  # ... their least 1 / depth
+    work[:] = 0  # cells gathered per texel (their least 1 / depth: work_low, where any)
     rows = cols = 16
     cover = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells faces' centres cover
     edge = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells the outline touches
@@ -826,7 +854,7 @@ def _draw(polys, info, patches, boxes, size, buf, at):
         edge[:SUB * nr, :words] = 0
         low[:nr, :nc] = np.inf
         for p in range(patches[q, 0], patches[q, 1]):
-            _cover(polys[p], info[p, 0], info[p, 1], info[p, 3], r0, r1, c0, live_, cover, low,
+            _cover(polys, p, info[p, 0], info[p, 1], info[p, 3], r0, r1, c0, live_, cover, low,
                    ed)
         for p in range(patches[q, 0], patches[q, 1]):
             ns, outline = info[p, 0], info[p, 2]
@@ -836,7 +864,6 @@ def _draw(polys, info, patches, boxes, size, buf, at):
                     _edge(polys[p, e, 0], polys[p, e, 1], polys[p, e1, 0], polys[p, e1, 1], r0,
                           r1, c0, live_, edge)
         _claim(cover, edge, low, r0, nr, c0, live_, at[v] + c0, w, buf, work, work_low)
-    return work, work_low
 
 
 @njit(cache=True, nogil=True)
@@ -848,30 +875,31 @@ def _merge(buf, work, work_low, other, other_work, other_low):
     for t in range(buf.shape[0]):
         buf[t] = max(buf[t], other[t])
         if other_work[t]:
+            work_low[t] = min(work_low[t], other_low[t]) if work[t] else other_low[t]
             work[t] |= other_work[t]
-            work_low[t] = min(work_low[t], other_low[t])
             if work[t] == _FULL:
                 buf[t] = max(buf[t], work_low[t])
-                work[t] = np.uint64(0)
-                work_low[t] = np.inf
+                work[t] = 0
 
 
 @njit(cache=True, inline="always")
-def _bits(row, lo, hi):
-    """Set bits ``lo`` to ``hi`` (inclusive) of the words ``row``."""
+def _bits(words, r, lo, hi):
+    """Set bits ``lo`` to ``hi`` (inclusive) of row ``r`` of ``words``. (Rows and polygons
+    are passed as an array and an index rather than as views: each view is an atomic
+    reference count.)"""
     a, b = lo >> 6, hi >> 6
     if a == b:
-        row[a] |= (_ONES >> np.uint64(63 - (hi - lo))) << np.uint64(lo & 63)
+        words[r, a] |= (_ONES >> np.uint64(63 - (hi - lo))) << np.uint64(lo & 63)
         return
-    row[a] |= _ONES << np.uint64(lo & 63)
+    words[r, a] |= _ONES << np.uint64(lo & 63)
     for k in range(a + 1, b):
-        row[k] = _ONES
-    row[b] |= _ONES >> np.uint64(63 - (hi & 63))
+        words[r, k] = _ONES
+    words[r, b] |= _ONES >> np.uint64(63 - (hi & 63))
 
 
 @njit(cache=True, inline="always")
-def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
-    """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
+def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
+    """Convex polygon ``polys[q, :ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
     area; ``split``: two faces, see :func:`_setup`) into its patch's texels of rows ``[r0,
     r1]`` (``cover``'s and ``low``'s first, from column ``c0``), within each row's ``live``
     columns: every texel it touches (or nearly) takes the least 1 / depth of the polygon over
@@ -879,14 +907,14 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
     ``ed (11, 4)``: scratch."""
     y_lo, y_hi = np.inf, -np.inf
     for c in range(ns):
-        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
+        y_lo, y_hi = min(y_lo, polys[q, c, 1]), max(y_hi, polys[q, c, 1])
     # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective);
     # two faces: each one's plane, the least of the two a bound over both
-    ga, gb, gc = _plane(p[0], p[1], p[2])
-    ga2, gb2, gc2 = _plane(p[0], p[2], p[3]) if split else (ga, gb, gc)
+    ga, gb, gc = _plane(polys, q, 0, 1, 2)
+    ga2, gb2, gc2 = _plane(polys, q, 0, 2, 3) if split else (ga, gb, gc)
     least = np.inf
     for c in range(ns):
-        least = min(least, p[c, 2])
+        least = min(least, polys[q, c, 2])
     # each side: inside where side (ex (y - ay) - ey (x - ax)) >= 0 (a centre on an edge the
     # outline holds is in a cell the outline touches, by a margin: rounding claims nothing
     # there, and one on an inner edge is in both faces); as a bound on x, x >= q y + o (the
@@ -897,8 +925,8 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
     nl = nr = nv = 0
     for e in range(ns):
         e1 = e + 1 if e + 1 < ns else 0
-        ax, ay = p[e, 0], p[e, 1]
-        ex, ey = p[e1, 0] - ax, p[e1, 1] - ay
+        ax, ay = polys[q, e, 0], polys[q, e, 1]
+        ex, ey = polys[q, e1, 0] - ax, polys[q, e1, 1] - ay
         A = -side * ey
         B = side * ex
         C = side * (ey * ax - ex * ay)
@@ -912,9 +940,9 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
             ed[4, nv], ed[5, nv] = B, C
             nv += 1
         if ey >= 0:
-            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = ax, ay, p[e1, 1], p[e1, 0]
+            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = ax, ay, polys[q, e1, 1], polys[q, e1, 0]
         else:
-            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = p[e1, 0], p[e1, 1], ay, ax
+            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = polys[q, e1, 0], polys[q, e1, 1], ay, ax
         ed[10, e] = ex / ey if ey != 0 else 0.0
     for J in range(max(r0, int(math.floor(y_lo - TOUCH))),
                    min(r1, int(math.floor(y_hi + TOUCH))) + 1):
@@ -939,9 +967,9 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
         if i0 > i1:
             continue
         # the least over the polygon's part in each texel, within its box there
-        _least(low[r], i0, i1, c0, lo, hi, least, ga, min(gb * y0, gb * y1) + gc)
+        _least(low, r, i0, i1, c0, lo, hi, least, ga, min(gb * y0, gb * y1) + gc)
         if split:
-            _least(low[r], i0, i1, c0, lo, hi, least, ga2, min(gb2 * y0, gb2 * y1) + gc2)
+            _least(low, r, i0, i1, c0, lo, hi, least, ga2, min(gb2 * y0, gb2 * y1) + gc2)
         for k in range(SUB):  # the cells whose centres on this cell row lie inside
             y = J + (k + 0.5) / SUB
             xl, xr = -1e9, 1e9
@@ -956,29 +984,32 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
                 a = max(int(math.ceil(xl * SUB - 0.5)), SUB * i0)
                 b = min(int(math.floor(xr * SUB - 0.5)), SUB * i1 + SUB - 1)
                 if a <= b:
-                    _bits(cover[SUB * r + k], a - SUB * c0, b - SUB * c0)
+                    _bits(cover, SUB * r + k, a - SUB * c0, b - SUB * c0)
 
 
 @njit(cache=True, inline="always")
-def _plane(a, b, c):
-    """The plane through ``a, b, c`` (x, y, 1 / depth): ``ga, gb, gc`` with 1 / depth = ga x +
-    gb y + gc."""
-    area = _cross(a, b, c)
-    ga = ((b[2] - a[2]) * (c[1] - a[1]) - (c[2] - a[2]) * (b[1] - a[1])) / area
-    gb = ((b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])) / area
-    return ga, gb, a[2] - ga * a[0] - gb * a[1]
+def _plane(p, q, a, b, c):
+    """The plane through corners ``a, b, c`` of polygon ``p[q]`` (x, y, 1 / depth): ``ga, gb,
+    gc`` with 1 / depth = ga x + gb y + gc."""
+    ax, ay, az = p[q, a, 0], p[q, a, 1], p[q, a, 2]
+    bx, by, bz = p[q, b, 0], p[q, b, 1], p[q, b, 2]
+    cx, cy, cz = p[q, c, 0], p[q, c, 1], p[q, c, 2]
+    area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
+    ga = ((bz - az) * (cy - ay) - (cz - az) * (by - ay)) / area
+    gb = ((bx - ax) * (cz - az) - (cx - ax) * (bz - az)) / area
+    return ga, gb, az - ga * ax - gb * ay
 
 
 @njit(cache=True, inline="always")
-def _least(out, i0, i1, c0, lo, hi, least, ga, gy):
-    """Lower ``out[i - c0]`` for texels ``i0`` to ``i1`` of a row to the least of plane ``ga x
-    + gy`` over ``[max(i, lo), min(i + 1, hi)]``, and no less than ``least``."""
+def _least(out, r, i0, i1, c0, lo, hi, least, ga, gy):
+    """Lower ``out[r, i - c0]`` for texels ``i0`` to ``i1`` of a row to the least of plane
+    ``ga x + gy`` over ``[max(i, lo), min(i + 1, hi)]``, and no less than ``least``."""
     if ga >= 0:
         for i in range(i0, i1 + 1):
-            out[i - c0] = min(out[i - c0], max(least, ga * max(i, lo) + gy))
+            out[r, i - c0] = min(out[r, i - c0], max(least, ga * max(i, lo) + gy))
     else:
         for i in range(i0, i1 + 1):
-            out[i - c0] = min(out[i - c0], max(least, ga * min(i + 1, hi) + gy))
+            out[r, i - c0] = min(out[r, i - c0], max(least, ga * min(i + 1, hi) + gy))
 
 
 @njit(cache=True, inline="always")
@@ -1003,7 +1034,7 @@ def _edge(ax, ay, bx, by, r0, r1, c0, live, edge):
             a = max(SUB * g0, int(math.floor((max(lo, g0 - 1.0) - TOUCH) * SUB)))
             b = min(SUB * g1 + SUB - 1, int(math.floor((min(hi, g1 + 1.0) + TOUCH) * SUB)))
             if a <= b:
-                _bits(edge[SUB * (J - r0) + k], a - SUB * c0, b - SUB * c0)
+                _bits(edge, SUB * (J - r0) + k, a - SUB * c0, b - SUB * c0)
 
 
 @njit(cache=True, inline="always")
@@ -1018,11 +1049,19 @@ def _claim(cover, edge, low, r0, nr, c0, live, at, w, buf, work, work_low):
             continue
         for word in range(g0 // _PER_WORD, g1 // _PER_WORD + 1):
             any_ = np.uint64(0)
+            every = _ONES
             for k in range(SUB):
-                any_ |= cover[SUB * r + k, word] & ~edge[SUB * r + k, word]
+                cells = cover[SUB * r + k, word] & ~edge[SUB * r + k, word]
+                any_ |= cells
+                every &= cells
             if any_ == 0:
                 continue
             first = _PER_WORD * word
+            if every == _ONES:  # every cell of the word's texels: each claimed whole
+                for i in range(max(g0, first), min(first + _PER_WORD, g1 + 1)):
+                    if low[r, i] > buf[row + i]:
+                        buf[row + i] = low[r, i]
+                continue
             for n in range(max(0, g0 - first), min(_PER_WORD, g1 + 1 - first)):
                 shift = np.uint64(SUB * n)
                 claimed = np.uint64(0)
@@ -1037,13 +1076,12 @@ def _claim(cover, edge, low, r0, nr, c0, live, at, w, buf, work, work_low):
                 if claimed == _FULL:
                     buf[t] = z
                     continue
+                work_low[t] = min(work_low[t], z) if work[t] else z
                 work[t] |= claimed
-                work_low[t] = min(work_low[t], z)
                 if work[t] == _FULL:
                     if work_low[t] > buf[t]:
                         buf[t] = work_low[t]
-                    work[t] = np.uint64(0)
-                    work_low[t] = np.inf
+                    work[t] = 0
 
 
 @njit(cache=True, inline="always")

@@ -89,10 +89,10 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
         t = regions[j]
         keep = True
         if child_count[i] == 0 and _large(box, i, eye, small) \
-                and _undecided(box, i, planes, tile_rows[t]):
+                and _undecided(box, i, planes, tile_rows, t):
             if not known[t]:
-                known[t] = 1 if _corners(planes, tile_rows[t], corners[t]) else 2
-            if known[t] == 1 and _separated(box, i, corners[t], h, u, local):
+                known[t] = 1 if _corners(planes, tile_rows, t, corners) else 2
+            if known[t] == 1 and _separated(box, i, corners, t, h, u, local):
                 keep = False
         if keep:
             nodes[k] = i
@@ -110,15 +110,15 @@ def _large(box, i, eye, small) -> bool:
 
 
 @njit(cache=True, inline="always")
-def _undecided(box, i, planes, rows) -> bool:
-    """Whether the planes ``rows`` leave it open that bound ``i`` (listed: outside none of
+def _undecided(box, i, planes, rows, t) -> bool:
+    """Whether the planes ``rows[t]`` leave it open that bound ``i`` (listed: outside none of
     them) misses the frustum. It meets it when its centre is inside every plane, or when one
     plane alone cuts it (the others hold it whole): then the box's part on that plane's inner
     side lies in the frustum."""
     cuts = 0
     out = False
-    for q in range(rows.shape[0]):
-        p = rows[q]
+    for q in range(rows.shape[1]):
+        p = rows[t, q]
         nx, ny, nz = planes[p, 0], planes[p, 1], planes[p, 2]
         s = nx * box[i, 0] + ny * box[i, 1] + nz * box[i, 2] + planes[p, 3]
         r = (abs(nx * box[i, 4] + ny * box[i, 5] + nz * box[i, 6])
@@ -129,15 +129,17 @@ def _undecided(box, i, planes, rows) -> bool:
     return out and cuts > 1
 
 
-@njit(cache=True)
-def _corners(planes, rows, out) -> bool:
-    """The eight corners of the frustum bounded by ``rows`` (left, right, top, bottom, near,
-    far), corner ``4 a + 2 b + c`` on side ``a`` (left, right), ``b`` (top, bottom) and ``c``
-    (near, far). False when three of the planes do not meet in one point."""
+@njit(cache=True, _nrt=False)
+def _corners(planes, rows, t, out) -> bool:
+    """Into ``out[t]``: the eight corners of the frustum bounded by ``rows[t]`` (left, right,
+    top, bottom, near, far), corner ``4 a + 2 b + c`` on side ``a`` (left, right), ``b`` (top,
+    bottom) and ``c`` (near, far). False when three of the planes do not meet in one point.
+    (Tiles' rows and corners are passed as arrays and an index, never as views: a view's
+    reference count is an atomic operation, which was a fifth of a 64 x 64 wall's cull.)"""
     for a in range(2):
         for b in range(2):
             for c in range(2):
-                p, q, r = rows[a], rows[2 + b], rows[4 + c]
+                p, q, r = rows[t, a], rows[t, 2 + b], rows[t, 4 + c]
                 # the point on all three planes n . x + d = 0 (Cramer's rule)
                 qx = planes[q, 1] * planes[r, 2] - planes[q, 2] * planes[r, 1]
                 qy = planes[q, 2] * planes[r, 0] - planes[q, 0] * planes[r, 2]
@@ -153,15 +155,15 @@ def _corners(planes, rows, out) -> bool:
                 pz = planes[p, 0] * planes[q, 1] - planes[p, 1] * planes[q, 0]
                 dp, dq, dr = planes[p, 3], planes[q, 3], planes[r, 3]
                 k = 4 * a + 2 * b + c
-                out[k, 0] = -(dp * qx + dq * rx + dr * px) / det
-                out[k, 1] = -(dp * qy + dq * ry + dr * py) / det
-                out[k, 2] = -(dp * qz + dq * rz + dr * pz) / det
+                out[t, k, 0] = -(dp * qx + dq * rx + dr * px) / det
+                out[t, k, 1] = -(dp * qy + dq * ry + dr * py) / det
+                out[t, k, 2] = -(dp * qz + dq * rz + dr * pz) / det
     return True
 
 
-@njit(cache=True)
-def _separated(box, i, corners, h, u, local) -> bool:
-    """Whether bound ``i`` and the frustum of ``corners`` lie apart along one of the box's axes
+@njit(cache=True, _nrt=False)
+def _separated(box, i, corners, t, h, u, local) -> bool:
+    """Whether bound ``i`` and the frustum of ``corners[t]`` lie apart along one of the box's axes
     or the cross product of one with a frustum edge (the frustum's face normals are the planes
     already tested). Worked in the box's frame: the corners' coordinates along its axes once,
     then each axis is a few products. The edges: the four from near to far, and two of the near
@@ -179,10 +181,11 @@ def _separated(box, i, corners, h, u, local) -> bool:
     ball = box[i, 3]
     scale = abs(box[i, 0]) + abs(box[i, 1]) + abs(box[i, 2]) + box[i, 13]
     for c in range(8):
-        scale = max(scale, abs(corners[c, 0]) + abs(corners[c, 1]) + abs(corners[c, 2]))
+        scale = max(scale, abs(corners[t, c, 0]) + abs(corners[t, c, 1]) + abs(corners[t, c, 2]))
         for a in range(3):
-            local[c, a] = ((corners[c, 0] - box[i, 0]) * u[a, 0] + (corners[c, 1] - box[i, 1])
-                           * u[a, 1] + (corners[c, 2] - box[i, 2]) * u[a, 2])
+            local[c, a] = ((corners[t, c, 0] - box[i, 0]) * u[a, 0]
+                           + (corners[t, c, 1] - box[i, 1]) * u[a, 1]
+                           + (corners[t, c, 2] - box[i, 2]) * u[a, 2])
     gap = MARGIN * scale
     for e in range(4):  # most boxes tested meet the frustum: show it, and skip the axes
         if _crosses(local, 2 * e, 2 * e + 1, h, gap):

@@ -36,11 +36,15 @@ _lock = threading.Lock()
 _pool_size = 0
 
 
-def chunks(items: int, work: np.ndarray | None = None) -> list[tuple[int, int]]:
+def chunks(items: int, work: np.ndarray | None = None, min_work: int = 0
+           ) -> list[tuple[int, int]]:
     """``[start, stop)`` ranges splitting ``items`` into at most :func:`count` parts of at
     least ``MIN_CHUNK`` items each, of equal ``work`` (its cumulative sum, ``(items + 1,)``,
-    for example a CSR ``start`` array) when given, else of equal size."""
+    for example a CSR ``start`` array) when given, else of equal size; with ``min_work``, of
+    at least that much work each."""
     parts = max(1, min(count(), items // MIN_CHUNK))
+    if min_work and work is not None:
+        parts = max(1, min(parts, int(work[-1] - work[0]) // min_work))
     if work is None or parts == 1 or work[-1] <= work[0]:
         edges = [round(items * k / parts) for k in range(parts + 1)]
     else:
