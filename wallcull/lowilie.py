@@ -383,7 +383,7 @@ def _octagon(points):
     return edges
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _well_inside(edges, x, y, margin):
     """Whether the disc of radius ``margin`` at (x, y) lies inside the octagon ``edges`` (a
     degenerate octagon, of fewer than three edges, holds nothing)."""
@@ -397,7 +397,7 @@ def _well_inside(edges, x, y, margin):
     return count >= 3
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _support(g, i, nx, ny, nz):
     """Half-width of box ``i`` (rows of ``g[i]``: its half-extent vectors) along ``n``."""
     return (abs(nx * g[i, 0, 0] + ny * g[i, 0, 1] + nz * g[i, 0, 2])
@@ -405,7 +405,7 @@ def _support(g, i, nx, ny, nz):
             + abs(nx * g[i, 2, 0] + ny * g[i, 2, 1] + nz * g[i, 2, 2]))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _corners_of(rel, g, i, out, k):
     """Write box ``i``'s corners (eye-relative) into ``out[k:]``; returns the new ``k`` (one
     point for a box of no extent)."""
