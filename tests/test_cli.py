@@ -158,3 +158,19 @@ def test_bench_times_the_occlusion_dial(capsys):
     assert (on["methods"]["adaptive"]["triangles_per_frame"]
             < off["methods"]["adaptive"]["triangles_per_frame"])
     assert docs["orbit", "auto"]["stages"]["occlude"]["p99_ms"] == 0  # outside: never run
+    # what occlusion costs where it hides nothing: inside the plant it always hides something,
+    # from outside (auto) it never runs
+    assert on["methods"]["adaptive"]["nothing_hidden"] == {"frames": 0}
+    assert docs["orbit", "auto"]["methods"]["adaptive"]["nothing_hidden"] == {"frames": 0}
+    assert "nothing_hidden" not in off["methods"]["adaptive"]
+
+
+def test_bench_times_occlusion_where_it_hides_nothing(capsys, tmp_path):
+    """A lone box hides nothing but its own back: every frame counts, and is timed."""
+    trimesh.creation.box(extents=[1, 1, 1]).export(tmp_path / "box.glb")
+    wall = json.dumps({"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0})
+    code, out, err = run(capsys, "bench", str(tmp_path / "box.glb"), "--wall", wall, "--frames",
+                         "4", "--methods", "adaptive", "--occlusion", "on", "--json")
+    assert code == 0, err
+    idle = json.loads(out)["methods"]["adaptive"]["nothing_hidden"]
+    assert idle["frames"] == 4 and idle["occlude_median_ms"] > 0

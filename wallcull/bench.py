@@ -104,7 +104,8 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     (every tile's entry of the node messages, a delta against the previous frame as a
     streaming node gets it) and their ``total``, and ``encode_packets`` (every tile's packet,
     as a per-tile stream gets it; see :data:`STAGES`). ``occlusion``: the occlusion setting,
-    timed as the ``occlude`` stage. Also the triangles the tiles draw, a frame on average."""
+    timed as the ``occlude`` stage, and apart on the frames where it hid nothing
+    (``nothing_hidden``). Also the triangles the tiles draw, a frame on average."""
     session = Session(scene, wall, method, bounds, pseudo_groups,
                       fit or (FitOptions() if stages else None), occlusion=occlusion)
     history, tiles, packet_bytes = History(4), np.arange(wall.tiles), []
@@ -119,7 +120,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     history = History(4)
     times, refits, tests, pairs, fits, ratios, coverages = [], [], [], [], [], [], []
     stage_ms = {name: [] for name in (*STAGES, "encode_packets")}
-    entry_bytes, triangles = [], []
+    entry_bytes, triangles, idle = [], [], []
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
@@ -154,6 +155,8 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])
         triangles.append(int(result.visibility.triangles().sum()))
+        if stats.get("occluded") == 0:  # occlusion ran and hid nothing: what it cost then
+            idle.append(result.timings["occlude_ms"])
         if progress:
             progress.advance(task)
     # leaves reported per frame, from the last frame (the lists, not their timing)
@@ -161,6 +164,9 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
            "nodes_per_frame": float(np.mean(pairs)),
            "leaf_pairs_last_frame": int(len(result.leaves[1])),
            "triangles_per_frame": float(np.mean(triangles))}
+    if occlusion is not None:
+        out["nothing_hidden"] = {"frames": len(idle), **(
+            {"occlude_median_ms": float(np.median(idle))} if idle else {})}
     if refits:
         out["refit_median_ms"] = float(np.median(refits))
         out["refit_p99_ms"] = float(np.percentile(refits, 99))

@@ -192,6 +192,8 @@ class Occluder:
         self._cells: list = []  # per thread: _draw's cells gathered and their depths
         self._buffers: list = []  # per thread: _prune's slot and records
         self._layout: tuple = (None, None)  # the eyes and texels, and their views' layout
+        self._levels: tuple = (None, None)  # the views' sizes, and their pyramids' offsets
+        self._depth: tuple = (np.zeros(0), np.zeros(0))  # the buffers, kept between frames
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
@@ -263,8 +265,13 @@ class Occluder:
         first, count = scene.cluster_faces
         owner = np.where(scene.cluster_leaf[units] >= 0, scene.cluster_leaf[units], units)
         m = scene.meshes
-        offsets, total = _levels(views.size)
-        izlo = np.zeros(total)  # per texel 1 / the depth beyond which all is hidden; 0: none
+        if self._levels[0] is not views.size:
+            self._levels = (views.size, _levels(views.size))
+        offsets, total = self._levels[1]
+        if len(self._depth[0]) != total:
+            self._depth = (np.zeros(total), np.zeros(total))
+        izlo, izhi = self._depth
+        izlo.fill(0.0)  # per texel 1 / the depth beyond which all is hidden; 0: none
         # a leaf's units together (its patches), the nearest leaves first (they make most
         # farther patches skippable, and their cells gather first where they cover in part)
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
@@ -277,7 +284,7 @@ class Occluder:
         _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
                 self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
                 offsets[:, 0], self._scratch, self._cells, threads)
-        izhi = izlo.copy()
+        izhi[:] = izlo
         _pyramids(izlo, izhi, views.size, offsets)
         return Depth(views, box, units, offsets, izlo, izhi)
 
@@ -286,7 +293,8 @@ class Occluder:
 class Depth:
     """A frame's occluders rasterized: per view, level 0 of ``izlo`` (from ``offsets[v, 0]``,
     row-major) holds per texel the reciprocal of the depth beyond which everything is hidden
-    (0: nothing is); its levels above, the least of the level below (``izhi``: the largest)."""
+    (0: nothing is); its levels above, the least of the level below (``izhi``: the largest).
+    The buffers are the occluder's, drawn over by its next frame."""
 
     views: Views
     box: np.ndarray
@@ -1182,19 +1190,36 @@ def _pyramids(lo_, hi_, size, offsets):
         for l in range(1, offsets.shape[1]):
             cw, ch = -(-w // 2), -(-h // 2)
             src, dst = offsets[v, l - 1], offsets[v, l]
-            for j in range(ch):
+            for j in range(h // 2):  # whole 2 x 2 blocks
+                a, b = src + 2 * j * w, dst + j * cw
+                for i in range(w // 2):
+                    lo_[b + i] = min(min(lo_[a + 2 * i], lo_[a + 2 * i + 1]),
+                                     min(lo_[a + w + 2 * i], lo_[a + w + 2 * i + 1]))
+                    hi_[b + i] = max(max(hi_[a + 2 * i], hi_[a + 2 * i + 1]),
+                                     max(hi_[a + w + 2 * i], hi_[a + w + 2 * i + 1]))
+            if w % 2:  # a last column of fewer
+                for j in range(ch):
+                    _reduce(lo_, hi_, src, dst, w, h, cw, cw - 1, j)
+            if h % 2:  # a last row
                 for i in range(cw):
-                    hi = -np.inf
-                    lo = np.inf
-                    for dj in range(2):
-                        for di in range(2):
-                            y, x = 2 * j + dj, 2 * i + di
-                            if y < h and x < w:
-                                lo = min(lo, lo_[src + y * w + x])
-                                hi = max(hi, hi_[src + y * w + x])
-                    lo_[dst + j * cw + i] = lo
-                    hi_[dst + j * cw + i] = hi
+                    _reduce(lo_, hi_, src, dst, w, h, cw, i, ch - 1)
             w, h = cw, ch
+
+
+@njit(cache=True, inline="always")
+def _reduce(lo_, hi_, src, dst, w, h, cw, i, j):
+    """Texel ``(i, j)`` of a level from the texels of the level below it covers (a border
+    texel covers fewer than four)."""
+    hi = -np.inf
+    lo = np.inf
+    for dj in range(2):
+        for di in range(2):
+            y, x = 2 * j + dj, 2 * i + di
+            if y < h and x < w:
+                lo = min(lo, lo_[src + y * w + x])
+                hi = max(hi, hi_[src + y * w + x])
+    lo_[dst + j * cw + i] = lo
+    hi_[dst + j * cw + i] = hi
 
 
 @njit(cache=True, inline="always")
