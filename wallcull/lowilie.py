@@ -383,6 +383,9 @@ def _octagon(points):
     return edges
 
 
+# The per-box helpers below allocate nothing and are compiled without reference counting
+# (``_nrt=False``; their callers hold the arrays): counting each call's array arguments in and
+# out, atomically, cost 7% of the fits.
 @njit(cache=True, _nrt=False)
 def _well_inside(edges, x, y, margin):
     """Whether the disc of radius ``margin`` at (x, y) lies inside the octagon ``edges`` (a

@@ -114,7 +114,7 @@ class Views:
 
     @classmethod
     def of(cls, wall, frame: Frame, texels: int, layout: "Layout | None" = None) -> "Views":
-        """The frame's views; ``layout``: :func:`layout` for the frame's eyes, if kept."""
+        """The frame's views; ``layout``: :func:`_layout` of the frame's eyes, when kept."""
         basis, shift, rect, size, tile_view, tile_texels = layout or _layout(wall, frame.eyes,
                                                                              texels)
         to_display = np.concatenate([frame.rotation.T, -(frame.rotation.T @ frame.position)[:, None]],
@@ -862,7 +862,7 @@ def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
         edge[:SUB * nr, :words] = 0
         low[:nr, :nc] = np.inf
         for p in range(patches[q, 0], patches[q, 1]):
-            _cover(polys, p, info[p, 0], info[p, 1], info[p, 3], r0, r1, c0, live_, cover, low,
+            _cover(polys[p], info[p, 0], info[p, 1], info[p, 3], r0, r1, c0, live_, cover, low,
                    ed)
         for p in range(patches[q, 0], patches[q, 1]):
             ns, outline = info[p, 0], info[p, 2]
@@ -891,23 +891,21 @@ def _merge(buf, work, work_low, other, other_work, other_low):
 
 
 @njit(cache=True, inline="always")
-def _bits(words, r, lo, hi):
-    """Set bits ``lo`` to ``hi`` (inclusive) of row ``r`` of ``words``. (Rows and polygons
-    are passed as an array and an index rather than as views: each view is an atomic
-    reference count.)"""
+def _bits(row, lo, hi):
+    """Set bits ``lo`` to ``hi`` (inclusive) of the words ``row``."""
     a, b = lo >> 6, hi >> 6
     if a == b:
-        words[r, a] |= (_ONES >> np.uint64(63 - (hi - lo))) << np.uint64(lo & 63)
+        row[a] |= (_ONES >> np.uint64(63 - (hi - lo))) << np.uint64(lo & 63)
         return
-    words[r, a] |= _ONES << np.uint64(lo & 63)
+    row[a] |= _ONES << np.uint64(lo & 63)
     for k in range(a + 1, b):
-        words[r, k] = _ONES
-    words[r, b] |= _ONES >> np.uint64(63 - (hi & 63))
+        row[k] = _ONES
+    row[b] |= _ONES >> np.uint64(63 - (hi & 63))
 
 
 @njit(cache=True, inline="always")
-def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
-    """Convex polygon ``polys[q, :ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
+def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
+    """Convex polygon ``p[:ns]`` (x, y texels, 1 / depth per corner; ``side``: the sign of its
     area; ``split``: two faces, see :func:`_setup`) into its patch's texels of rows ``[r0,
     r1]`` (``cover``'s and ``low``'s first, from column ``c0``), within each row's ``live``
     columns: every texel it touches (or nearly) takes the least 1 / depth of the polygon over
@@ -915,14 +913,14 @@ def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
     ``ed (11, 4)``: scratch."""
     y_lo, y_hi = np.inf, -np.inf
     for c in range(ns):
-        y_lo, y_hi = min(y_lo, polys[q, c, 1]), max(y_hi, polys[q, c, 1])
+        y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
     # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective);
     # two faces: each one's plane, the least of the two a bound over both
-    ga, gb, gc = _plane(polys, q, 0, 1, 2)
-    ga2, gb2, gc2 = _plane(polys, q, 0, 2, 3) if split else (ga, gb, gc)
+    ga, gb, gc = _plane(p[0], p[1], p[2])
+    ga2, gb2, gc2 = _plane(p[0], p[2], p[3]) if split else (ga, gb, gc)
     least = np.inf
     for c in range(ns):
-        least = min(least, polys[q, c, 2])
+        least = min(least, p[c, 2])
     # each side: inside where side (ex (y - ay) - ey (x - ax)) >= 0 (a centre on an edge the
     # outline holds is in a cell the outline touches, by a margin: rounding claims nothing
     # there, and one on an inner edge is in both faces); as a bound on x, x >= q y + o (the
@@ -933,8 +931,8 @@ def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
     nl = nr = nv = 0
     for e in range(ns):
         e1 = e + 1 if e + 1 < ns else 0
-        ax, ay = polys[q, e, 0], polys[q, e, 1]
-        ex, ey = polys[q, e1, 0] - ax, polys[q, e1, 1] - ay
+        ax, ay = p[e, 0], p[e, 1]
+        ex, ey = p[e1, 0] - ax, p[e1, 1] - ay
         A = -side * ey
         B = side * ex
         C = side * (ey * ax - ex * ay)
@@ -948,9 +946,9 @@ def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
             ed[4, nv], ed[5, nv] = B, C
             nv += 1
         if ey >= 0:
-            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = ax, ay, polys[q, e1, 1], polys[q, e1, 0]
+            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = ax, ay, p[e1, 1], p[e1, 0]
         else:
-            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = polys[q, e1, 0], polys[q, e1, 1], ay, ax
+            ed[6, e], ed[7, e], ed[8, e], ed[9, e] = p[e1, 0], p[e1, 1], ay, ax
         ed[10, e] = ex / ey if ey != 0 else 0.0
     for J in range(max(r0, int(math.floor(y_lo - TOUCH))),
                    min(r1, int(math.floor(y_hi + TOUCH))) + 1):
@@ -975,9 +973,9 @@ def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
         if i0 > i1:
             continue
         # the least over the polygon's part in each texel, within its box there
-        _least(low, r, i0, i1, c0, lo, hi, least, ga, min(gb * y0, gb * y1) + gc)
+        _least(low[r], i0, i1, c0, lo, hi, least, ga, min(gb * y0, gb * y1) + gc)
         if split:
-            _least(low, r, i0, i1, c0, lo, hi, least, ga2, min(gb2 * y0, gb2 * y1) + gc2)
+            _least(low[r], i0, i1, c0, lo, hi, least, ga2, min(gb2 * y0, gb2 * y1) + gc2)
         for k in range(SUB):  # the cells whose centres on this cell row lie inside
             y = J + (k + 0.5) / SUB
             xl, xr = -1e9, 1e9
@@ -992,32 +990,29 @@ def _cover(polys, q, ns, side, split, r0, r1, c0, live, cover, low, ed):
                 a = max(int(math.ceil(xl * SUB - 0.5)), SUB * i0)
                 b = min(int(math.floor(xr * SUB - 0.5)), SUB * i1 + SUB - 1)
                 if a <= b:
-                    _bits(cover, SUB * r + k, a - SUB * c0, b - SUB * c0)
+                    _bits(cover[SUB * r + k], a - SUB * c0, b - SUB * c0)
 
 
 @njit(cache=True, inline="always")
-def _plane(p, q, a, b, c):
-    """The plane through corners ``a, b, c`` of polygon ``p[q]`` (x, y, 1 / depth): ``ga, gb,
-    gc`` with 1 / depth = ga x + gb y + gc."""
-    ax, ay, az = p[q, a, 0], p[q, a, 1], p[q, a, 2]
-    bx, by, bz = p[q, b, 0], p[q, b, 1], p[q, b, 2]
-    cx, cy, cz = p[q, c, 0], p[q, c, 1], p[q, c, 2]
-    area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
-    ga = ((bz - az) * (cy - ay) - (cz - az) * (by - ay)) / area
-    gb = ((bx - ax) * (cz - az) - (cx - ax) * (bz - az)) / area
-    return ga, gb, az - ga * ax - gb * ay
+def _plane(a, b, c):
+    """The plane through ``a, b, c`` (x, y, 1 / depth): ``ga, gb, gc`` with 1 / depth = ga x +
+    gb y + gc."""
+    area = _cross(a, b, c)
+    ga = ((b[2] - a[2]) * (c[1] - a[1]) - (c[2] - a[2]) * (b[1] - a[1])) / area
+    gb = ((b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])) / area
+    return ga, gb, a[2] - ga * a[0] - gb * a[1]
 
 
 @njit(cache=True, inline="always")
-def _least(out, r, i0, i1, c0, lo, hi, least, ga, gy):
-    """Lower ``out[r, i - c0]`` for texels ``i0`` to ``i1`` of a row to the least of plane
-    ``ga x + gy`` over ``[max(i, lo), min(i + 1, hi)]``, and no less than ``least``."""
+def _least(out, i0, i1, c0, lo, hi, least, ga, gy):
+    """Lower ``out[i - c0]`` for texels ``i0`` to ``i1`` of a row to the least of plane ``ga x
+    + gy`` over ``[max(i, lo), min(i + 1, hi)]``, and no less than ``least``."""
     if ga >= 0:
         for i in range(i0, i1 + 1):
-            out[r, i - c0] = min(out[r, i - c0], max(least, ga * max(i, lo) + gy))
+            out[i - c0] = min(out[i - c0], max(least, ga * max(i, lo) + gy))
     else:
         for i in range(i0, i1 + 1):
-            out[r, i - c0] = min(out[r, i - c0], max(least, ga * min(i + 1, hi) + gy))
+            out[i - c0] = min(out[i - c0], max(least, ga * min(i + 1, hi) + gy))
 
 
 @njit(cache=True, inline="always")
@@ -1042,7 +1037,7 @@ def _edge(ax, ay, bx, by, r0, r1, c0, live, edge):
             a = max(SUB * g0, int(math.floor((max(lo, g0 - 1.0) - TOUCH) * SUB)))
             b = min(SUB * g1 + SUB - 1, int(math.floor((min(hi, g1 + 1.0) + TOUCH) * SUB)))
             if a <= b:
-                _bits(edge, SUB * (J - r0) + k, a - SUB * c0, b - SUB * c0)
+                _bits(edge[SUB * (J - r0) + k], a - SUB * c0, b - SUB * c0)
 
 
 @njit(cache=True, inline="always")
