@@ -267,6 +267,30 @@ def test_what_a_wall_hides_is_dropped():
     assert none.stats["occluder_units"] == 0 and names(none) == names(vis)
 
 
+def test_an_occluder_keeps_nothing_of_a_frame_before():
+    """An occluder keeps its views' layout, buffers and scratch from frame to frame: each frame
+    of a flight through the power plant (the eye moving, one frame in stereo) drops exactly
+    what a new occluder drops from it."""
+    from wallcull.paths import scene_path
+
+    scene = load("powerplant")
+    state = SceneState(scene)
+    wall = Wall.from_dict({**WALL, "cols": 4})
+    frames = scene_path(scene, wall, "fly", 24)[::4]
+    frames[2] = Frame.make(frames[2].position, frames[2].orientation, [0.1, -0.05, 0.2], wall)
+    frames[4] = Frame.make(frames[4].position, frames[4].orientation, frames[4].eye, wall,
+                           (0.064, (1.0, 0.0, 0.0, 0.0)))
+    kept = Occluder(state, wall)
+    hidden = 0
+    for frame in frames:
+        vis = cull(state, Frusta.build(wall, frame))
+        out, fresh = kept.occlude(vis, frame), Occluder(state, wall).occlude(vis, frame)
+        np.testing.assert_array_equal(out.start, fresh.start)
+        np.testing.assert_array_equal(out.nodes, fresh.nodes)
+        hidden += out.stats["occluded"]
+    assert hidden > 0
+
+
 def render_or_skip(w, h):
     render = pytest.importorskip("wallcull_clients.render")
     try:
