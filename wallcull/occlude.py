@@ -267,11 +267,12 @@ class Occluder:
         m = scene.meshes
         if self._levels[0] is not views.size:
             self._levels = (views.size, _levels(views.size))
-        offsets, total = self._levels[1]
+        offsets, total, spans = self._levels[1]
         if len(self._depth[0]) != total:
             self._depth = (np.zeros(total), np.zeros(total))
         izlo, izhi = self._depth
-        izlo.fill(0.0)  # per texel 1 / the depth beyond which all is hidden; 0: none
+        for a, b in spans:  # per texel 1 / the depth beyond which all is hidden; 0: none
+            izlo[a:b] = 0.0  # (level 0: the pyramids write over the rest)
         # a leaf's units together (its patches), the nearest leaves first (they make most
         # farther patches skippable, and their cells gather first where they cover in part)
         order = np.lexsort((owner, _depths(owner, box, views.affine)))
@@ -284,7 +285,8 @@ class Occluder:
         _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
                 self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
                 offsets[:, 0], self._scratch, self._cells, threads)
-        izhi[:] = izlo
+        for a, b in spans:
+            izhi[a:b] = izlo[a:b]
         _pyramids(izlo, izhi, views.size, offsets)
         return Depth(views, box, units, offsets, izlo, izhi)
 
@@ -366,9 +368,10 @@ def _outward(meshes) -> np.ndarray:
                     np.sign(volume)).astype(np.int64)
 
 
-def _levels(size: np.ndarray) -> tuple[np.ndarray, int]:
-    """Offsets ``(V, L)`` of each view's pyramid levels in one flat array, and its length;
-    level ``l`` of a ``W x H`` view is ``ceil(W / 2^l) x ceil(H / 2^l)``, row-major."""
+def _levels(size: np.ndarray) -> tuple[np.ndarray, int, list]:
+    """Offsets ``(V, L)`` of each view's pyramid levels in one flat array, its length, and
+    each view's level 0 as ``(start, stop)``; level ``l`` of a ``W x H`` view is ``ceil(W /
+    2^l) x ceil(H / 2^l)``, row-major."""
     levels = int(math.ceil(math.log2(max(int(size.max()), 1)))) + 1
     offsets = np.zeros((len(size), levels), np.int64)
     at = 0
@@ -376,7 +379,8 @@ def _levels(size: np.ndarray) -> tuple[np.ndarray, int]:
         for l in range(levels):
             offsets[v, l] = at
             at += (-(-int(w) >> l) if l else int(w)) * (-(-int(h) >> l) if l else int(h))
-    return offsets, at
+    return offsets, at, [(int(o), int(o) + int(w) * int(h)) for o, (w, h) in zip(offsets[:, 0],
+                                                                               size)]
 
 
 @njit(cache=True, inline="always")
@@ -531,10 +535,10 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
     their own, then merged (:func:`_merge`): threads drawing bands of rows would each set up
     and walk every patch crossing their rows. ``outward``: see :func:`_outward`;
     ``scratch``: per thread, see :func:`_scratch`; ``cells``: per thread, :func:`_draw`'s."""
-    leaf = np.cumsum(np.diff(owner, prepend=owner[:1]) != 0)  # the leaves in order
+    leaf = np.cumsum(np.diff(owner, prepend=owner[:1]) != 0) if threads > 1 else None
 
     def part(k, *_):
-        mine = leaf % threads == k
+        mine = slice(None) if leaf is None else leaf % threads == k  # every so many leaves
         patches = _setup(units[mine], owner[mine], first, count, mesh_of, world,
                          meshes.vertex_start, meshes.vertices, meshes.face_start, meshes.faces,
                          meshes.face_neighbors, outward, affine, rect, size, near, *scratch[k])

@@ -20,6 +20,11 @@ import numpy as np
 MIN_CHUNK = 8
 
 
+#: The machine's cores, at most 8 (asked once: ``os.cpu_count`` reads the system each time,
+#: 5 us, and a frame asks a few times).
+_CORES = max(1, min(8, os.cpu_count() or 1))
+
+
 def count() -> int:
     """Threads the kernels may use: ``WALLCULL_THREADS``, else the cores (at most 8)."""
     value = os.environ.get("WALLCULL_THREADS")
@@ -28,7 +33,7 @@ def count() -> int:
             return max(1, int(value))
         except ValueError:
             pass
-    return max(1, min(8, os.cpu_count() or 1))
+    return _CORES
 
 
 _pool: ThreadPoolExecutor | None = None
