@@ -379,8 +379,8 @@ def _levels(size: np.ndarray) -> tuple[np.ndarray, int, list]:
         for l in range(levels):
             offsets[v, l] = at
             at += (-(-int(w) >> l) if l else int(w)) * (-(-int(h) >> l) if l else int(h))
-    return offsets, at, [(int(o), int(o) + int(w) * int(h)) for o, (w, h) in zip(offsets[:, 0],
-                                                                               size)]
+    level0 = [(int(o), int(o) + int(w) * int(h)) for o, (w, h) in zip(offsets[:, 0], size)]
+    return offsets, at, level0
 
 
 @njit(cache=True, inline="always")
