@@ -643,26 +643,26 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
     declared = not (scene_settings is None or scene_settings.empty or visibility is None)
     sights = [MirrorSight.of(m, frame) for m in scene_settings.mirrors] if declared else []
     sights = [s for s in sights if s is not None]  # None: no eye sees the reflective side
-    seen = list  # no mirror seen: nothing to wait for
+    out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
+    if frame.stereo is not None:
+        out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
+    made = list  # no mirror seen: nothing to wait for
     if sights:
-        # What the mirrors show is culled beside the rest: on two cores, while a shadow pass
-        # waits for its threads, the other core culls the mirrors.
+        # What the mirrors show is culled, and their matrices made, beside the rest: on two
+        # cores, while a shadow pass waits for its threads, the other core does the mirrors.
         frusta = frusta or Frusta.build(wall, frame)
         culler = culler or Culler(state, wall)
-        seen = workers.aside(lambda: [s.seen(culler, frusta) for s in sights])
+        made = workers.aside(lambda: [
+            (s.tiles(s.seen(culler, frusta), out.view, out.projection),
+             [s.matrices(eye.view, eye.projection) for eye in out.eyes]) for s in sights])
     try:
-        out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
-        if frame.stereo is not None:
-            out.eyes = [EyeFits(*for_eye(e)) for e in frame.eyes]
         if declared:
             out.shadows = shadow_sets(state, scene_settings.lights, visibility,
                                       options.shadow_fit)
     finally:  # the mirrors' culls use the culler's buffers: never left running after a frame
-        lists = seen()
-    if not declared:
-        return out  # nothing declared: nothing computed, nothing sent
-    for sight, seen_lists in zip(sights, lists):
-        out.mirrors.append(sight.tiles(seen_lists, out.view, out.projection))
-        for eye in out.eyes:
-            eye.mirrors.append(sight.matrices(eye.view, eye.projection))
+        mirrors = made()
+    for mirror, per_eye in mirrors:
+        out.mirrors.append(mirror)
+        for eye, matrices in zip(out.eyes, per_eye):
+            eye.mirrors.append(matrices)
     return out
