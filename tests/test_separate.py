@@ -102,12 +102,11 @@ def test_a_box_apart_by_its_outline_never_meets_the_frustum(seed):
 
 
 def test_the_outline_finds_every_separation_between_near_and_far():
-    """A box wholly between the near and far planes, outside no plane of the tile, that the
-    tile's planes leave open and that is apart from its frustum, is found apart by its
-    outline: on a screen, the box's image and the
-    tile's rectangle are two convex polygons, and two that do not meet are apart along a side
-    of one of them (a margin relative to the coordinates aside: a gap of a millionth of the
-    box's size may go unseen)."""
+    """A box wholly between the near and far planes that the tile's planes leave open (outside
+    none of them, cut by two or more) and that is apart from the frustum is found apart by its
+    outline: on a screen, the box's image and the tile's rectangle are two convex polygons,
+    and two that do not meet are apart along a side of one of them (the margin relative to the
+    coordinates aside)."""
     apart = found = 0
     for seed in range(8000):
         planes, corners, center, axes, half, eye = near_corner_case(seed)
