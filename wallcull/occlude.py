@@ -191,8 +191,8 @@ class Occluder:
         self._scratch: list = []  # per thread: _setup's (see _scratch)
         self._cells: list = []  # per thread: _draw's cells gathered and their depths
         self._buffers: list = []  # per thread: _prune's slot and records
-        self._layout: tuple = (None, None)  # the eyes and texels, and their views' layout
-        self._levels: tuple = (None, None)  # the views' sizes, and their pyramids' offsets
+        # the eyes and texels, their views' layout and its pyramids' levels (see _levels)
+        self._layout: tuple = (None, None, None)
         self._depth: tuple = (np.zeros(0), np.zeros(0))  # the buffers, kept between frames
 
     def wanted(self, frame: Frame) -> bool:
@@ -246,9 +246,10 @@ class Occluder:
         box = packed(self.state)
         key = (frame.eyes.tobytes(), self.options.texels)
         if self._layout[0] != key:
-            self._layout = (key, _layout(self.wall, frame.eyes, self.options.texels))
+            layout = _layout(self.wall, frame.eyes, self.options.texels)
+            self._layout = (key, layout, _levels(layout[3]))
         views = Views.of(self.wall, frame, self.options.texels, self._layout[1])
-        return self.rasterize(self.choose(vis, views, box), views, box)
+        return self.rasterize(self.choose(vis, views, box), views, box, self._layout[2])
 
     def choose(self, vis: Visibility, views: Views, box: np.ndarray) -> np.ndarray:
         """The units (clusters, or leaves) to rasterize as occluders this frame, within the
@@ -259,15 +260,15 @@ class Occluder:
                      self._solid, views.affine, self.wall.near, self._stamp, self._frame,
                      scene.cluster_faces[1], self.options.budget)
 
-    def rasterize(self, units: np.ndarray, views: Views, box: np.ndarray) -> "Depth":
-        """``units`` rasterized into ``views``' buffers, and their pyramids."""
+    def rasterize(self, units: np.ndarray, views: Views, box: np.ndarray, levels: tuple
+                  ) -> "Depth":
+        """``units`` rasterized into ``views``' buffers, and their pyramids (``levels``:
+        :func:`_levels` of the views' sizes)."""
         state, scene = self.state, self.state.scene
         first, count = scene.cluster_faces
         owner = np.where(scene.cluster_leaf[units] >= 0, scene.cluster_leaf[units], units)
         m = scene.meshes
-        if self._levels[0] is not views.size:
-            self._levels = (views.size, _levels(views.size))
-        offsets, total, spans = self._levels[1]
+        offsets, total, spans = levels
         if len(self._depth[0]) != total:
             self._depth = (np.zeros(total), np.zeros(total))
         izlo, izhi = self._depth
