@@ -294,3 +294,15 @@ def test_scale(out):
         assert set(r["cull"]) == {"wall-8x8.json", "wall-64x64.json"}
         for c in r["cull"].values():
             assert 0 < c["median_ms"] <= c["p99_ms"] and c["tests_per_frame"] > 0
+
+
+def test_occluders(out):
+    """Each way of choosing occluders hides something, and nothing adds to what is drawn."""
+    r = check_output(out, "occluders", E.run("occluders", out, quick=True, progress=False))
+    s = r["scenes"]["powerplant"]
+    assert {(e["choice"], e["budget"]) for e in s["settings"]} == {
+        (c, b) for c in r["choices"] for b in r["budgets"]}
+    for e in s["settings"]:
+        assert 0 < e["ratio"] < 1 and e["triangles"] < s["without"]
+        assert 0 < e["occluder_triangles"] <= e["budget"] and e["occlude_ms_median"] > 0
+    assert "## Choosing occluders" in (out / "occluders.md").read_text()

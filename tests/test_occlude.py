@@ -299,12 +299,16 @@ def render_or_skip(w, h):
         pytest.skip(f"no headless OpenGL: {exc}")
 
 
-def check_pixels(scene, wall_spec, frame_spec, eyes=(None,)):
+def check_pixels(scene, wall_spec, frame_spec, eyes=(None,), options=OcclusionOptions(),
+                 before=()):
     """Every tile (and eye) drawn from its occlusion-culled list and ranges equals the whole
-    scene drawn; returns how many (tile, node) pairs occlusion dropped."""
+    scene drawn; returns how many (tile, node) pairs occlusion dropped. ``before``: frames the
+    session culls first (what ``options`` may carry over)."""
     wall = Wall.from_dict(wall_spec)
-    result = Session(scene, wall, fit=FitOptions(), occlusion=OcclusionOptions()).frame(
-        Frame.from_dict(frame_spec, wall))
+    session = Session(scene, wall, fit=FitOptions(), occlusion=options)
+    for frame in before:
+        session.frame(frame)
+    result = session.frame(Frame.from_dict(frame_spec, wall))
     res = wall.resolutions[0]
     r = render_or_skip(int(res[0]), int(res[1]))
     draws = Draws(scene, r)
@@ -332,6 +336,66 @@ def test_real_scenes_lose_no_pixel_inside(name, frame):
     """Inside the bundled scenes, where most of a tile's frustum is hidden."""
     wall = {**WALL, "cols": 2, "rows": 2, "resolution": [120, 80]}
     assert check_pixels(load(name), wall, frame) > 10
+
+
+@pytest.mark.parametrize("choice", ["area", "visible"])
+def test_every_occluder_choice_loses_no_pixel(choice):
+    """The other ways of choosing occluders, after a few frames of a flight through the power
+    plant (``visible`` chooses among the lists of the frame before)."""
+    from wallcull.paths import scene_path
+
+    scene = load("powerplant")
+    wall = {**WALL, "cols": 2, "rows": 2, "resolution": [120, 80]}
+    frames = scene_path(scene, Wall.from_dict(wall), "fly", 240)[60:64]  # 1/60 s apart
+    last = {"position": frames[-1].position.tolist(),
+            "orientation": frames[-1].orientation.tolist()}
+    assert check_pixels(scene, wall, last, options=OcclusionOptions(choice=choice),
+                        before=frames[:-1]) > 0
+
+
+def test_occluders_are_chosen_best_first():
+    """Within the budget, no unit left out is worth more than one chosen (but for one that
+    would not fit), worth being the image per triangle (``image``), the image (``area``), or
+    the image per triangle among what the frame before showed (``visible``)."""
+    from wallcull.cull import packed
+    from wallcull.paths import scene_path
+
+    scene = load("powerplant")
+    state = SceneState(scene)
+    box = packed(state)
+    wall = Wall.from_dict({**WALL, "cols": 4})
+    before, frame = scene_path(scene, wall, "fly", 24)[7:9]
+    count = scene.cluster_faces[1]
+    chosen = {}
+    for choice in occlude.CHOICES:
+        occ = Occluder(state, wall, OcclusionOptions(budget=3000, choice=choice))
+        shown = set(occ.occlude(cull(state, Frusta.build(wall, before)), before).nodes.tolist())
+        vis = cull(state, Frusta.build(wall, frame))
+        views = occlude.Views.of(wall, frame, occ.options.texels)
+        units = occ.choose(vis, views, box)
+        # every candidate: all the units an unbounded budget takes (from the lists of the
+        # frame before, under what it showed, for "visible")
+        seeds = cull(state, Frusta.build(wall, before)) if choice == "visible" else vis
+        every = Occluder(state, wall, OcclusionOptions(budget=10**7)).choose(seeds, views, box)
+        if choice == "visible":
+            assert all(_under(scene, u, shown) for u in units)
+            every = [u for u in every if _under(scene, u, shown)]
+        worth = {u: occ._solid[u] * occlude._image(box, u, views.affine, wall.near)
+                 / (count[u] if choice != "area" else 1) for u in every}
+        spent = count[units].sum()
+        least = min(worth[u] for u in units)
+        for u in set(every) - set(units.tolist()):
+            assert worth[u] <= 1.03 * least or spent + count[u] > 3000, (choice, u)
+        assert 0 < spent <= 3000
+        chosen[choice] = set(units.tolist())
+    assert chosen["image"] != chosen["area"]
+
+
+def _under(scene, node, nodes: set) -> bool:
+    """Whether ``node`` or one of its ancestors is among ``nodes``."""
+    while node >= 0 and node not in nodes:
+        node = scene.parent[node]
+    return node >= 0
 
 
 def test_stereo_keeps_what_either_eye_sees():

@@ -34,12 +34,12 @@ Conservative on both sides, so that dropping never removes a pixel:
 
 Occluders are the units (clusters, or whole leaves) under the frame's lists whose box covers
 the most image per triangle, weighted by the share of the box their faces fill (a wall before
-a pipe, a floor before a grating), within a budget of triangles, and never nodes the scene's
-settings mark transparent (``{"occlusion": {"exclude": [node names]}}``, their subtrees with
-them). They are rasterized nearest leaf first, so that a patch that cannot bring any texel of
-its image nearer is skipped whole, and in threads, each of every so many leaves into a buffer
-of its own, then merged. What mirrors and lights see is culled apart
-(:mod:`wallcull.fit`) and never occlusion-culled.
+a pipe, a floor before a grating), within a budget of triangles (the default of
+:data:`CHOICES`), and never nodes the scene's settings mark transparent (``{"occlusion":
+{"exclude": [node names]}}``, their subtrees with them). They are rasterized nearest leaf
+first, so that a patch that cannot bring any texel of its image nearer is skipped whole, and
+in threads, each of every so many leaves into a buffer of its own, then merged. What mirrors
+and lights see is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
 """
 
 from __future__ import annotations
@@ -71,17 +71,23 @@ MAX_TEXELS = 1024
 #: to a thread, and merging what it drew, costs more than it saves.
 RASTER_CHUNK = 4096
 TEST_CHUNK = 512
+#: How a frame's occluders are chosen within the budget: ``image``, the units under the frame's
+#: lists that cover the most image per triangle; ``area``, the most image (the largest nearby
+#: first); ``visible``, as ``image`` but under what the frame before showed (its occlusion-culled
+#: lists: temporal coherence). Measured by ``wallcull experiment occluders``.
+CHOICES = ("image", "area", "visible")
 
 
 @dataclass(frozen=True)
 class OcclusionOptions:
     """``mode``: every frame (``on``) or frames from inside the scene (``auto``); ``budget``:
     occluder triangles per frame; ``texels``: buffer texels across one tile's (one screen's)
-    width."""
+    width; ``choice``: how occluders are chosen (:data:`CHOICES`)."""
 
     mode: str = "on"
     budget: int = 20_000
     texels: int = 32
+    choice: str = "image"
 
     @classmethod
     def parse(cls, setting: str) -> "OcclusionOptions | None":
@@ -93,6 +99,8 @@ class OcclusionOptions:
     def __post_init__(self):
         if self.mode not in MODES:
             raise InputError(f"occlusion mode must be {' or '.join(MODES)}, got {self.mode!r}")
+        if self.choice not in CHOICES:
+            raise InputError(f"occluder choice must be {', '.join(CHOICES)}, got {self.choice!r}")
         if not 0 <= self.budget <= 10_000_000 or not 2 <= self.texels <= 512:
             raise InputError("occlusion budget must be 0 to 10 million triangles and texels "
                              "2 to 512 per tile")
@@ -194,6 +202,7 @@ class Occluder:
         # the eyes and texels, their views' layout and its pyramids' levels (see _levels)
         self._layout: tuple = (None, None, None)
         self._depth: tuple = (np.zeros(0), np.zeros(0))  # the buffers, kept between frames
+        self._shown: np.ndarray | None = None  # choice "visible": the frame before's lists
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
@@ -234,6 +243,8 @@ class Occluder:
         start = np.concatenate([[0]] + [p[0][1:] + b for p, b in zip(parts, base)])
         nodes = np.concatenate([p[1] for p in parts])
         hidden = sum(p[2] for p in parts)
+        if self.options.choice == "visible":
+            self._shown = nodes
         out = Visibility(vis.scene, start, nodes, {
             **vis.stats, "pairs": len(nodes), "occluded": int(hidden),
             "occluder_units": len(d.units),
@@ -253,12 +264,14 @@ class Occluder:
 
     def choose(self, vis: Visibility, views: Views, box: np.ndarray) -> np.ndarray:
         """The units (clusters, or leaves) to rasterize as occluders this frame, within the
-        budget, the most image per triangle first (see :func:`_pick`)."""
+        budget, the most image (per triangle) first (see :func:`_pick`, :data:`CHOICES`)."""
         scene = self.state.scene
         self._frame += 1
-        return _pick(vis.nodes, box, scene.child_start, scene.child_count, scene.children,
+        choice = self.options.choice
+        seeds = vis.nodes if choice != "visible" or self._shown is None else self._shown
+        return _pick(seeds, box, scene.child_start, scene.child_count, scene.children,
                      self._solid, views.affine, self.wall.near, self._stamp, self._frame,
-                     scene.cluster_faces[1], self.options.budget)
+                     scene.cluster_faces[1], self.options.budget, choice != "area")
 
     def rasterize(self, units: np.ndarray, views: Views, box: np.ndarray, levels: tuple
                   ) -> "Depth":
@@ -459,14 +472,14 @@ def _depths(units, box, affine):
 
 @njit(cache=True)
 def _pick(seeds, box, child_start, child_count, children, solid, affine, near, stamp, frame,
-          count, budget):
+          count, budget, per_triangle):
     """The units to rasterize: the childless nodes under ``seeds`` that may occlude (``stamp``
     marks those seen this ``frame``), the best first within ``budget`` triangles. A unit's
     worth: the image its box covers (:func:`_image`) times the share of the box its faces
-    fill (``solid``; 0 where it must not occlude), per triangle: a wall's two triangles before
-    a pipe's forty, and a floor before a grating. Only nodes spanning at least a 500th of a
-    radian are opened (what is smaller hides little). The order is by worth within a factor of
-    1.02 (buckets of its logarithm: linear time)."""
+    fill (``solid``; 0 where it must not occlude), per triangle when ``per_triangle``: a wall's
+    two triangles before a pipe's forty, and a floor before a grating. Only nodes spanning at
+    least a 500th of a radian are opened (what is smaller hides little). The order is by worth
+    within a factor of 1.02 (buckets of its logarithm: linear time)."""
     stack = np.empty(64, np.int64)
     found = np.empty(seeds.shape[0] + 64, np.int64)
     worth = np.empty(found.shape[0])
@@ -488,7 +501,9 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
                     found = np.concatenate((found, np.empty(found.shape[0], np.int64)))
                     worth = np.concatenate((worth, np.empty(worth.shape[0])))
                 found[k] = i
-                worth[k] = solid[i] * _image(box, i, affine, near) / max(count[i], 1)
+                worth[k] = solid[i] * _image(box, i, affine, near)
+                if per_triangle:
+                    worth[k] /= max(count[i], 1)
                 k += 1
                 continue
             while sp + child_count[i] > stack.shape[0]:

@@ -44,6 +44,7 @@ REGISTRY: dict[str, Experiment] = {
     "frame": _module("frame"),
     "walls": _module("walls"),
     "clusters": _module("clusters"),
+    "occluders": _module("occluders"),
     "scale": _module("scale"),
 }
 
