@@ -58,13 +58,16 @@ def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=Non
     first = np.array([a for r in runs for a, _ in r], np.int64)
     count = np.array([c for r in runs for _, c in r], np.int64)
     scratch = [occlude._scratch(len(table.faces), len(table.vertices)) for _ in range(threads)]
-    cells = [(np.zeros(w * h, np.uint16), np.empty(w * h)) for _ in range(threads)]
+    # per thread: cells, their depths, its buffer (left over from another frame: cleared)
+    cells = [(np.zeros(w * h, np.uint16), np.empty(w * h), np.full(w * h, 1e9))
+             for _ in range(threads)]
     for frame in ([rect + 0.05, rect] if reused else [rect]):
         buf = np.zeros(w * h)
         occlude._raster(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
                         np.repeat(np.eye(4)[None], len(meshes), 0), table,
                         occlude._outward(table), np.eye(3, 4)[None], frame[None],
-                        np.array([[w, h]]), near, buf, np.array([0]), scratch, cells, threads)
+                        np.array([[w, h]]), near, buf, np.array([0]), [(0, w * h)], scratch,
+                        cells, threads)
     return buf, rect
 
 

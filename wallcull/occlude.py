@@ -197,7 +197,7 @@ class Occluder:
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
         self._scratch: list = []  # per thread: _setup's (see _scratch)
-        self._cells: list = []  # per thread: _draw's cells gathered and their depths
+        self._cells: list = []  # per thread: _draw's cells gathered, their depths, its buffer
         self._buffers: list = []  # per thread: _prune's slot and records
         # the eyes and texels, their views' layout and its pyramids' levels (see _levels)
         self._layout: tuple = (None, None, None)
@@ -295,10 +295,11 @@ class Occluder:
             self._scratch.append(_scratch(len(m.faces), len(m.vertices)))
         for k in range(threads):  # the cells each thread gathers, per texel (see _draw)
             if k == len(self._cells) or len(self._cells[k][0]) != total:
-                self._cells[k:k + 1] = [(np.zeros(total, np.uint16), np.empty(total))]
+                self._cells[k:k + 1] = [(np.zeros(total, np.uint16), np.empty(total),
+                                         np.zeros(total))]
         _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
                 self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
-                offsets[:, 0], self._scratch, self._cells, threads)
+                offsets[:, 0], spans, self._scratch, self._cells, threads)
         for a, b in spans:
             izhi[a:b] = izlo[a:b]
         _pyramids(izlo, izhi, views.size, offsets)
@@ -542,15 +543,17 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
 
 
 def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine, rect, size,
-            near, buf, at, scratch, cells, threads):
+            near, buf, at, spans, scratch, cells, threads):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]`` of the mesh table ``meshes``; a leaf's units next to each other, the nearest
     leaves first) into level 0 of each view's buffer ``buf`` (view ``v``'s texels from
-    ``at[v]``, row-major), conservatively: their patches set up (:func:`_setup`) and drawn
-    (:func:`_draw`). In ``threads`` threads, each of every so many leaves, into buffers of
-    their own, then merged (:func:`_merge`): threads drawing bands of rows would each set up
-    and walk every patch crossing their rows. ``outward``: see :func:`_outward`;
-    ``scratch``: per thread, see :func:`_scratch`; ``cells``: per thread, :func:`_draw`'s."""
+    ``at[v]``, row-major; ``spans``: each view's level 0 as ``(start, stop)``),
+    conservatively: their patches set up (:func:`_setup`) and drawn (:func:`_draw`). In
+    ``threads`` threads, each of every so many leaves, into buffers of their own, then merged
+    (:func:`_merge`): threads drawing bands of rows would each set up and walk every patch
+    crossing their rows. ``outward``: see :func:`_outward`; ``scratch``: per thread, see
+    :func:`_scratch`; ``cells``: per thread, :func:`_draw`'s cells and their depths, and a
+    buffer of its own (which the first thread does not use: it draws into ``buf``)."""
     leaf = np.cumsum(np.diff(owner, prepend=owner[:1]) != 0) if threads > 1 else None
 
     def part(k, *_):
@@ -558,13 +561,17 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
         patches = _setup(units[mine], owner[mine], first, count, mesh_of, world,
                          meshes.vertex_start, meshes.vertices, meshes.face_start, meshes.faces,
                          meshes.face_neighbors, outward, affine, rect, size, near, *scratch[k])
-        out = buf if k == 0 else np.zeros_like(buf)
-        _draw(*patches, size, out, at, *cells[k])
-        return (out, *cells[k])
+        work, low, own = cells[k]
+        out = buf if k == 0 else own
+        for a, b in spans if k else ():  # (only level 0 is drawn, merged and read)
+            out[a:b] = 0.0
+        _draw(*patches, size, out, at, work, low)
+        return out, work, low
 
     parts = workers.run(part, [(k, k + 1) for k in range(threads)])
     for k in range(1, threads):
-        _merge(buf, *parts[0][1:], *parts[k])
+        for a, b in spans:
+            _merge(buf, *parts[0][1:], *parts[k], a, b)
 
 
 @njit(cache=True, nogil=True)
@@ -895,12 +902,12 @@ def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
 
 
 @njit(cache=True, nogil=True)
-def _merge(buf, work, work_low, other, other_work, other_low):
+def _merge(buf, work, work_low, other, other_work, other_low, start, stop):
     """Merge into ``buf`` and the cells it gathered (``work``, ``work_low``, see
-    :func:`_draw`) a buffer drawn from other patches and its cells: each texel takes the
-    nearer claim, and cells gathered on both sides that together fill a texel claim it at
-    the farther of their depths."""
-    for t in range(buf.shape[0]):
+    :func:`_draw`) a buffer drawn from other patches and its cells, over texels ``[start,
+    stop)``: each texel takes the nearer claim, and cells gathered on both sides that together
+    fill a texel claim it at the farther of their depths."""
+    for t in range(start, stop):
         buf[t] = max(buf[t], other[t])
         if other_work[t]:
             work_low[t] = min(work_low[t], other_low[t]) if work[t] else other_low[t]
