@@ -6,10 +6,10 @@ every frame with each way of choosing occluders (:data:`wallcull.occlude.CHOICES
 image per triangle, the most image, or what the frame before showed) and each triangle budget of
 :data:`BUDGETS`. Every frame is culled by every setting in turn, so that they share the
 machine's load; each keeps its own occluder, so ``visible`` chooses from its own frame before
-(on the first frame, which has none, from the frame's lists).
-Reported: the triangles the 64 tiles draw a frame (and over those drawn without occlusion), the
-occluders' triangles, and the occlusion's median time a frame. The trade is the Pareto front of
-time against triangles drawn.
+(on the first frame, which has none, from the frame's lists). Reported: the triangles the 64
+tiles draw a frame (and over those drawn without occlusion), the occluders' triangles, and the
+occlusion's median time a frame. The trade is the Pareto front of time against triangles
+drawn.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from . import common as C
 from .context import ROOT, Context
 
 BUDGETS = (5_000, 10_000, 20_000, 40_000)
-DEFAULT = ("image", OcclusionOptions().budget)
+DEFAULT = (OcclusionOptions().choice, OcclusionOptions().budget)
 SCENES = ("powerplant", "sportsCar.zip")
 
 
