@@ -394,6 +394,21 @@ def test_occluders_are_chosen_best_first():
     assert chosen["image"] != chosen["area"]
 
 
+def test_visible_forgets_a_frame_it_did_not_cull():
+    """``auto`` skips a frame from outside the scene: the next frame inside has no frame
+    before to choose occluders among (it chooses from its own lists)."""
+    scene = load("powerplant")
+    state = SceneState(scene)
+    wall = Wall.from_dict(WALL)
+    occ = Occluder(state, wall, OcclusionOptions(mode="auto", choice="visible"))
+    inside = Frame.from_dict({"position": [30, 12, 20], "orientation": [1, 0, 0, 0]}, wall)
+    outside = Frame.from_dict({"position": [30, 12, 2000], "orientation": [1, 0, 0, 0]}, wall)
+    assert occ.wanted(inside)
+    occ.occlude(cull(state, Frusta.build(wall, inside)), inside)
+    assert occ._shown is not None
+    assert not occ.wanted(outside) and occ._shown is None
+
+
 def _under(scene, node, nodes: set) -> bool:
     """Whether ``node`` or one of its ancestors is among ``nodes``."""
     while node >= 0 and node not in nodes:

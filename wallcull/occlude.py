@@ -205,13 +205,17 @@ class Occluder:
         self._shown: np.ndarray | None = None  # choice "visible": the frame before's lists
 
     def wanted(self, frame: Frame) -> bool:
-        """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene)."""
+        """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene).
+        A frame that is not leaves choice ``visible`` no frame before to choose from."""
         if self.options.mode == "on":
             return True
         lo, hi = self.state.scene.box
         grow = 0.1 * (hi - lo)
         eye = frame.eye_world
-        return bool(((lo - grow <= eye) & (eye <= hi + grow)).all())
+        inside = bool(((lo - grow <= eye) & (eye <= hi + grow)).all())
+        if not inside:
+            self._shown = None
+        return inside
 
     def occlude(self, vis: Visibility, frame: Frame) -> Visibility:
         """``vis`` (the frame's frustum-culled lists) without what the occluders hide."""
