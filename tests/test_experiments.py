@@ -300,8 +300,9 @@ def test_occluders(out):
     """Each way of choosing occluders hides something, and nothing adds to what is drawn."""
     r = check_output(out, "occluders", E.run("occluders", out, quick=True, progress=False))
     s = r["scenes"]["powerplant"]
-    assert {(e["choice"], e["budget"]) for e in s["settings"]} == {
-        (c, b) for c in r["choices"] for b in r["budgets"]}
+    assert {(e["choice"], e["budget"], e["texels"]) for e in s["settings"]} == {
+        (c, b, r["default"][2]) for c in r["choices"] for b in r["budgets"]} | {
+        (*r["default"][:2], t) for t in r["texels"]}
     for e in s["settings"]:
         assert 0 < e["ratio"] < 1 and e["triangles"] < s["without"]
         assert 0 < e["occluder_triangles"] <= e["budget"] and e["occlude_ms_median"] > 0

@@ -1284,9 +1284,9 @@ def _prune(start, nodes, first_tile, box, child_start, child_count, children, af
            size, tile_view, tile_texels, near, izlo, izhi, offsets, slot, stamp, rec):
     """Each tile's nodes (CSR ``(start, nodes)``, the first tile ``first_tile``) without the
     hidden ones, partly hidden ones replaced by their children (recursively): CSR ``(start,
-    nodes)`` in preorder, how many nodes were dropped, and the records. A node is projected once per frame and view (``slot (nodes, 3)``: the frame's
-    ``stamp``, its record in ``rec`` and its first eye's view; both kept between frames,
-    ``rec`` grown when full)."""
+    nodes)`` in preorder, how many nodes were dropped, and the records. A node is projected
+    once per frame and view (``slot (nodes, 3)``: the frame's ``stamp``, its record in
+    ``rec`` and its first eye's view; both kept between frames, ``rec`` grown when full)."""
     tiles = start.shape[0] - 1
     eyes = tile_view.shape[0]
     out = np.empty(nodes.shape[0] + 1024, np.int64)

@@ -26,7 +26,9 @@ from . import common as C
 from .context import ROOT, Context
 
 BUDGETS = (5_000, 10_000, 20_000, 40_000)
-DEFAULT = (OcclusionOptions().choice, OcclusionOptions().budget)
+#: Buffer texels across a tile, tried with the default choice and budget.
+TEXELS = (16, 24, 32, 48)
+DEFAULT = (OcclusionOptions().choice, OcclusionOptions().budget, OcclusionOptions().texels)
 SCENES = ("powerplant", "sportsCar.zip")
 
 
@@ -35,18 +37,20 @@ def run(ctx: Context) -> tuple[dict, str]:
     specs = [s for s in ctx.size(SCENES, SCENES[:1])
              if "." not in s or (ctx.scenes_dir / s).is_file()]
     budgets = ctx.size(BUDGETS, (DEFAULT[1],))
+    texels = ctx.size(TEXELS, (16, DEFAULT[2]))
     frames = ctx.size(60, 3)
     task = ctx.task("occluders", len(specs) * frames)
     out = {}
     for spec in specs:
         scene = load(spec if "." not in spec else str(ctx.scenes_dir / spec))
-        settings = [(choice, budget) for choice in CHOICES for budget in budgets]
+        settings = [(choice, budget, DEFAULT[2]) for choice in CHOICES for budget in budgets]
+        settings += [(*DEFAULT[:2], t) for t in texels if t != DEFAULT[2]]
         path = C.path_frames(scene, wall, "fly", frames)  # the frames `wallcull overdraw` takes
         Session(scene, wall, occlusion=OcclusionOptions()).frame(path[0])  # compiles
         sessions = {None: Session(scene, wall)}
-        for choice, budget in settings:
-            sessions[choice, budget] = Session(
-                scene, wall, occlusion=OcclusionOptions(budget=budget, choice=choice))
+        for choice, budget, t in settings:
+            sessions[choice, budget, t] = Session(
+                scene, wall, occlusion=OcclusionOptions(budget=budget, choice=choice, texels=t))
         drawn = {key: [] for key in sessions}
         times = {key: [] for key in settings}
         occluders = {key: [] for key in settings}
@@ -60,19 +64,21 @@ def run(ctx: Context) -> tuple[dict, str]:
             task.advance()
         plain = float(np.mean(drawn[None]))
         out[scene.name] = {"without": plain, "settings": [
-            {"choice": choice, "budget": budget, "triangles": float(np.mean(drawn[choice, budget])),
-             "ratio": float(np.mean(drawn[choice, budget])) / max(plain, 1.0),
-             "occluder_triangles": float(np.median(occluders[choice, budget])),
-             "occlude_ms_median": float(np.median(times[choice, budget]))}
-            for choice, budget in settings]}
+            {"choice": key[0], "budget": key[1], "texels": key[2],
+             "triangles": float(np.mean(drawn[key])),
+             "ratio": float(np.mean(drawn[key])) / max(plain, 1.0),
+             "occluder_triangles": float(np.median(occluders[key])),
+             "occlude_ms_median": float(np.median(times[key]))} for key in settings]}
     task.done()
     data = {"wall": "examples/wall-8x8.json", "path": "fly", "frames": frames,
-            "budgets": list(budgets), "choices": list(CHOICES), "default": list(DEFAULT),
+            "budgets": list(budgets), "choices": list(CHOICES), "texels": list(texels),
+            "default": list(DEFAULT),
             "scenes": out}
     return data, report_md(ctx, data)
 
 
 def report_md(ctx: Context, data: dict) -> str:
+    choice0, budget0, texels0 = data["default"]
     md = ["## Choosing occluders\n",
           "Occlusion culling on the 8 x 8 wall, the camera flying through each scene "
           f"({data['frames']} frames, clusters on): triangles drawn a frame over those drawn "
@@ -80,27 +86,43 @@ def report_md(ctx: Context, data: dict) -> str:
           "occluders and each budget of occluder triangles a frame. `image`: the units that "
           "cover the most image per triangle (the default); `area`: the most image, the largest "
           "nearby first; `visible`: as `image`, among what the frame before showed (temporal "
-          "coherence). Every frame is culled by every setting in turn.\n"]
+          f"coherence). Buffers of {texels0} texels across a tile, but in the last table. "
+          "Every frame is culled by every setting in turn.\n"]
     header = ["scene", "choice", *(f"{b:,}: drawn / without" for b in data["budgets"]),
               *(f"{b:,}: ms" for b in data["budgets"])]
     rows = []
     for name, s in data["scenes"].items():
         for choice in data["choices"]:
-            by = {e["budget"]: e for e in s["settings"] if e["choice"] == choice}
+            by = {e["budget"]: e for e in s["settings"]
+                  if e["choice"] == choice and e["texels"] == texels0}
             rows.append([name, choice, *(f"{by[b]['ratio']:.3f}" for b in data["budgets"]),
                          *(f"{by[b]['occlude_ms_median']:.2f}" for b in data["budgets"])])
     md.append(C.table(header, rows))
+    md.append(f"\nThe buffer's texels across a tile, with `{choice0}` and {budget0:,} triangles:"
+              "\n")
+    rows = []
+    for name, s in data["scenes"].items():
+        by = {e["texels"]: e for e in _by_texels(s, data)}
+        rows.append([name, *(f"{by[t]['ratio']:.3f}, {by[t]['occlude_ms_median']:.2f} ms"
+                             for t in data["texels"])])
+    md.append(C.table(["scene", *(f"{t} texels" for t in data["texels"])], rows))
     plt = C.pyplot()
     fig, axes = plt.subplots(1, len(data["scenes"]), figsize=(5 * len(data["scenes"]), 4),
                              squeeze=False)
     for ax, (name, s) in zip(axes[0], data["scenes"].items()):
         for j, choice in enumerate(data["choices"]):
-            by = [e for e in s["settings"] if e["choice"] == choice]
+            by = [e for e in s["settings"] if e["choice"] == choice and e["texels"] == texels0]
             ax.plot([e["occlude_ms_median"] for e in by], [e["ratio"] for e in by], "-o",
                     color=f"C{j}", label=choice, ms=4)
             for e in by:
                 ax.annotate(f"{e['budget'] // 1000}k", (e["occlude_ms_median"], e["ratio"]),
                             fontsize=7, xytext=(3, 3), textcoords="offset points")
+        by = _by_texels(s, data)
+        ax.plot([e["occlude_ms_median"] for e in by], [e["ratio"] for e in by], ":s",
+                color="black", label=f"{choice0}, {budget0 // 1000}k, by texels", ms=3)
+        for e in by:
+            ax.annotate(f"{e['texels']} tx", (e["occlude_ms_median"], e["ratio"]), fontsize=7,
+                        xytext=(3, -9), textcoords="offset points")
         ax.axhline(0.5, color="grey", lw=0.8, ls="--")  # the target: at most half
         ax.set_xlabel("occlusion ms per frame, median")
         ax.set_ylabel("triangles drawn / without occlusion")
@@ -109,6 +131,13 @@ def report_md(ctx: Context, data: dict) -> str:
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     md.append("\n" + ctx.savefig(fig, "occluders.png",
-                                 "occlusion time against triangles drawn, by occluder choice "
-                                 "and budget") + "\n")
+                                 "occlusion time against triangles drawn, by occluder choice, "
+                                 "budget and texels") + "\n")
     return "\n".join(md)
+
+
+def _by_texels(s: dict, data: dict) -> list[dict]:
+    """The default choice and budget's settings, by the buffer's texels."""
+    choice0, budget0, _ = data["default"]
+    return sorted((e for e in s["settings"] if e["choice"] == choice0
+                   and e["budget"] == budget0), key=lambda e: e["texels"])
