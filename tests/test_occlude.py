@@ -369,16 +369,16 @@ def test_occluders_are_chosen_best_first():
     wall = Wall.from_dict({**WALL, "cols": 4})
     before, frame = scene_path(scene, wall, "fly", 24)[7:9]
     count = scene.cluster_faces[1]
+    vis_before, vis = (cull(state, Frusta.build(wall, f)) for f in (before, frame))
     chosen = {}
     for choice in occlude.CHOICES:
         occ = Occluder(state, wall, OcclusionOptions(budget=3000, choice=choice))
-        shown = set(occ.occlude(cull(state, Frusta.build(wall, before)), before).nodes.tolist())
-        vis = cull(state, Frusta.build(wall, frame))
+        shown = set(occ.occlude(vis_before, before).nodes.tolist())
         views = occlude.Views.of(wall, frame, occ.options.texels)
         units = occ.choose(vis, views, box)
         # every candidate: all the units an unbounded budget takes (from the lists of the
         # frame before, under what it showed, for "visible")
-        seeds = cull(state, Frusta.build(wall, before)) if choice == "visible" else vis
+        seeds = vis_before if choice == "visible" else vis
         every = Occluder(state, wall, OcclusionOptions(budget=10**7)).choose(seeds, views, box)
         if choice == "visible":
             assert all(_under(scene, u, shown) for u in units)

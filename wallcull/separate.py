@@ -318,10 +318,11 @@ def _outline(box, i, eye, axes) -> int:
     from there (rows ``nx, ny, nz, w, s``: a normal ``n`` facing away from the box, ``w = n .
     eye`` plus the bound's reach past the plane (its ball: the box itself touches it) and ``s``
     the normal's length or more, ``|n|_1``); how many (4 when the eye faces one side of the
-    box, else 6; 0 when the eye is within it or it is flat). An edge is on the outline when one of its two sides faces the eye and the other
-    does not. With the eye outside a box that lies in front of it, the tile's frustum meets
-    the box when no plane of its own and none of these has the two apart: the sides of their
-    images on a screen, the tile's rectangle and the box's outline (:func:`_outside`)."""
+    box, else 6; 0 when the eye is within it or it is flat). An edge is on the outline when
+    one of its two sides faces the eye and the other does not. With the eye outside a box
+    that lies in front of it, the tile's frustum meets the box when no plane of its own and
+    none of these has the two apart: the sides of their images on a screen, the tile's
+    rectangle and the box's outline (:func:`_outside`)."""
     for a in range(3):
         if box[i, 4 + 3 * a] == 0.0 and box[i, 5 + 3 * a] == 0.0 and box[i, 6 + 3 * a] == 0.0:
             return 0
