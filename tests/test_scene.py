@@ -22,11 +22,11 @@ SCENES = Path(__file__).resolve().parents[1] / "scenes"
 def check_invariants(scene: Scene):
     n = len(scene)
     assert scene.parent[0] == -1 and (scene.parent[1:] < np.arange(1, n)).all()  # preorder
+    descendants = _descendants(scene)
     for i in range(n):
         kids = scene.children[scene.child_start[i]:scene.child_start[i] + scene.child_count[i]]
         assert (scene.parent[kids] == i).all()
-        assert set(range(i + 1, i + scene.size[i])) == \
-            {j for j in range(n) if _ancestor(scene, i, j)}
+        assert set(range(i + 1, i + scene.size[i])) == descendants[i]
     # Below a leaf lies its cluster tree alone: groups whose triangles are their children's,
     # over clusters (no children) that cut the mesh's triangles into consecutive runs, in order.
     clusters = scene.cluster_of >= 0
@@ -49,19 +49,23 @@ def check_invariants(scene: Scene):
     assert (scene.cluster_leaf[~clusters] == -1).all()
     assert all(scene.geometry[i] is not None for i in scene.leaves)
     start, count = scene.leaf_range
+    leaves = set(scene.leaves.tolist())
     for i in range(n):
         under = scene.leaves[start[i]:start[i] + count[i]]
-        assert all(_ancestor(scene, i, j) or i == j for j in under)
-        assert len(under) == sum(1 for j in scene.leaves if _ancestor(scene, i, j) or i == j)
+        mine = {j for j in descendants[i] | {i} if j in leaves}  # i itself when a leaf
+        assert set(under.tolist()) <= mine and len(under) == len(mine)
 
 
-def _ancestor(scene, a, b):
-    p = scene.parent[b]
-    while p >= 0:
-        if p == a:
-            return True
-        p = scene.parent[p]
-    return False
+def _descendants(scene) -> list[set]:
+    """Per node, the nodes below it, found by walking up from each node along ``parent``
+    alone (not ``size``, ``children`` or the order, which the checks test)."""
+    below = [set() for _ in range(len(scene))]
+    for j in range(len(scene)):
+        p = scene.parent[j]
+        while p >= 0:
+            below[p].add(j)
+            p = scene.parent[p]
+    return below
 
 
 @pytest.mark.parametrize("name,leaves", [("CesiumMilkTruck.glb", 5), ("TestScene.gltf", 9),

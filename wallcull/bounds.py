@@ -220,7 +220,10 @@ def min_volume_boxes(points: np.ndarray, starts: np.ndarray) -> Bounds:
     axes = np.empty((len(starts) - 1, 3, 3))
     for k, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
         try:
-            to_origin, _ = trimesh.bounds.oriented_bounds(points[a:b])
+            # a flat set's hull has no volume: trimesh's mass properties along the way divide
+            # by it (the axes come out finite all the same)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                to_origin, _ = trimesh.bounds.oriented_bounds(points[a:b])
             axes[k] = to_origin[:3, :3]
         except Exception:  # noqa: BLE001 - qhull on degenerate sets; fall back to PCA axes
             axes[k] = pca_boxes(points[a:b], np.array([0, b - a])).axes[0]
