@@ -69,10 +69,13 @@ class Pristine:
     """A scene loaded once with :func:`wallcull.scene.load` and never preprocessed; each
     :meth:`fresh` copy is a scene as ``load`` returns it, so the first ``bounds(kind)`` on it
     is the whole preprocessing cost, without paying the file's parse again. Built from its
-    source, never mapped from a prepared file (whose bounds are already fitted)."""
+    source, never mapped from a prepared file (whose bounds are already fitted). ``kwargs``:
+    :func:`~wallcull.scene.load`'s others (``clusters``)."""
 
-    def __init__(self, spec: str, hierarchy: str = "auto", branching: int | None = None):
-        kwargs = {} if branching is None else {"branching": branching}
+    def __init__(self, spec: str, hierarchy: str = "auto", branching: int | None = None,
+                 **kwargs):
+        if branching is not None:
+            kwargs["branching"] = branching
         t0 = time.perf_counter()
         self.scene = load(spec, hierarchy=hierarchy, cache="off", **kwargs)
         self.load_s = time.perf_counter() - t0
