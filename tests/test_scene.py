@@ -10,7 +10,7 @@ import trimesh
 from wallcull.errors import InputError
 from wallcull.oracle import visible_leaves
 from wallcull.cull import METHODS, cull
-from wallcull.scene import Scene, SceneState, load, load_trimesh, spatial_groups
+from wallcull.scene import Scene, SceneState, load, load_sizes, load_trimesh, spatial_groups
 from wallcull.wall import Frame, Frusta, Wall
 
 from .randscene import look_at_frame, random_scene, random_wall
@@ -126,6 +126,23 @@ def test_spatial_groups_are_compact_and_bounded():
     assert sorted(np.concatenate(leaves).tolist()) == list(range(200))
     # the two clusters are never mixed at the top
     assert all(len({int(i >= 100) for i in np.concatenate(flat(g))}) == 1 for g in groups)
+
+
+def test_several_cluster_sizes_from_one_read_are_the_scenes_load_builds():
+    """``load_sizes`` reads the file once and builds every size from it: each scene is the
+    one ``load`` builds alone (so the build leaves what it reads as it was)."""
+    spec = str(SCENES / "CesiumMilkTruck.glb")
+    sizes = (None, 32, 256)
+    many = load_sizes(spec, sizes)
+    for size in sizes:
+        one, other = load(spec, clusters=size, cache="off"), many[size]
+        assert list(one.names) == list(other.names) and one.settings == other.settings
+        assert one.cluster_size == other.cluster_size
+        for name in ("parent", "child_start", "children", "cluster_of", "cluster_leaf"):
+            assert np.array_equal(getattr(one, name), getattr(other, name)), name
+        for name in ("vertices", "faces", "face_start"):
+            assert np.array_equal(getattr(one.meshes, name), getattr(other.meshes, name)), name
+    assert len(many[32]) > len(many[256]) > len(many[None])  # the sizes did differ
 
 
 @pytest.mark.parametrize("bad", ["nonexistent_scene_name", "/no/such/file.glb"])

@@ -618,15 +618,21 @@ class Source:
         return {"source": source, "hierarchy": hierarchy, "branching": branching,
                 "clusters": clusters, "format": PREPARED_FORMAT, "code": _code_version()}
 
-    def build(self, hierarchy: str, branching: int, clusters: int | str | None) -> Scene:
-        """The scene built from its source (``NAME*K``: one copy read, then tiled as arrays)."""
+    def read(self) -> tuple[tree.NodeTable, MeshTable]:
+        """The source's node tree and meshes (``NAME*K``: one copy read, then tiled as
+        arrays): what :meth:`build` builds from, which it leaves as they are."""
         if self.path is None:
             base, count = bundled.parse(self.spec)
             nodes, meshes = tree.read_trimesh(bundled.build(base))
             if count is not None:
                 nodes = tree.replicate(nodes, *bundled.copies(base, count))
-        else:
-            nodes, meshes = tree.read_trimesh(load_trimesh(self.path))
+            return nodes, meshes
+        return tree.read_trimesh(load_trimesh(self.path))
+
+    def build(self, hierarchy: str, branching: int, clusters: int | str | None,
+              read: tuple | None = None) -> Scene:
+        """The scene built from its source, or from what :meth:`read` gave."""
+        nodes, meshes = read or self.read()
         return Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching, clusters=clusters)
 
     def prepared(self, hierarchy: str, branching: int, clusters: int | str | None
@@ -677,6 +683,26 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
     scene.settings = dict(raw or {})
     cfg.parse(scene.settings)  # refuse bad settings when the scene loads, not mid-frame
     return scene
+
+
+def load_sizes(spec: str, sizes: Sequence, hierarchy: str = "auto",
+               branching: int = BRANCHING) -> dict:
+    """``{size: load(spec, clusters=size, cache="off")}`` for each of ``sizes``, the source
+    read once (a comparison of cluster sizes, without parsing the file again for each)."""
+    from . import settings as cfg
+
+    source = Source.of(spec)
+    _check_hierarchy(hierarchy, branching)
+    for size in sizes:
+        _check_clusters(size)
+    raw = dict(source.settings() or {})
+    cfg.parse(raw)
+    read = source.read()
+    out = {}
+    for size in sizes:
+        out[size] = scene = source.build(hierarchy, branching, size, read)
+        scene.settings = dict(raw)
+    return out
 
 
 def prepare(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,

@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import overdraw
 from ..clusters import AUTO_SIZE
-from ..scene import load
+from ..scene import load_sizes
 from ..wall import Wall
 from . import common as C
 from .context import ROOT, Context
@@ -43,7 +43,7 @@ def run(ctx: Context) -> tuple[dict, str]:
     task = ctx.task("clusters", len(specs) * len(PATHS) * frames)
     out = {}
     for spec in specs:
-        scenes = {size: load(spec, clusters=size) for size in (None, *sizes)}
+        scenes = load_sizes(spec, (None, *sizes))  # the file read once
         name = scenes[None].name
         out[name] = {}
         for path in PATHS:
