@@ -3,6 +3,7 @@ stale or corrupt file is never trusted: it is refused, reported in one line, and
 
 import asyncio
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -233,15 +234,20 @@ def test_an_unwritable_cache_is_a_clear_error(tmp_path, monkeypatch, capsys, cap
     assert "cannot write prepared scene" in caplog.text
 
 
-def test_the_server_prepares_and_maps_its_scenes():
-    """A restarted server (a new store) maps the file the first one wrote; its meshes have the
-    ETags of the fresh scene's."""
+def test_the_server_prepares_and_maps_its_scenes(cache, monkeypatch, tmp_path):
+    """The server has a child process prepare a scene it has not seen, in its own cache folder
+    (whatever the folder was when the children's forkserver started), and maps the file; a
+    restarted server (a new store) maps the same file; its meshes have the same ETags."""
+    from wallcull import sandbox
     from wallcull.service import SceneStore, mesh_blob
 
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "elsewhere"))
+    sandbox.run(len, ((),), seconds=60, memory=1 << 30, what="a first child")  # its forkserver
+    monkeypatch.setenv("WALLCULL_CACHE", str(cache))
     first = asyncio.run(SceneStore().get("fatehpur*2"))
-    assert first.prepared is None
+    assert first.prepared is not None and Path(first.prepared).parent == cache
     again = asyncio.run(SceneStore().get("fatehpur*2"))
-    assert again.prepared is not None and again.name == "fatehpur*2"
+    assert again.prepared == first.prepared and again.name == "fatehpur*2"
     for key in list(first.meshes)[:5]:
         assert mesh_blob(first, key).etag == mesh_blob(again, key).etag
 

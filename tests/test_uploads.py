@@ -5,6 +5,7 @@ whose memory and time are limited."""
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import trimesh
 
 from wallcull_clients.hostile import glb, many_nodes, vertex_bomb
 from wallcull.errors import InputError
+from wallcull import sandbox
 from wallcull.limits import Limits
 from wallcull.uploads import check_glb, glb_chunks, parse_sandboxed
 
@@ -183,3 +185,18 @@ def test_the_json_chunk_is_parsed_in_the_child_too():
         with pytest.raises(InputError, match="JSON"):
             check_glb(data, Limits())
     assert json.loads(glb_chunks(glb(*box_doc()))[0])["asset"]["version"] == "2.0"
+
+
+def test_a_child_takes_the_settings_its_parent_has_when_it_starts(monkeypatch):
+    """Children fork from a server process started once; they still see the parent's
+    ``WALLCULL_*`` variables as they are now (the prepared scenes' folder, ...)."""
+    def probe():
+        return sandbox.run(os.getenv, ("WALLCULL_PROBE",), seconds=60, memory=1 << 30,
+                           what="a probe")
+
+    monkeypatch.setenv("WALLCULL_PROBE", "before")
+    assert probe() == "before"
+    monkeypatch.setenv("WALLCULL_PROBE", "after")
+    assert probe() == "after"
+    monkeypatch.delenv("WALLCULL_PROBE")
+    assert probe() is None

@@ -14,6 +14,7 @@ execution.)
 from __future__ import annotations
 
 import multiprocessing
+import os
 import threading
 from multiprocessing import spawn
 from typing import Any, Callable
@@ -23,6 +24,9 @@ from .errors import InputError
 _context_lock = threading.Lock()
 _context = None
 CHILD = "wallcull-child"
+#: The environment variables a child takes from its parent as they are when it is started
+#: (the forkserver's own copy is the environment when the forkserver started).
+ENV_PREFIX = "WALLCULL_"
 
 
 def _forkserver():
@@ -49,9 +53,15 @@ def _without_main(name, _original=spawn.get_preparation_data):
     return data
 
 
-def _child(conn, target: Callable, args: tuple, memory: int, seconds: float, what: str) -> None:
-    """The child's side: limits first, then the work; the answer goes back on ``conn``."""
+def _child(conn, target: Callable, args: tuple, memory: int, seconds: float, what: str,
+           env: dict) -> None:
+    """The child's side: the parent's ``WALLCULL_*`` settings (``env``: where prepared scenes
+    go, ...), limits, then the work; the answer goes back on ``conn``."""
     import resource
+
+    for key in [k for k in os.environ if k.startswith(ENV_PREFIX)]:
+        del os.environ[key]
+    os.environ.update(env)
 
     with open("/proc/self/status") as f:
         vm = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
@@ -80,7 +90,8 @@ def run(target: Callable, args: tuple, *, seconds: float, memory: int, what: str
     :class:`InputError` starting with ``what`` (e.g. ``"parsing the uploaded GLB"``)."""
     ctx = _forkserver()
     receive, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, target, args, memory, seconds, what),
+    env = {k: v for k, v in os.environ.items() if k.startswith(ENV_PREFIX)}
+    proc = ctx.Process(target=_child, args=(send, target, args, memory, seconds, what, env),
                        daemon=True, name=f"{CHILD}-{what[:40]}")
     proc.start()
     send.close()
