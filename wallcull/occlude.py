@@ -38,7 +38,7 @@ a pipe, a floor before a grating), within a budget of triangles (the default of
 :data:`CHOICES`), and never nodes the scene's settings mark transparent (``{"occlusion":
 {"exclude": [node names]}}``, their subtrees with them). They are rasterized nearest leaf
 first, so that a patch that cannot bring any texel of its image nearer is skipped whole, and
-in threads, each of every so many leaves into a buffer of its own, then merged. What mirrors
+in threads, each drawing every patch into its own bands of rows. What mirrors
 and lights see is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
 """
 
@@ -197,7 +197,7 @@ class Occluder:
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
         self._scratch: list = []  # per thread: _setup's (see _scratch)
-        self._cells: list = []  # per thread: _draw's cells gathered, their depths, its buffer
+        self._canvas = _canvas()  # _setup's patches, _draw's cells (see _raster)
         self._buffers: list = []  # per thread: _prune's slot and records
         # the eyes and texels, their views' layout and its pyramids' levels (see _levels)
         self._layout: tuple = (None, None, None)
@@ -297,13 +297,11 @@ class Occluder:
         threads = max(1, min(workers.count(), int(count[units].sum()) // RASTER_CHUNK))
         while len(self._scratch) < threads:
             self._scratch.append(_scratch(len(m.faces), len(m.vertices)))
-        for k in range(threads):  # the cells each thread gathers, per texel (see _draw)
-            if k == len(self._cells) or len(self._cells[k][0]) != total:
-                self._cells[k:k + 1] = [(np.zeros(total, np.uint16), np.empty(total),
-                                         np.zeros(total))]
+        if len(self._canvas["work"]) != total:  # the cells gathered per texel (see _draw)
+            self._canvas = _canvas(total)
         _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
                 self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
-                offsets[:, 0], spans, self._scratch, self._cells, threads)
+                offsets[:, 0], spans, self._scratch, self._canvas, threads)
         for a, b in spans:
             izhi[a:b] = izlo[a:b]
         _pyramids(izlo, izhi, views.size, offsets)
@@ -323,6 +321,14 @@ class Depth:
     offsets: np.ndarray
     izlo: np.ndarray
     izhi: np.ndarray
+
+
+def _canvas(texels: int = 0) -> dict:
+    """:func:`_raster`'s arrays, kept from frame to frame: the patches (grown when a frame's
+    occluders need more room) and the cells gathered per texel of the buffers."""
+    return {"polys": np.empty((0, 4, 3)), "info": np.empty((0, 4), np.int64),
+            "patches": np.empty((0, 3), np.int64), "boxes": np.empty((0, 5)),
+            "work": np.zeros(texels, np.uint16), "low": np.empty(texels)}
 
 
 def _scratch(faces: int, vertices: int) -> tuple:
@@ -547,41 +553,117 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
 
 
 def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine, rect, size,
-            near, buf, at, spans, scratch, cells, threads):
+            near, buf, at, spans, scratch, canvas, threads):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]`` of the mesh table ``meshes``; a leaf's units next to each other, the nearest
     leaves first) into level 0 of each view's buffer ``buf`` (view ``v``'s texels from
     ``at[v]``, row-major; ``spans``: each view's level 0 as ``(start, stop)``),
     conservatively: their patches set up (:func:`_setup`) and drawn (:func:`_draw`). In
-    ``threads`` threads, each of every so many leaves, into buffers of their own, then merged
-    (:func:`_merge`): threads drawing bands of rows would each set up and walk every patch
-    crossing their rows. ``outward``: see :func:`_outward`; ``scratch``: per thread, see
-    :func:`_scratch`; ``cells``: per thread, :func:`_draw`'s cells and their depths, and a
-    buffer of its own (which the first thread does not use: it draws into ``buf``)."""
-    leaf = np.cumsum(np.diff(owner, prepend=owner[:1]) != 0) if threads > 1 else None
+    ``threads`` threads: each sets up a run of whole leaves (of about equal triangles), and
+    then draws every patch, in order, into its own run of rows (:func:`_bands`), so that the
+    buffer is the one a single thread draws. ``outward``: see :func:`_outward`; ``scratch``:
+    per thread, see :func:`_scratch`; ``canvas``: see :func:`_canvas` (grown here)."""
+    cuts, before = _runs(units, owner, count, threads)
+    views = len(affine)
+    room = int(before[-1]) * views  # polygons and patches: at most a face each per view
+    if len(canvas["boxes"]) < room:
+        for name, shape, dtype in (("polys", (4, 3), np.float64), ("info", (4,), np.int64),
+                                   ("patches", (3,), np.int64), ("boxes", (5,), np.float64)):
+            canvas[name] = np.empty((2 * room, *shape), dtype)
+    polys, info, patches, boxes = (canvas[k] for k in ("polys", "info", "patches", "boxes"))
 
-    def part(k, *_):
-        mine = slice(None) if leaf is None else leaf % threads == k  # every so many leaves
-        patches = _setup(units[mine], owner[mine], first, count, mesh_of, world,
-                         meshes.vertex_start, meshes.vertices, meshes.face_start, meshes.faces,
-                         meshes.face_neighbors, outward, affine, rect, size, near, *scratch[k])
-        work, low, own = cells[k]
-        out = buf if k == 0 else own
-        for a, b in spans if k else ():  # (only level 0 is drawn, merged and read)
-            out[a:b] = 0.0
-        _draw(*patches, size, out, at, work, low)
-        return out, work, low
+    def setup(k, a, b):  # units [a, b): their polygons and patches from their first face's
+        start = int(before[k]) * views
+        return start, *_setup(units[a:b], owner[a:b], first, count, mesh_of, world,
+                              meshes.vertex_start, meshes.vertices, meshes.face_start,
+                              meshes.faces, meshes.face_neighbors, outward, affine, rect, size,
+                              near, *scratch[k], polys, info, patches, boxes, start)
 
-    parts = workers.run(part, [(k, k + 1) for k in range(threads)])
-    for k in range(1, threads):
-        for a, b in spans:
-            _merge(buf, *parts[0][1:], *parts[k], a, b)
+    cuts = cuts.tolist()
+    runs = workers.run(setup, list(zip(cuts[:-1], cuts[1:])))
+    which = np.concatenate([np.arange(start, end) for start, _, end in runs] or [[]])
+    which = which.astype(np.int64)
+    work, low = canvas["work"], canvas["low"]
+    for a, b in spans:  # (only level 0 is drawn and read)
+        work[a:b] = 0
+    bounds = _bands(polys, info, patches, which, size, threads) if threads > 1 else \
+        (0, int(size[:, 1].sum()))
+
+    def draw(k, *_):
+        _draw(polys, info, patches, boxes, which, size, buf, at, work, low, bounds[k],
+              bounds[k + 1])
+
+    workers.run(draw, [(k, k + 1) for k in range(threads)])
+
+
+@njit(cache=True)
+def _runs(units, owner, count, parts):
+    """``units`` (a leaf's next to each other) split into at most ``parts`` runs of whole
+    leaves, of about equal triangles (``count[u]``): where each run starts (and the last
+    ends), and the triangles before each."""
+    total = 0
+    for u in units:
+        total += count[u]
+    cuts = np.zeros(parts + 1, np.int64)
+    before = np.zeros(parts + 1, np.int64)
+    k, done = 1, 0
+    for q in range(units.shape[0]):
+        if k < parts and q > 0 and owner[q] != owner[q - 1] and done * parts >= total * k:
+            cuts[k], before[k] = q, done
+            k += 1
+        done += count[units[q]]
+    cuts[k], before[k] = units.shape[0], total
+    return cuts[:k + 1], before[:k + 1]
+
+
+@njit(cache=True)
+def _bands(polys, info, patches, which, size, parts):
+    """Where ``parts`` threads split the drawing of patches ``which`` (see :func:`_setup`):
+    thread
+    ``k`` draws rows ``[bounds[k], bounds[k + 1])`` of the views' rows counted one view after
+    the other, of about equal work (the rows the polygons span, each one more for its
+    set-up)."""
+    views = size.shape[0]
+    first = np.zeros(views + 1, np.int64)
+    for v in range(views):
+        first[v + 1] = first[v] + size[v, 1]
+    step = np.zeros(first[views] + 1)  # per row, the change of the polygons spanning it
+    for q in which:
+        v = patches[q, 2]
+        h = size[v, 1]
+        for p in range(patches[q, 0], patches[q, 1]):
+            lo, hi = np.inf, -np.inf
+            for c in range(info[p, 0]):
+                lo, hi = min(lo, polys[p, c, 1]), max(hi, polys[p, c, 1])
+            a = first[v] + min(max(int(math.floor(max(lo, -1.0))), 0), h - 1)
+            b = first[v] + min(max(int(math.floor(min(hi, h + 1.0))), 0), h - 1)
+            step[a] += 2.0  # its set-up, and its first row
+            step[a + 1] -= 1.0
+            step[b + 1] -= 1.0
+    bounds = np.empty(parts + 1, np.int64)
+    bounds[0], bounds[parts] = 0, first[views]
+    total = 0.0
+    spanning = 0.0
+    for j in range(first[views]):
+        spanning += step[j]
+        total += spanning
+    k, done, spanning = 1, 0.0, 0.0
+    for j in range(first[views]):
+        spanning += step[j]
+        done += spanning
+        while k < parts and done >= total * k / parts:
+            bounds[k] = j + 1
+            k += 1
+    while k < parts:
+        bounds[k] = first[views]
+        k += 1
+    return bounds
 
 
 @njit(cache=True, nogil=True)
 def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
            faces, neighbors, outward, affine, rect, size, near, face_marks, vertex_marks,
-           stamps):
+           stamps, polys, info, patches, boxes, start):
     """The *patches* of the occluders ``units`` in each view (see :func:`_raster`): a leaf's
     chosen faces that face the same way, joined across edges whose two faces lie on either
     side of the edge as seen from the eye. Every other edge of a patch (of one face only,
@@ -594,25 +676,19 @@ def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, f
     skipped. The rest: scratch kept between frames (see :func:`_scratch`), marked with the
     ``stamps`` of leaves (updated).
 
-    Returns the patches' polygons ``(P, 4, 3)`` (each face's part beyond the near plane, or
-    two whole faces across a side that make a convex quadrilateral: x, y in texels and 1 /
-    depth per corner), per polygon ``(P, 4)`` its corners, the sign of its area, which of its
-    sides are outline (bits) and whether it is two faces (1 / depth affine on corners 0, 1,
-    2 and on 0, 2, 3; else on all), and per patch ``(Q, 3)`` its polygons'
-    range and its view, and ``(Q, 5)`` its image's box (x0, x1, y0, y1) and its most 1 /
-    depth, all in the order they are to be drawn."""
+    Writes from row ``start`` on (room for every face in every view) the patches' polygons
+    ``polys (P, 4, 3)`` (each face's part beyond the near plane, or two whole faces across a
+    side that make a convex quadrilateral: x, y in texels and 1 / depth per corner), per
+    polygon ``info (P, 4)`` its corners, the sign of its area, which of its sides are outline
+    (bits) and whether it is two faces (1 / depth affine on corners 0, 1, 2 and on 0, 2, 3;
+    else on all), and per patch ``patches (Q, 3)`` its polygons' range and its view, and
+    ``boxes (Q, 5)`` its image's box (x0, x1, y0, y1) and its most 1 / depth, all in the
+    order they are to be drawn; returns where the polygons and the patches end."""
     views = affine.shape[0]
     mark, slot_of = face_marks[0], face_marks[1]  # per face: the last leaf, its slot there
     vmark, vslot = vertex_marks[0], vertex_marks[1]  # per vertex: the same
     stamp = stamps[0]
-    total = 0
-    for q in range(units.shape[0]):
-        total += count[units[q]]
-    polys = np.empty((total * views, 4, 3))
-    info = np.empty((total * views, 4), np.int64)
-    patches = np.empty((total * views, 3), np.int64)
-    boxes = np.empty((total * views, 5))
-    np_ = nq = 0
+    np_ = nq = start
     cap = 64
     vlist = np.empty(3 * cap, np.int64)  # per vertex slot: the vertex
     vview = np.empty((3 * cap, 3))  # ... its view coordinates
@@ -803,7 +879,7 @@ def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, f
                 nq += 1
         q = q1
     stamps[0] = stamp
-    return polys[:np_], info[:np_], patches[:nq], boxes[:nq]
+    return np_, nq
 
 
 #: Cells across a texel each way: a texel's cells are bits of a mask, a row of a patch's
@@ -825,10 +901,12 @@ TOUCH = 1e-6
 
 
 @njit(cache=True, nogil=True)
-def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
-    """Draw the patches (see :func:`_setup`) into each view's buffer ``buf``, in order;
-    ``work`` and ``work_low`` (scratch, of ``buf``'s size) are left with the cells gathered
-    in texels they did not fill, and their least 1 / depth (see :func:`_merge`).
+def _draw(polys, info, patches, boxes, which, size, buf, at, work, work_low, row_lo, row_hi):
+    """Draw patches ``which`` (see :func:`_setup`) into each view's buffer ``buf``, in order, in
+    rows ``[row_lo, row_hi)`` of the views' rows counted one view after the other (other
+    threads draw the rest at the same time, see :func:`_bands`); ``work`` and ``work_low``
+    (of ``buf``'s size, zero where drawn) gather cells claimed in part, and their least 1 /
+    depth, until they fill a texel.
 
     A patch claims a texel whole when every one of its ``SUB x SUB`` cells is claimed: the
     cell's centre lies in one of the patch's faces, and no edge of the patch's outline touches
@@ -841,14 +919,16 @@ def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
     in ``work`` with the farthest depth of the patches that claimed them, until they fill the
     texel. A patch that is nowhere nearer than the buffer over its box, or whose box holds no
     whole cell, is skipped (it could claim nothing: its depth would be no nearer)."""
-    work[:] = 0  # cells gathered per texel (their least 1 / depth: work_low, where any)
+    first = np.zeros(size.shape[0], np.int64)  # each view's first row, counted through all
+    for v in range(1, size.shape[0]):
+        first[v] = first[v - 1] + size[v - 1, 1]
     rows = cols = 16
     cover = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells faces' centres cover
     edge = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells the outline touches
     low = np.empty((rows, cols))  # the patch's least 1 / depth per texel
     live = np.empty((rows, 2), np.int64)  # per row, the texels where it may claim
     ed = np.empty((11, 4))
-    for q in range(patches.shape[0]):
+    for q in which:
         v = patches[q, 2]
         w, h = size[v, 0], size[v, 1]
         x0, x1, y0, y1, nearest = boxes[q, 0], boxes[q, 1], boxes[q, 2], boxes[q, 3], boxes[q, 4]
@@ -871,6 +951,8 @@ def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
         for j in range(r0, r1 + 1):
             row = at[v] + j * w
             a, b = c0, c1
+            if not row_lo <= first[v] + j < row_hi:  # another thread's row
+                a = c1 + 1
             while a <= c1 and not buf[row + a] < nearest:
                 a += 1
             while b > a and not buf[row + b] < nearest:
@@ -905,22 +987,6 @@ def _draw(polys, info, patches, boxes, size, buf, at, work, work_low):
         _claim(cover, edge, low, r0, nr, c0, live_, at[v] + c0, w, buf, work, work_low)
 
 
-@njit(cache=True, nogil=True)
-def _merge(buf, work, work_low, other, other_work, other_low, start, stop):
-    """Merge into ``buf`` and the cells it gathered (``work``, ``work_low``, see
-    :func:`_draw`) a buffer drawn from other patches and its cells, over texels ``[start,
-    stop)``: each texel takes the nearer claim, and cells gathered on both sides that together
-    fill a texel claim it at the farther of their depths."""
-    for t in range(start, stop):
-        buf[t] = max(buf[t], other[t])
-        if other_work[t]:
-            work_low[t] = min(work_low[t], other_low[t]) if work[t] else other_low[t]
-            work[t] |= other_work[t]
-            if work[t] == _FULL:
-                buf[t] = max(buf[t], work_low[t])
-                work[t] = 0
-
-
 @njit(cache=True, inline="always")
 def _bits(row, lo, hi):
     """Set bits ``lo`` to ``hi`` (inclusive) of the words ``row``."""
@@ -945,6 +1011,14 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
     y_lo, y_hi = np.inf, -np.inf
     for c in range(ns):
         y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
+    j0 = max(r0, int(math.floor(y_lo - TOUCH)))
+    j1 = min(r1, int(math.floor(y_hi + TOUCH)))
+    while j0 <= j1 and live[j0 - r0, 0] > live[j0 - r0, 1]:
+        j0 += 1
+    while j1 >= j0 and live[j1 - r0, 0] > live[j1 - r0, 1]:
+        j1 -= 1
+    if j0 > j1:
+        return  # no row of it may claim
     # 1 / depth as a plane over the image: ga x + gb y + gc (affine: exact for a perspective);
     # two faces: each one's plane, the least of the two a bound over both
     ga, gb, gc = _plane(p[0], p[1], p[2])
@@ -981,8 +1055,11 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
         else:
             ed[6, e], ed[7, e], ed[8, e], ed[9, e] = p[e1, 0], p[e1, 1], ay, ax
         ed[10, e] = ex / ey if ey != 0 else 0.0
-    for J in range(max(r0, int(math.floor(y_lo - TOUCH))),
-                   min(r1, int(math.floor(y_hi + TOUCH))) + 1):
+    for J in range(j0, j1 + 1):
+        r = J - r0
+        g0, g1 = live[r, 0], live[r, 1]
+        if g0 > g1:
+            continue
         y0, y1 = max(J - TOUCH, y_lo), min(J + 1 + TOUCH, y_hi)  # the polygon's rows in it
         lo, hi = np.inf, -np.inf
         for e in range(ns):
@@ -995,9 +1072,7 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
             else:
                 x0, x1 = ax, ed[9, e]
             lo, hi = min(lo, x0, x1), max(hi, x0, x1)
-        r = J - r0
-        g0, g1 = live[r, 0], live[r, 1]
-        if not lo <= hi or g0 > g1:
+        if not lo <= hi:
             continue
         i0 = max(g0, int(math.floor(max(lo, g0 - 1.0) - TOUCH)))
         i1 = min(g1, int(math.floor(min(hi, g1 + 1.0) + TOUCH)))
