@@ -586,14 +586,26 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
     work, low = canvas["work"], canvas["low"]
     for a, b in spans:  # (only level 0 is drawn and read)
         work[a:b] = 0
-    bounds = _bands(polys, info, patches, which, size, threads) if threads > 1 else \
+    # each thread's share of the work, as the rows' estimate has it: its share last frame,
+    # corrected by how long each took (the estimate does not know which rows are skipped)
+    shares = canvas.get("shares")
+    if shares is None or len(shares) != threads:
+        shares = canvas["shares"] = np.full(threads, 1 / threads)
+    bounds = _bands(polys, info, patches, which, size, shares) if threads > 1 else \
         (0, int(size[:, 1].sum()))
+    took = np.zeros(threads)
 
     def draw(k, *_):
+        t = time.perf_counter()
         _draw(polys, info, patches, boxes, which, size, buf, at, work, low, bounds[k],
               bounds[k + 1])
+        took[k] = time.perf_counter() - t
 
     workers.run(draw, [(k, k + 1) for k in range(threads)])
+    if threads > 1 and took.min() > 0:
+        fair = shares / took  # work a second, each
+        shares += 0.5 * (np.maximum(fair / fair.sum(), 0.1 / threads) - shares)
+        shares /= shares.sum()
 
 
 @njit(cache=True)
@@ -617,12 +629,12 @@ def _runs(units, owner, count, parts):
 
 
 @njit(cache=True)
-def _bands(polys, info, patches, which, size, parts):
-    """Where ``parts`` threads split the drawing of patches ``which`` (see :func:`_setup`):
-    thread
+def _bands(polys, info, patches, which, size, shares):
+    """Where threads split the drawing of patches ``which`` (see :func:`_setup`): thread
     ``k`` draws rows ``[bounds[k], bounds[k + 1])`` of the views' rows counted one view after
-    the other, of about equal work (the rows the polygons span, each one more for its
+    the other, ``shares[k]`` of the work (the rows the polygons span, each one more for its
     set-up)."""
+    parts = shares.shape[0]
     views = size.shape[0]
     first = np.zeros(views + 1, np.int64)
     for v in range(views):
@@ -647,12 +659,13 @@ def _bands(polys, info, patches, which, size, parts):
     for j in range(first[views]):
         spanning += step[j]
         total += spanning
-    k, done, spanning = 1, 0.0, 0.0
+    k, done, spanning, goal = 1, 0.0, 0.0, total * shares[0]
     for j in range(first[views]):
         spanning += step[j]
         done += spanning
-        while k < parts and done >= total * k / parts:
+        while k < parts and done >= goal:
             bounds[k] = j + 1
+            goal += total * shares[k]
             k += 1
     while k < parts:
         bounds[k] = first[views]
