@@ -563,7 +563,8 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
     then draws every patch, in order, into its own run of rows (:func:`_bands`), so that the
     buffer is the one a single thread draws. ``outward``: see :func:`_outward`; ``scratch``:
     per thread, see :func:`_scratch`; ``canvas``: see :func:`_canvas` (grown here)."""
-    cuts, before = _runs(units, owner, count, threads)
+    cuts, before = _runs(units, owner, count, threads) if threads > 1 else \
+        (np.array([0, len(units)]), np.array([0, count[units].sum()]))
     views = len(affine)
     room = int(before[-1]) * views  # polygons and patches: at most a face each per view
     if len(canvas["boxes"]) < room:
@@ -581,18 +582,20 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
 
     cuts = cuts.tolist()
     runs = workers.run(setup, list(zip(cuts[:-1], cuts[1:])))
-    which = np.concatenate([np.arange(start, end) for start, _, end in runs] or [[]])
-    which = which.astype(np.int64)
+    which = np.arange(runs[0][0], runs[0][2]) if threads == 1 else \
+        np.concatenate([np.arange(start, end) for start, _, end in runs])
     work, low = canvas["work"], canvas["low"]
     for a, b in spans:  # (only level 0 is drawn and read)
         work[a:b] = 0
+    if threads == 1:
+        _draw(polys, info, patches, boxes, which, size, buf, at, work, low, 0, size[:, 1].sum())
+        return
     # each thread's share of the work, as the rows' estimate has it: its share last frame,
     # corrected by how long each took (the estimate does not know which rows are skipped)
     shares = canvas.get("shares")
     if shares is None or len(shares) != threads:
         shares = canvas["shares"] = np.full(threads, 1 / threads)
-    bounds = _bands(polys, info, patches, which, size, shares) if threads > 1 else \
-        (0, int(size[:, 1].sum()))
+    bounds = _bands(polys, info, patches, which, size, shares)
     took = np.zeros(threads)
 
     def draw(k, *_):
@@ -602,7 +605,7 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
         took[k] = time.perf_counter() - t
 
     workers.run(draw, [(k, k + 1) for k in range(threads)])
-    if threads > 1 and took.min() > 0:
+    if took.min() > 0:
         fair = shares / took  # work a second, each
         shares += 0.5 * (np.maximum(fair / fair.sum(), 0.1 / threads) - shares)
         shares /= shares.sum()
