@@ -175,6 +175,31 @@ def test_closed_meshes_through_the_near_plane_claim_only_what_they_cover(seed, c
     np.testing.assert_array_equal(raster(meshes, reused=True)[0], buf)
 
 
+@settings(max_examples=40, deadline=None)
+@given(speeds=st.lists(st.floats(1, 3), min_size=2, max_size=5),
+       extreme=st.floats(1e-3, 1e3))
+def test_threads_share_the_drawing_by_how_long_they_took(speeds, extreme):
+    """Parts whose work goes at different speeds (within 3x of each other, or one of them
+    anything): the shares, corrected frame by frame by how long each part took, come to about
+    equal times; they always sum to 1 and never fall below ``FLOOR`` of an equal share, and a
+    frame not timed changes nothing."""
+    from wallcull.workers import Balance
+
+    for v, close in ((np.array(speeds), True), (np.array([*speeds, extreme]), False)):
+        balance = Balance()
+        np.testing.assert_allclose(balance.of(len(v)), 1 / len(v))
+        for _ in range(40):
+            shares = balance.of(len(v))
+            assert abs(shares.sum() - 1) < 1e-9
+            assert (shares >= Balance.FLOOR / len(v) - 1e-12).all()
+            balance.took(shares / v)
+        times = balance.shares / v
+        assert not close or times.max() < 1.1 * times.min()
+    before = balance.shares.copy()
+    balance.took([0.0] * len(speeds))
+    np.testing.assert_array_equal(balance.shares, before)
+
+
 def test_the_rasterizer_is_not_vacuous():
     """A big near quad covers every texel, each at its farthest depth over the texel; as two
     triangles sharing an edge, the texels along the diagonal too; a box's front claims its

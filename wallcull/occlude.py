@@ -325,10 +325,12 @@ class Depth:
 
 def _canvas(texels: int = 0) -> dict:
     """:func:`_raster`'s arrays, kept from frame to frame: the patches (grown when a frame's
-    occluders need more room) and the cells gathered per texel of the buffers."""
+    occluders need more room), the cells gathered per texel of the buffers, and how the
+    threads share the drawing."""
     return {"polys": np.empty((0, 4, 3)), "info": np.empty((0, 4), np.int64),
             "patches": np.empty((0, 3), np.int64), "boxes": np.empty((0, 5)),
-            "work": np.zeros(texels, np.uint16), "low": np.empty(texels)}
+            "work": np.zeros(texels, np.uint16), "low": np.empty(texels),
+            "balance": workers.Balance()}
 
 
 def _scratch(faces: int, vertices: int) -> tuple:
@@ -590,13 +592,11 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
     if threads == 1:
         _draw(polys, info, patches, boxes, which, size, buf, at, work, low, 0, size[:, 1].sum())
         return
-    # each thread's share of the work, as the rows' estimate has it: its share last frame,
-    # corrected by how long each took (the estimate does not know which rows are skipped)
-    shares = canvas.get("shares")
-    if shares is None or len(shares) != threads:
-        shares = canvas["shares"] = np.full(threads, 1 / threads)
-    bounds = _bands(polys, info, patches, which, size, shares)
-    took = np.zeros(threads)
+    # each thread's share of the rows' work as estimated, corrected by how long the threads
+    # took the frame before (the estimate cannot know which rows nearer patches leave)
+    balance = canvas["balance"]
+    bounds = _bands(polys, info, patches, which, size, balance.of(threads))
+    took = [0.0] * threads
 
     def draw(k, *_):
         t = time.perf_counter()
@@ -605,10 +605,7 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
         took[k] = time.perf_counter() - t
 
     workers.run(draw, [(k, k + 1) for k in range(threads)])
-    if took.min() > 0:
-        fair = shares / took  # work a second, each
-        shares += 0.5 * (np.maximum(fair / fair.sum(), 0.1 / threads) - shares)
-        shares /= shares.sum()
+    balance.took(took)
 
 
 @njit(cache=True)

@@ -41,6 +41,36 @@ _lock = threading.Lock()
 _pool_size = 0
 
 
+class Balance:
+    """The shares of its work a split that repeats every frame gives each thread: equal at
+    first, then each frame corrected by how long each part took (:meth:`took`), for work whose
+    cost the split's estimate cannot know (what nearer occluders leave to draw, what a test
+    settles early)."""
+
+    def __init__(self):
+        self.shares = np.ones(1)
+
+    def of(self, parts: int) -> np.ndarray:
+        """The shares of ``parts`` parts (summing to 1)."""
+        if len(self.shares) != parts:
+            self.shares = np.full(parts, 1 / parts)
+        return self.shares
+
+    #: Every part keeps at least this share of an equal one (a part given nothing would
+    #: take no time, and never be given anything again).
+    FLOOR = 0.05
+
+    def took(self, seconds: Sequence[float]) -> None:
+        """Each part of the last split took ``seconds``: move the shares halfway to those
+        that would have made them equal (each at least ``FLOOR`` of an equal share)."""
+        seconds = np.asarray(seconds, np.float64)
+        if len(seconds) != len(self.shares) or not (seconds > 0).all():
+            return
+        fair = self.shares / seconds  # work a second, each
+        fair = self.FLOOR / len(fair) + (1 - self.FLOOR) * fair / fair.sum()
+        self.shares = self.shares + 0.5 * (fair - self.shares)
+
+
 def chunks(items: int, work: np.ndarray | None = None, min_work: int = 0
            ) -> list[tuple[int, int]]:
     """``[start, stop)`` ranges splitting ``items`` into at most :func:`count` parts of at
