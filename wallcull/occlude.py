@@ -38,8 +38,8 @@ a pipe, a floor before a grating), within a budget of triangles (the default of
 :data:`CHOICES`), and never nodes the scene's settings mark transparent (``{"occlusion":
 {"exclude": [node names]}}``, their subtrees with them). They are rasterized nearest leaf
 first, so that a patch that cannot bring any texel of its image nearer is skipped whole, and
-in threads, each drawing every patch into its own bands of rows. What mirrors
-and lights see is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
+in threads, each drawing every patch into its own run of rows. What mirrors and lights see
+is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
 """
 
 from __future__ import annotations
