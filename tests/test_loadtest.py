@@ -22,7 +22,7 @@ from wallcull_clients.rawhttp import Connection
 from wallcull_clients.sim import (Mesh, MeshCache, TileClient, msgpack_ints_len, parse_tiles,
                          shared_scene, sorted_ints_len)
 from wallcull import protocol
-from wallcull_clients.loadtest import analyze, running_server, split
+from wallcull_clients.loadtest import analyze, kernels_loaded, running_server, split
 
 ROOT = Path(__file__).resolve().parent.parent
 WALL_2x2 = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.012, 0.012],
@@ -103,6 +103,41 @@ def test_loadtest_requests(tmp_path):
     assert report["requests"] == 400 and report["status"] == {"200": 400}
     assert report["requests_per_s"] > 0 and report["bytes_per_response"] > 100
     assert report["server_metrics"]["packets"]["full/http"] == 400
+
+
+async def _health_server(answers):
+    """A loopback HTTP server whose ``GET /health`` answers ``kernels: loading`` to the first
+    ``answers[0]`` requests and ``ready`` after (``answers[1]`` counts the requests)."""
+    async def handle(reader, writer):
+        while await reader.readuntil(b"\r\n\r\n"):
+            answers[1] += 1
+            body = json.dumps({"status": "ok", "kernels": "loading" if answers[1] <= answers[0]
+                               else "ready"}).encode()
+            writer.write(b"HTTP/1.1 200 OK\r\ncontent-type: application/json\r\n"
+                         b"content-length: %d\r\n\r\n%s" % (len(body), body))
+            await writer.drain()
+    return await asyncio.start_server(handle, "127.0.0.1", 0)
+
+
+def test_load_tests_wait_for_the_servers_kernels():
+    """A server still compiling its kernels (a fresh install) is not measured: the load test
+    waits on ``/health`` until they are in, and gives up with a clear error if they never
+    come. (Measured without the wait, the first load test after an install saw every node's
+    stream idle while the server compiled, and reported every tile-frame dropped.)"""
+    async def main():
+        answers = [5, 0]
+        server = await _health_server(answers)
+        url = f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+        async with server:
+            waited = await kernels_loaded(url)
+            assert answers[1] == 6 and waited > 0  # five "loading", then "ready"
+            assert await kernels_loaded(url) == 0.0 and answers[1] == 7
+            answers[:] = [10 ** 9, 0]
+            with pytest.raises(RuntimeError, match="still compiling its kernels"):
+                await kernels_loaded(url, timeout=0.3)
+            assert answers[1] > 1
+
+    asyncio.run(main())
 
 
 def test_loadtest_bad_arguments(tmp_path):

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .driver import Driver
-from .loadtest import ROOT, Server, _wall_spec
+from .loadtest import ROOT, Server, _wall_spec, kernels_loaded
 from .rawhttp import Connection
 
 TOKEN = "hostile-operator-token"
@@ -77,9 +77,7 @@ async def server(token: str | None = TOKEN, args=(), state: str | None = None, p
                  prefix=()):
     s = Server(token, port=port, state=state, args=args, prefix=prefix)
     await s.start()
-    async with Connection(s.url) as conn:  # memory is measured once the kernels are in
-        while (await conn.call("GET", "/health")).get("kernels") == "loading":
-            await asyncio.sleep(0.05)
+    await kernels_loaded(s.url)  # memory is measured once the kernels are in
     try:
         yield s
     finally:

@@ -412,6 +412,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         if own:
             await own.start()
         url = own.url if own else server
+        await kernels_loaded(url, progress)
         async with Driver(url, token) as d:
             count = Wall.from_dict(wall).tiles
             groups = [list(range(k, min(k + tiles_per_node, count)))
@@ -569,6 +570,37 @@ def walkthrough_targets(report: dict) -> dict:
     }
 
 
+#: How long a load test waits for a server to compile its kernels: minutes on a fresh install
+#: of a 2-core machine, once (numba then loads them from its cache in seconds).
+KERNELS_TIMEOUT = 1800.0
+
+
+async def kernels_loaded(url: str, show: bool = False, timeout: float = KERNELS_TIMEOUT) -> float:
+    """Wait until the server at ``url`` has its compiled kernels (``GET /health``: ``kernels``
+    no longer ``loading``), with a spinner; the seconds waited. A server still compiling
+    computes its first frames in seconds instead of milliseconds: measured then, every node
+    would see its stream idle and the report would be of the compiler."""
+    from rich.console import Console
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from wallcull_clients.rawhttp import Connection
+
+    t0 = time.monotonic()
+    async with Connection(url) as conn:
+        if (await conn.call("GET", "/health")).get("kernels") != "loading":
+            return 0.0
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                      console=Console(stderr=True), disable=not show, transient=True) as bar:
+            bar.add_task("the server is compiling its kernels (once after an install, "
+                         "a few minutes)", total=None)
+            while (await conn.call("GET", "/health")).get("kernels") == "loading":
+                if time.monotonic() - t0 > timeout:
+                    raise RuntimeError(f"the server at {url} was still compiling its kernels "
+                                       f"after {timeout:g} s")
+                await asyncio.sleep(0.1)
+    return time.monotonic() - t0
+
+
 async def _watch(url, wid, frames, drv, show: bool) -> None:
     """Wait for the driver to finish, with a progress bar of the wall's latest frame."""
     from rich.console import Console
@@ -672,6 +704,7 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
         if own:
             await own.start()
         url = own.url if own else server
+        await kernels_loaded(url, progress)
         async with Driver(url, token) as d:
             info = await d.create_wall(scene, wall)
             frames = await d.frames(scene, info["wall"], "orbit", 1)
