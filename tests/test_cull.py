@@ -251,6 +251,38 @@ def test_pseudo_groups_change_tests_not_answers():
 # ---------------------------------------------------------------- the kernels' machinery
 
 
+def test_threads_take_the_next_part_until_none_is_left(monkeypatch):
+    """``workers.run`` gives every part once, results in order; a thread the system keeps
+    busy elsewhere takes fewer parts (here none: the pool's one thread is held until every
+    part is done, so the calling thread must take them all). Before, the parts were dealt to
+    the threads up front, and this waited on the held thread."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from wallcull import workers
+
+    monkeypatch.setattr(workers, "count", lambda: 2)
+    pool = ThreadPoolExecutor(1)
+    monkeypatch.setattr(workers, "_pool", pool)
+    monkeypatch.setattr(workers, "_pool_size", 1)
+    assert workers.run(lambda k, a, b: (k, a, b), [(0, 3), (3, 5), (5, 9)]) == \
+        [(0, 0, 3), (1, 3, 5), (2, 5, 9)]
+    done, release, ran = threading.Event(), threading.Event(), []
+    held = pool.submit(release.wait, 60)  # the pool's only thread, held
+
+    def part(k, a, b):
+        ran.append((k, threading.current_thread().name))
+        if len(ran) == 6:
+            release.set()
+        return k
+
+    assert workers.run(part, [(k, k + 1) for k in range(6)]) == list(range(6))
+    assert held.result() is True  # released by the last part, not by its timeout
+    assert sorted(k for k, _ in ran) == list(range(6))
+    assert {name for _, name in ran} == {threading.current_thread().name}
+    pool.shutdown()
+
+
 @pytest.fixture(scope="module")
 def powerplant():
     from wallcull.scene import load

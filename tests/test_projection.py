@@ -10,8 +10,8 @@ import pytest
 from hypothesis import assume, given, settings, strategies as st
 
 from wallcull.projection import (
-    ClipPlaneError, frustum, frustum_planes, infinite_frustum, look_at, oblique_near,
-    reversed_z, rigid_inverse, tile_view_projection, transform_points)
+    ClipPlaneError, frustum, frustum_planes, infinite_frustum, look_at, mirrored_views,
+    oblique_near, oblique_near_many, reversed_z, rigid_inverse, tile_view_projection, transform_points)
 from wallcull.wall import Frame, Frusta, Wall
 
 FAST = settings(max_examples=60, deadline=None)
@@ -399,3 +399,39 @@ def test_oblique_near_tolerance_is_relative_to_near():
     assert np.isfinite(out).all()
     with pytest.raises(ClipPlaneError):
         oblique_near(m, [0.0, 0.0, -1.0, -1e-11])
+
+
+def test_mirrored_views_is_the_reflected_view_and_the_oblique_projection():
+    """The compiled mirror matrices against the same made in numpy, with a general inverse:
+    random cameras (each its own view, or one view for all) and a random mirror, some seen
+    from behind or edge-on (refused there, as :func:`oblique_near_many` refuses)."""
+    rng = np.random.default_rng(7)
+    seen = set()
+    for trial in range(20):
+        k = 12
+        normal = rng.normal(size=3)
+        normal /= np.linalg.norm(normal)
+        plane = np.append(normal, rng.uniform(-2, 2))
+        reflection = np.eye(4)
+        reflection[:3, :3] -= 2 * np.outer(normal, normal)
+        reflection[:3, 3] = -2 * plane[3] * normal
+        eyes = rng.uniform(-4, 4, size=(k, 3))
+        views = np.array([look_at(e, e + rng.normal(size=3)) for e in eyes])
+        if trial % 2:
+            views = views[0]  # one view shared by every tile, as a grid's
+        projections = np.array([frustum(-a, b, -c, d, rng.uniform(0.05, 0.5), 100.0)
+                                for a, b, c, d in rng.uniform(0.1, 1.0, size=(k, 4))])
+        view, oblique, reason = mirrored_views(views, projections, reflection, plane)
+        assert view.shape == views.shape
+        np.testing.assert_allclose(view, views @ reflection, rtol=0, atol=1e-12)
+        clip = np.swapaxes(np.linalg.inv(views), -1, -2) @ (-plane)
+        expected, why = oblique_near_many(projections, clip)
+        assert (reason == why).all()
+        seen |= set(reason.tolist())
+        scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
+        assert (np.abs(oblique - expected) <= 1e-9 * scale).all()
+    assert 0 in seen and len(seen) > 1  # matrices made, and refused
+    bad = projections.copy()
+    bad[3, 3, 3] = 1.0
+    with pytest.raises(ValueError, match="row 4"):
+        mirrored_views(views, bad, reflection, plane)

@@ -1423,7 +1423,7 @@ def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarra
         stack = state.__dict__["_region_stack"] = \
             (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
     root = np.zeros(1, np.int64)
-    ranges = workers.chunks(count, work)
+    ranges = workers.chunks(count, work, per_thread=workers.SPLIT)
     pool = state.__dict__.setdefault("_region_buffers", [])  # kept: outputs grow once
     pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
     inherit = np.zeros(count, np.int64)

@@ -40,7 +40,7 @@ from numba import njit
 from . import lowilie, workers
 from . import settings as cfg
 from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
-from .projection import look_at, oblique_near_many, rigid_inverse, view_matrix
+from .projection import look_at, mirrored_views, rigid_inverse, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, matrix_quaternion
 
@@ -439,11 +439,9 @@ class MirrorSight:
         """``(views, projections, ok)``: each tile's reflected view (det -1), its projection
         with the mirror as oblique near plane (in the tile's eye space), and whether it has one
         (the mirror is behind the tile's camera, or edge-on: it shows nothing)."""
-        refl = self.mirror.reflection
-        eye_to_world = np.linalg.inv(views)  # rigid: exact enough for the clip plane
-        clip = np.swapaxes(eye_to_world, -1, -2) @ (-self.mirror.plane)
-        oblique, refused = oblique_near_many(projections, clip)
-        return views @ refl, oblique, refused == 0
+        view, oblique, refused = mirrored_views(views, projections, self.mirror.reflection,
+                                                self.mirror.plane)
+        return view, oblique, refused == 0
 
     def seen(self, culler: Culler, frusta: Frusta) -> tuple[np.ndarray, np.ndarray]:
         """The leaves every tile sees in the mirror, CSR ``(start, leaves)``."""

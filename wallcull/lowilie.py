@@ -767,7 +767,7 @@ def fit_lights(eyes, bounds, start: np.ndarray, nodes: np.ndarray, sizes, effort
                        *(out[key][light, lo:hi] for key in ("view", "projection", "near", "far",
                                                             "coverage", "status")))
 
-    workers.run(chunk, workers.chunks(lights * count, work))
+    workers.run(chunk, workers.chunks(lights * count, work, per_thread=workers.SPLIT))
     return out
 
 

@@ -38,6 +38,7 @@ __all__ = [
     "frustum_extents",
     "oblique_near",
     "oblique_near_many",
+    "mirrored_views",
     "transform_points",
 ]
 
@@ -364,6 +365,60 @@ def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
     reason = np.zeros(len(m), np.int64)
     _oblique(m, c, rtol, out, reason)
     return out, reason
+
+
+def mirrored_views(views: np.ndarray, projections: np.ndarray, reflection: np.ndarray,
+                   plane: np.ndarray, rtol: float = 1e-6
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What each of many cameras (rigid ``views``, ``(k, 4, 4)`` or one ``(4, 4)`` for all;
+    ``projections (k, 4, 4)``) needs to draw the reflection in a mirror (``reflection (4,
+    4)`` through the world ``plane (4,)``, reflective side positive): ``(views @ reflection,
+    the projections with the mirror as oblique near plane, reason)``, ``reason`` as
+    :func:`oblique_near_many`'s (the mirror's plane in each camera's eye space from the view's
+    rigid inverse). One compiled pass that releases the interpreter: a mirror's matrices are
+    made beside a frame's shadow passes."""
+    views = np.asarray(views, np.float64)
+    projections = np.ascontiguousarray(projections, np.float64)
+    flat = np.ascontiguousarray(views.reshape(-1, 4, 4))
+    if projections.ndim != 3 or projections.shape[1:] != (4, 4) \
+            or len(flat) not in (1, len(projections)):
+        raise ValueError(f"mirrored_views needs (k, 4, 4) projections and as many views or "
+                         f"one, got {views.shape} and {projections.shape}")
+    out_views = np.empty_like(flat)
+    oblique = projections.copy()
+    reason = np.zeros(len(projections), np.int64)
+    if not _mirrored(flat, projections, np.ascontiguousarray(reflection, np.float64),
+                     np.ascontiguousarray(plane, np.float64), rtol, out_views, oblique, reason):
+        raise ValueError("oblique_near needs a perspective projection with row 4 = (0, 0, -1, 0)")
+    return out_views.reshape(views.shape), oblique, reason
+
+
+@njit(cache=True, nogil=True)
+def _mirrored(views, projections, reflection, plane, rtol, out_views, oblique, reason):
+    """The body of :func:`mirrored_views` (``views (1 or k, 4, 4)``); False if a projection's
+    fourth row is not ``(0, 0, -1, 0)``."""
+    k = projections.shape[0]
+    for t in range(k):
+        m = projections[t]
+        if abs(m[3, 0]) > 1e-12 or abs(m[3, 1]) > 1e-12 or abs(m[3, 2] + 1.0) > 1e-12 \
+                or abs(m[3, 3]) > 1e-12:
+            return False
+    for t in range(views.shape[0]):
+        v = views[t]
+        for i in range(4):
+            for j in range(4):
+                out_views[t, i, j] = (v[i, 0] * reflection[0, j] + v[i, 1] * reflection[1, j]
+                                      + v[i, 2] * reflection[2, j] + v[i, 3] * reflection[3, j])
+    clip = np.empty((k, 4))
+    for t in range(k):
+        v = views[t if views.shape[0] > 1 else 0]
+        # the eye-space plane: -plane . view^-1, with view^-1 = [R^T | -R^T t]
+        for j in range(3):
+            clip[t, j] = -(v[j, 0] * plane[0] + v[j, 1] * plane[1] + v[j, 2] * plane[2])
+        clip[t, 3] = -plane[3] - (v[0, 3] * clip[t, 0] + v[1, 3] * clip[t, 1]
+                                  + v[2, 3] * clip[t, 2])
+    _oblique(projections, clip, rtol, oblique, reason)
+    return True
 
 
 # Small products inside compiled kernels are written out: numba's ``@``, ``np.dot`` and

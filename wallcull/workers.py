@@ -9,6 +9,7 @@ thread is not split: handing it over costs more than it saves.
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -18,6 +19,9 @@ import numpy as np
 
 #: Items (tiles or regions) a thread is given at least.
 MIN_CHUNK = 8
+#: Parts a thread's share of the shadow fits and caster culls is cut into: with a mirror's
+#: cull beside them on two cores, the thread the system runs late takes fewer (see :func:`run`).
+SPLIT = 3
 
 
 #: The machine's cores, at most 8 (asked once: ``os.cpu_count`` reads the system each time,
@@ -71,13 +75,15 @@ class Balance:
         self.shares = self.shares + 0.5 * (fair - self.shares)
 
 
-def chunks(items: int, work: np.ndarray | None = None, min_work: int = 0
+def chunks(items: int, work: np.ndarray | None = None, min_work: int = 0, per_thread: int = 1
            ) -> list[tuple[int, int]]:
-    """``[start, stop)`` ranges splitting ``items`` into at most :func:`count` parts of at
-    least ``MIN_CHUNK`` items each, of equal ``work`` (its cumulative sum, ``(items + 1,)``,
-    for example a CSR ``start`` array) when given, else of equal size; with ``min_work``, of
-    at least that much work each."""
-    parts = max(1, min(count(), items // MIN_CHUNK))
+    """``[start, stop)`` ranges splitting ``items`` into at most ``per_thread`` x
+    :func:`count` parts of at least ``MIN_CHUNK`` items each, of equal ``work`` (its cumulative
+    sum, ``(items + 1,)``, for example a CSR ``start`` array) when given, else of equal size;
+    with ``min_work``, of at least that much work each. More parts than threads let
+    :func:`run` even out threads that the system gives less time (one busy beside them)."""
+    threads = count()
+    parts = max(1, min(threads * per_thread if threads > 1 else 1, items // MIN_CHUNK))
     if min_work and work is not None:
         parts = max(1, min(parts, int(work[-1] - work[0]) // min_work))
     if work is None or parts == 1 or work[-1] <= work[0]:
@@ -89,18 +95,32 @@ def chunks(items: int, work: np.ndarray | None = None, min_work: int = 0
 
 
 def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int]]) -> list:
-    """``task(k, start, stop)`` for every range ``k``, the first in this thread and the others
-    in the pool; results in order."""
+    """``task(k, start, stop)`` for every range ``k``, in this thread and up to
+    :func:`count` - 1 of the pool's, each taking the next range not yet taken until none is
+    left (a thread the system runs late takes fewer); results in order."""
     global _pool, _pool_size
-    if len(ranges) <= 1:
+    helpers = min(len(ranges), count()) - 1
+    if helpers <= 0:
         return [task(k, *r) for k, r in enumerate(ranges)]
     with _lock:  # a task run :func:`aside` may split its work too
-        if _pool is None or _pool_size < len(ranges) - 1:
-            _pool_size = len(ranges) - 1
+        if _pool is None or _pool_size < helpers:
+            _pool_size = helpers
             _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="wallcull-kernel")
         pool = _pool
-    futures = [pool.submit(task, k, *r) for k, r in enumerate(ranges) if k]
-    return [task(0, *ranges[0])] + [f.result() for f in futures]
+    results: list = [None] * len(ranges)
+    taken = itertools.count()  # next() of a count is atomic under the interpreter's lock
+
+    def work():
+        for k in iter(taken.__next__, None):
+            if k >= len(ranges):
+                return
+            results[k] = task(k, *ranges[k])
+
+    futures = [pool.submit(work) for _ in range(helpers)]
+    work()
+    for f in futures:
+        f.result()
+    return results
 
 
 _aside: ThreadPoolExecutor | None = None
