@@ -94,19 +94,25 @@ def chunks(items: int, work: np.ndarray | None = None, min_work: int = 0, per_th
     return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+def _executor(size: int) -> ThreadPoolExecutor:
+    """The kernels' pool, with at least ``size`` threads."""
+    global _pool, _pool_size
+    with _lock:  # a task run :func:`aside` may split its work too
+        if _pool is None or _pool_size < size:
+            _pool_size = size
+            _pool = ThreadPoolExecutor(size, thread_name_prefix="wallcull-kernel")
+        return _pool
+
+
 def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int]]) -> list:
     """``task(k, start, stop)`` for every range ``k``, in this thread and up to
     :func:`count` - 1 of the pool's, each taking the next range not yet taken until none is
-    left (a thread the system runs late takes fewer); results in order."""
-    global _pool, _pool_size
+    left: a thread busy elsewhere (with a task run :func:`aside`, or not given a core) takes
+    fewer, or none, and is not waited for; results in order."""
     helpers = min(len(ranges), count()) - 1
     if helpers <= 0:
         return [task(k, *r) for k, r in enumerate(ranges)]
-    with _lock:  # a task run :func:`aside` may split its work too
-        if _pool is None or _pool_size < helpers:
-            _pool_size = helpers
-            _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="wallcull-kernel")
-        pool = _pool
+    pool = _executor(helpers)
     results: list = [None] * len(ranges)
     taken = itertools.count()  # next() of a count is atomic under the interpreter's lock
 
@@ -119,24 +125,20 @@ def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int
     futures = [pool.submit(work) for _ in range(helpers)]
     work()
     for f in futures:
-        f.result()
+        if not f.cancel():  # one not started yet would find nothing left
+            f.result()
     return results
 
 
-_aside: ThreadPoolExecutor | None = None
-
-
 def aside(task: Callable[[], object]) -> Callable[[], object]:
-    """Start ``task()`` in a thread of its own, beside whatever the caller does next (which may
-    split its own kernels with :func:`run`: the task never holds up their pool), and return a
-    function that waits for its result. With one thread it runs when its result is asked for."""
-    global _aside
+    """Start ``task()`` in the pool, beside whatever the caller does next (which may split its
+    own kernels with :func:`run`: their parts then go to the threads the task leaves free),
+    and return a function that waits for its result (or runs it, if no thread has taken it
+    yet). With one thread it runs when its result is asked for."""
     if count() == 1:
         return task
-    with _lock:
-        if _aside is None:
-            _aside = ThreadPoolExecutor(count(), thread_name_prefix="wallcull-aside")
-    return _aside.submit(task).result
+    future = _executor(count() - 1).submit(task)
+    return lambda: task() if future.cancel() else future.result()
 
 
 _background: ThreadPoolExecutor | None = None
