@@ -1,0 +1,107 @@
+"""Two versions of the code on the same frames in one process, frame by frame in turn: a
+stage's time under the working tree against under a git revision, paired so that both see the
+same load (this 2-core machine is shared: medians of separate runs move by a fifth from one
+minute to the next, a ratio of paired frames by a few hundredths).
+
+    python benchmarks/paired.py REV [--settings SETTINGS.json] [--path orbit|fly]
+        [--frames 200] [--stage fit|cull|occlude|total] [--occlusion on|auto]
+        [--wall WALL.json] [--scene powerplant]
+
+``REV``'s ``wallcull`` package is extracted once (``git archive``) as ``wallcull_base`` into
+``$WALLCULL_CACHE/paired/`` (default ``~/.cache/wallcull``), where its compiled kernels are
+kept for the next run. Prints both medians and the median and mean of the paired ratios
+(working tree over ``REV``); below 1 is faster. ``total`` is the session's stages (cull,
+occlusion, leaf lists, fits), not the encoding.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+from io import BytesIO
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def base_package(rev: str) -> Path:
+    """A folder holding ``REV``'s ``wallcull`` as the package ``wallcull_base``."""
+    sha = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=ROOT,
+                         check=True, capture_output=True, text=True).stdout.strip()
+    cache = Path(os.environ.get("WALLCULL_CACHE", Path.home() / ".cache" / "wallcull"))
+    folder = cache / "paired" / sha
+    if not (folder / "wallcull_base").is_dir():
+        archive = subprocess.run(["git", "archive", sha, "wallcull"], cwd=ROOT, check=True,
+                                 capture_output=True).stdout
+        tmp = folder.with_suffix(".part")
+        shutil.rmtree(tmp, ignore_errors=True)
+        with tarfile.open(fileobj=BytesIO(archive)) as tar:
+            tar.extractall(tmp, filter="data")
+        (tmp / "wallcull").rename(tmp / "wallcull_base")
+        tmp.rename(folder)
+    return folder
+
+
+def session(package: str, args, settings):
+    """A session of ``package`` (``wallcull`` or ``wallcull_base``) and its frames."""
+    import importlib
+
+    def mod(name):
+        return importlib.import_module(f"{package}.{name}")
+
+    with open(args.wall) as f:
+        wall = mod("wall").Wall.from_dict(json.load(f))
+    scene = mod("scene").load(args.scene, settings=settings)
+    frames = mod("paths").scene_path(scene, wall, args.path, args.frames)
+    occlusion = mod("occlude").OcclusionOptions.parse(args.occlusion) if args.occlusion \
+        else None
+    s = mod("pipeline").Session(scene, wall, "adaptive", "obb", False,
+                                mod("fit").FitOptions(), occlusion=occlusion)
+    for frame in frames[:5]:  # compiled, caches warm
+        s.frame(frame)
+    return s, frames
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("rev")
+    p.add_argument("--settings")
+    p.add_argument("--path", choices=("orbit", "fly"), default="orbit")
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--stage", choices=("fit", "cull", "occlude", "total"), default="fit")
+    p.add_argument("--occlusion", choices=("on", "auto"))
+    p.add_argument("--wall", default=str(ROOT / "examples" / "wall-8x8.json"))
+    p.add_argument("--scene", default="powerplant")
+    args = p.parse_args()
+    settings = None
+    if args.settings:
+        with open(args.settings) as f:
+            settings = json.load(f)
+    sys.path.insert(0, str(base_package(args.rev)))
+    pairs = [session("wallcull_base", args, settings), session("wallcull", args, settings)]
+    key = f"{args.stage}_ms"
+    times = [[], []]
+    for k in range(args.frames):
+        for which in ((0, 1) if k % 2 else (1, 0)):  # who goes first alternates
+            s, frames = pairs[which]
+            timings = s.frame(frames[k]).timings
+            times[which].append(sum(v for n, v in timings.items() if n.endswith("_ms"))
+                                if args.stage == "total" else timings.get(key, 0.0))
+    base, new = np.array(times[0]), np.array(times[1])
+    ratio = new / np.maximum(base, 1e-9)
+    print(json.dumps({"rev": args.rev, "stage": args.stage, "frames": args.frames,
+                      "base_median_ms": round(float(np.median(base)), 3),
+                      "new_median_ms": round(float(np.median(new)), 3),
+                      "paired_ratio_median": round(float(np.median(ratio)), 3),
+                      "ratio_of_means": round(float(new.mean() / base.mean()), 3)}))
+
+
+if __name__ == "__main__":
+    main()
