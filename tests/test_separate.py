@@ -10,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from wallcull import oracle
 from wallcull.cull import RECORD
-from wallcull.separate import _CONE, _OTHER, _SIDES, _corners as _corners_into, _frustum
-from wallcull.separate import _outline, _outside, _undecided
+from wallcull.separate import _CLIPPED, _CONE, _DEPTH, _OTHER, _SIDES, _clipped_outline
+from wallcull.separate import _corners as _corners_into, _frustum, _near_only, _outline
+from wallcull.separate import _outside, _undecided, _wrap
 from wallcull.separate import _separated as _separated_into
 
 from .randscene import random_wall
@@ -35,6 +36,16 @@ def _apart_by_outline(box, eye, corners) -> bool:
     axes = np.empty((1, 6, 5))
     count = np.array([_outline(box, 0, np.asarray(eye, float), axes)])
     return _outside(axes, count, 0, corners[None], 0, np.asarray(eye, float), box)
+
+
+def _apart_by_clipped_outline(box, eye, planes, corners) -> bool:
+    """The test by the outline of the box's part in front of the near plane (row 4)."""
+    axes = np.empty((1, _CLIPPED, 5))
+    count = np.array([_clipped_outline(
+        box, 0, np.asarray(eye, float), planes, 4, axes, np.empty((8, 4)),
+        np.empty((_CLIPPED, 3)), np.empty((_CLIPPED, 2)), np.empty(_CLIPPED + 1, np.int64))])
+    return bool(count[0]) and _outside(axes, count, 0, corners[None], 0, np.asarray(eye, float),
+                                       box)
 
 
 #: the oracle's planes (bottom, right, top, left, near, far) as the culler orders them
@@ -122,6 +133,71 @@ def test_the_outline_finds_every_separation_between_near_and_far():
         else:
             assert not _apart_by_outline(box, eye, corners)
     assert found == apart and apart > 100
+
+
+def _cut_by_near(seed):
+    """A case of :func:`near_corner_case` whose box the near plane cuts and the far plane
+    does not, outside no plane (as the traversal lists it), else None."""
+    planes, corners, center, axes, half, eye = near_corner_case(seed)
+    box = record(center, axes, half)
+    rows = np.arange(6)[None]
+    pts = center + (_SIGNS * half) @ axes
+    if _undecided(box, 0, planes, rows, 0) != _DEPTH or not _near_only(box, 0, planes, rows, 0) \
+            or ((pts @ planes[:, :3].T + planes[:, 3]) < 0).all(axis=0).any():
+        return None
+    return planes, corners, center, axes, half, eye, box
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_a_box_apart_by_the_outline_of_its_part_in_front_never_meets_the_frustum(seed):
+    """A box that reaches behind the near plane: the planes through the eye and the outline of
+    its part in front of that plane; any with every corner of the frustum beyond it has the two
+    apart."""
+    planes, corners, center, axes, half, eye = near_corner_case(seed)
+    if _apart_by_clipped_outline(record(center, axes, half), eye, planes, corners):
+        assert not box_meets(center, axes, half, planes, corners)
+
+
+def test_the_outline_of_the_part_in_front_finds_the_separations():
+    """Of the boxes the near plane cuts that are apart from the frustum, the outline of their
+    part in front of it finds all but a few (apart along a side of the tile's rectangle, which
+    the axes then find), and never one that meets the frustum."""
+    apart = found = meet = 0
+    for seed in range(6000):
+        case = _cut_by_near(seed)
+        if case is None:
+            continue
+        planes, corners, center, axes, half, eye, box = case
+        if box_meets(center, axes, half, planes, corners):
+            meet += 1
+            assert not _apart_by_clipped_outline(box, eye, planes, corners)
+        else:
+            apart += 1
+            found += _apart_by_clipped_outline(box, eye, planes, corners)
+    assert apart > 200 and meet > 200 and found >= 0.99 * apart
+
+
+@settings(max_examples=200, deadline=None)
+@given(points=st.lists(st.tuples(st.floats(-10, 10), st.floats(-10, 10)), min_size=3,
+                       max_size=_CLIPPED))
+def test_gift_wrapping_rings_every_point(points):
+    """The outline's hull: its vertices are input points, counter-clockwise, and every point
+    lies on or inside each of its edges (or there is no ring: the points span no area)."""
+    img = np.array(points, float)
+    ring = np.empty(_CLIPPED + 1, np.int64)
+    n = _wrap(img, len(img), ring)
+    scale = np.abs(img).max() + 1
+    d = img - img[0]
+    span = np.abs(d[:, None, 0] * d[None, :, 1] - d[:, None, 1] * d[None, :, 0]).max()
+    if n < 3:
+        assert span <= 1e-6 * scale * scale  # no ring only for points that span no area
+        return
+    assert ring[n] == ring[0] and len(set(ring[:n].tolist())) == n
+    for k in range(n):
+        a, b = img[ring[k]], img[ring[k + 1]]
+        cross = (b[0] - a[0]) * (img[:, 1] - a[1]) - (b[1] - a[1]) * (img[:, 0] - a[0])
+        assert (cross >= -1e-9 * scale * scale).all()
 
 
 def test_the_cases_above_are_not_vacuous():

@@ -20,10 +20,13 @@ the image meets the tile's rectangle, so the only axes left are the planes throu
 each edge of its outline, worked out once per unit and frame for all the tiles it is listed in
 (a 64 x 64 wall lists a cluster in about ten); half the time of the axes above on 64 x 64. (A
 stereo tile's frustum, around both eyes' views, is no pyramid from one eye: it takes the axes
-above.) Conservative: the frustum's corners come
-from its planes, the box's reach includes its ball, and a separation counts only when the gap
-exceeds a margin relative to the coordinates. Applied the same way after every method, so the
-methods still agree where they agreed.
+above.) A unit that reaches behind the near plane, as those around the camera do from inside,
+has no outline from the eye; the part of it in front of the near plane has, and it is that
+part that can meet the frustum (:func:`_clipped_outline`; on a 64 x 64 wall seen from inside
+it finds two thirds of its pairs apart, a tenth off the cull). Conservative: the frustum's
+corners come from its planes, the box's reach includes its ball, and a separation counts only
+when the gap exceeds a margin relative to the coordinates. Applied the same way after every
+method, so the methods still agree where they agreed.
 """
 
 from __future__ import annotations
@@ -43,6 +46,12 @@ MARGIN = 1e-9
 SMALL = 0.5
 #: Pairs a thread is given at least: below, handing them over costs more than it saves.
 THREAD_PAIRS = 4096
+#: Rows of a clipped outline (:func:`_clipped_outline`): a box cut by a plane has at most 14
+#: vertices in front of it, and their hull as many edges.
+_CLIPPED = 14
+#: A box's corners (bits: the sign along each axis) and its twelve edges as pairs of them.
+_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4],
+                   [1, 5], [2, 6], [3, 7]], np.int64)
 
 
 def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
@@ -60,16 +69,18 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
         scratch += [np.empty((tiles, 8, 3)), np.empty((len(box), 6, 5)),
                     np.empty(len(box), np.int64)]
     while len(scratch) < 3 + parts:
-        scratch.append((np.zeros(tiles, np.uint8), np.zeros(len(box), np.uint8)))
+        n = len(box)
+        scratch.append((np.zeros(tiles, np.uint8), np.zeros(n, np.uint8),
+                        np.empty((n, _CLIPPED, 5)), np.empty(n, np.int64), np.empty(n, np.int64)))
     corners, axes, axis_count = scratch[:3]
 
     def chunk(k, a, b):  # pairs [a, b) compacted in place; returns where they end
-        known, known_unit = scratch[3 + k]
+        known, known_unit, clipped, clipped_count, clipped_by = scratch[3 + k]
         known[:] = 0
         known_unit[:] = 0
         return a + drop_separated(nodes[a:b], regions[a:b], b - a, box, planes, tile_rows,
                                   child_count, eye, small, corners, known, axes, axis_count,
-                                  known_unit)
+                                  known_unit, clipped, clipped_count, clipped_by)
 
     if parts == 1:  # most frames: no thread to hand over to
         kept = chunk(0, 0, count)
@@ -82,19 +93,30 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
 
 @njit(cache=True, nogil=True)
 def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
-                   corners, known, axes, axis_count, known_unit):
+                   corners, known, axes, axis_count, known_unit, clipped, clipped_count,
+                   clipped_by):
     """Keep the first ``count`` pairs ``(nodes[j], regions[j])`` but those whose node has no
     children, is not small (its sphere's radius over its distance from ``eye`` at least
     ``small``) and is found apart from the tile's frustum: by its outline when it lies between
     the near and far planes of a pyramid from ``eye``, else by :func:`_separated` when two of
     the tile's planes or more cut it, its centre outside one. Compacts the arrays in place and
     returns how many pairs are left.
+    A unit the near plane cuts (and the far plane does not), in such a pyramid, is first
+    tested by the outline of its part in front of the near plane (:func:`_clipped_outline`),
+    and by the axes only if that finds no gap.
     Scratch: ``corners (tiles, 8, 3)`` and ``known (tiles,)``, each tile's frustum corners;
     ``axes (nodes, 6, 5)``, ``axis_count (nodes,)`` and ``known_unit (nodes,)``, each unit's
-    outline planes (:func:`_outline`); each computed when first needed."""
+    outline planes (:func:`_outline`; ``known_unit`` bit 1); ``clipped (nodes, _CLIPPED,
+    5)``, ``clipped_count`` and ``clipped_by (nodes,)``, the outline of its part in front of
+    near plane ``clipped_by`` (bit 2: a pair with that plane seen; bit 4: its outline made);
+    each computed when first needed."""
     h = np.empty(3)  # scratch of _separated
     u = np.empty((3, 3))
     local = np.empty((8, 3))
+    corner = np.empty((8, 4))  # scratch of _clipped_outline
+    rel = np.empty((_CLIPPED, 3))
+    img = np.empty((_CLIPPED, 2))
+    ring = np.empty(_CLIPPED + 1, np.int64)
     k = 0
     for j in range(count):
         i = nodes[j]
@@ -105,10 +127,27 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
             if cut and not known[t]:
                 known[t] = _frustum(planes, tile_rows, t, corners, eye)
             if cut == _SIDES and known[t] == _CONE:  # its outline decides (see the module)
-                if not known_unit[i]:
-                    known_unit[i] = 1
+                if not known_unit[i] & 1:
+                    known_unit[i] |= 1
                     axis_count[i] = _outline(box, i, eye, axes)
                 keep = not _outside(axes, axis_count, i, corners, t, eye, box)
+            elif cut == _DEPTH and known[t] == _CONE and _near_only(box, i, planes, tile_rows,
+                                                                    t):
+                # its outline in front of the near plane, from its second pair with that
+                # plane on (a unit with one, as on a CAVE's screens, is cheaper by the axes)
+                near = tile_rows[t, 4]
+                apart = False
+                if not (known_unit[i] & 6 and clipped_by[i] == near):
+                    known_unit[i] = (known_unit[i] & 1) | 2
+                    clipped_by[i] = near
+                else:
+                    if not known_unit[i] & 4:
+                        known_unit[i] |= 4
+                        clipped_count[i] = _clipped_outline(box, i, eye, planes, near, clipped,
+                                                            corner, rel, img, ring)
+                    apart = clipped_count[i] > 0 and _outside(clipped, clipped_count, i,
+                                                              corners, t, eye, box)
+                keep = not apart and not _separated(box, i, corners, t, h, u, local)
             elif cut and known[t] != _NONE:
                 keep = not _separated(box, i, corners, t, h, u, local)
         if keep:
@@ -378,6 +417,136 @@ def _edge_plane(box, i, eye, a, b, c, sa, sb, axes, n_axes) -> int:
         + box[i, 3] * size
     axes[i, n_axes, 4] = size
     return n_axes + 1
+
+
+@njit(cache=True, inline="always")
+def _near_only(box, i, planes, rows, t) -> bool:
+    """Whether tile ``t``'s near plane cuts bound ``i`` and its far plane does not."""
+    s, r = _offset(box, i, planes, rows[t, 4])
+    if not s < r:
+        return False
+    s, r = _offset(box, i, planes, rows[t, 5])
+    return not s < r
+
+
+@njit(cache=True, _nrt=False)
+def _clipped_outline(box, i, eye, planes, p, out, corner, rel, img, ring) -> int:
+    """Into ``out[i]``, as :func:`_outline`'s rows: the planes through ``eye`` and each edge of
+    the outline, seen from ``eye``, of the part of bound ``i`` (its box grown by its ball) in
+    front of plane ``p`` (inward normal; ``eye`` behind it: a pyramid's near plane). A frustum
+    from ``eye`` lies in front of its near plane, so it meets the bound only within that part,
+    and only inside these planes: each is moved out to the part's farthest vertex, so that
+    rounding in the outline can only make it looser. How many (0: none to be had, and the
+    caller falls back to the axes: the eye not behind the plane, a box flat to nothing, a
+    part flat or empty). Scratch: ``corner (8, 4)``, ``rel (_CLIPPED, 3)``, ``img (_CLIPPED,
+    2)``, ``ring (_CLIPPED + 1,)``."""
+    nx, ny, nz, nd = planes[p, 0], planes[p, 1], planes[p, 2], planes[p, 3]
+    length = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if not (length > 0.0 and nx * eye[0] + ny * eye[1] + nz * eye[2] + nd < 0.0):
+        return 0
+    nx, ny, nz, nd = nx / length, ny / length, nz / length, nd / length
+    for c in range(8):
+        for k in range(3):
+            corner[c, k] = box[i, k]
+    for a in range(3):
+        h = math.sqrt(box[i, 4 + 3 * a] ** 2 + box[i, 5 + 3 * a] ** 2 + box[i, 6 + 3 * a] ** 2)
+        if h == 0.0:
+            return 0
+        grow = 1.0 + box[i, 3] / h
+        for c in range(8):
+            sign = grow if c & (4 >> a) else -grow
+            for k in range(3):
+                corner[c, k] += sign * box[i, 4 + 3 * a + k]
+    for c in range(8):  # column 3: the distance in front of the plane
+        corner[c, 3] = nx * corner[c, 0] + ny * corner[c, 1] + nz * corner[c, 2] + nd
+    # the part's vertices, from the eye: the corners in front, and where edges cross the plane
+    m = 0
+    for c in range(8):
+        if corner[c, 3] >= 0.0:
+            for k in range(3):
+                rel[m, k] = corner[c, k] - eye[k]
+            m += 1
+    for e in range(12):
+        a, b = _EDGES[e, 0], _EDGES[e, 1]
+        if (corner[a, 3] >= 0.0) != (corner[b, 3] >= 0.0):
+            w = corner[a, 3] / (corner[a, 3] - corner[b, 3])
+            for k in range(3):
+                rel[m, k] = corner[a, k] + w * (corner[b, k] - corner[a, k]) - eye[k]
+            m += 1
+    if m < 3:
+        return 0
+    # their images on a plane parallel to p at unit distance from the eye, in a basis (u, v)
+    if abs(nx) < 0.9:
+        ux, uy, uz = 0.0, nz, -ny
+    else:
+        ux, uy, uz = -nz, 0.0, nx
+    ul = math.sqrt(ux * ux + uy * uy + uz * uz)
+    ux, uy, uz = ux / ul, uy / ul, uz / ul
+    vx, vy, vz = ny * uz - nz * uy, nz * ux - nx * uz, nx * uy - ny * ux  # n x u
+    for q in range(m):
+        depth = nx * rel[q, 0] + ny * rel[q, 1] + nz * rel[q, 2]
+        if not depth > 0.0:
+            return 0
+        img[q, 0] = (ux * rel[q, 0] + uy * rel[q, 1] + uz * rel[q, 2]) / depth
+        img[q, 1] = (vx * rel[q, 0] + vy * rel[q, 1] + vz * rel[q, 2]) / depth
+    n_ring = _wrap(img, m, ring)
+    if n_ring < 3:
+        return 0
+    for h in range(n_ring):  # counter-clockwise: the inside on the left of each edge
+        a, b = ring[h], ring[h + 1]
+        ax = img[a, 0] * ux + img[a, 1] * vx + nx
+        ay = img[a, 0] * uy + img[a, 1] * vy + ny
+        az = img[a, 0] * uz + img[a, 1] * vz + nz
+        bx = img[b, 0] * ux + img[b, 1] * vx + nx
+        by = img[b, 0] * uy + img[b, 1] * vy + ny
+        bz = img[b, 0] * uz + img[b, 1] * vz + nz
+        ox, oy, oz = by * az - bz * ay, bz * ax - bx * az, bx * ay - by * ax  # b x a: outward
+        size = abs(ox) + abs(oy) + abs(oz)
+        if not size > 0.0:
+            return 0
+        reach = 0.0  # the part's support past the plane (about 0: rounding)
+        for q in range(m):
+            reach = max(reach, ox * rel[q, 0] + oy * rel[q, 1] + oz * rel[q, 2])
+        out[i, h, 0], out[i, h, 1], out[i, h, 2] = ox, oy, oz
+        out[i, h, 3] = ox * eye[0] + oy * eye[1] + oz * eye[2] + reach
+        out[i, h, 4] = size
+    return n_ring
+
+
+@njit(cache=True, _nrt=False)
+def _wrap(img, m, ring) -> int:
+    """The convex hull of points ``img[:m]``, counter-clockwise, by gift wrapping: its
+    vertices into ``ring`` (the first again at the end); how many (fewer than 3: no area, or
+    no closed ring in ``m`` steps)."""
+    first = 0
+    for q in range(1, m):
+        if img[q, 0] < img[first, 0] or (img[q, 0] == img[first, 0]
+                                          and img[q, 1] < img[first, 1]):
+            first = q
+    n = 0
+    here = first
+    while n < m:
+        ring[n] = here
+        n += 1
+        best = -1
+        for q in range(m):
+            if q == here:
+                continue
+            if best < 0:
+                best = q
+                continue
+            cross = ((img[best, 0] - img[here, 0]) * (img[q, 1] - img[here, 1])
+                     - (img[best, 1] - img[here, 1]) * (img[q, 0] - img[here, 0]))
+            if cross < 0.0 or (cross == 0.0 and (img[q, 0] - img[here, 0]) ** 2
+                               + (img[q, 1] - img[here, 1]) ** 2
+                               > (img[best, 0] - img[here, 0]) ** 2
+                               + (img[best, 1] - img[here, 1]) ** 2):
+                best = q  # q lies right of here -> best (or on it, farther): it is next
+        if best < 0 or best == first:
+            ring[n] = first
+            return n
+        here = best
+    return 0
 
 
 @njit(cache=True, inline="always")
