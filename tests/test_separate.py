@@ -12,7 +12,7 @@ from wallcull import oracle
 from wallcull.cull import RECORD
 from wallcull.separate import _CLIPPED, _CONE, _DEPTH, _OTHER, _SIDES, _clipped_outline
 from wallcull.separate import _corners as _corners_into, _frustum, _near_only, _outline
-from wallcull.separate import _outside, _undecided, _wrap
+from wallcull.separate import _outside, _undecided
 from wallcull.separate import _separated as _separated_into
 
 from .randscene import random_wall
@@ -43,7 +43,7 @@ def _apart_by_clipped_outline(box, eye, planes, corners) -> bool:
     axes = np.empty((1, _CLIPPED, 5))
     count = np.array([_clipped_outline(
         box, 0, np.asarray(eye, float), planes, 4, axes, np.empty((8, 4)),
-        np.empty((_CLIPPED, 3)), np.empty((_CLIPPED, 2)), np.empty(_CLIPPED + 1, np.int64))])
+        np.empty((_CLIPPED, 3)), np.empty((_CLIPPED, 2)))])
     return bool(count[0]) and _outside(axes, count, 0, corners[None], 0, np.asarray(eye, float),
                                        box)
 
@@ -161,8 +161,8 @@ def test_a_box_apart_by_the_outline_of_its_part_in_front_never_meets_the_frustum
 
 def test_the_outline_of_the_part_in_front_finds_the_separations():
     """Of the boxes the near plane cuts that are apart from the frustum, the outline of their
-    part in front of it finds all but a few (apart along a side of the tile's rectangle, which
-    the axes then find), and never one that meets the frustum."""
+    part in front of it finds all but a few (the axes then find them), and never one that meets
+    the frustum."""
     apart = found = meet = 0
     for seed in range(6000):
         case = _cut_by_near(seed)
@@ -176,28 +176,6 @@ def test_the_outline_of_the_part_in_front_finds_the_separations():
             apart += 1
             found += _apart_by_clipped_outline(box, eye, planes, corners)
     assert apart > 200 and meet > 200 and found >= 0.99 * apart
-
-
-@settings(max_examples=200, deadline=None)
-@given(points=st.lists(st.tuples(st.floats(-10, 10), st.floats(-10, 10)), min_size=3,
-                       max_size=_CLIPPED))
-def test_gift_wrapping_rings_every_point(points):
-    """The outline's hull: its vertices are input points, counter-clockwise, and every point
-    lies on or inside each of its edges (or there is no ring: the points span no area)."""
-    img = np.array(points, float)
-    ring = np.empty(_CLIPPED + 1, np.int64)
-    n = _wrap(img, len(img), ring)
-    scale = np.abs(img).max() + 1
-    d = img - img[0]
-    span = np.abs(d[:, None, 0] * d[None, :, 1] - d[:, None, 1] * d[None, :, 0]).max()
-    if n < 3:
-        assert span <= 1e-6 * scale * scale  # no ring only for points that span no area
-        return
-    assert ring[n] == ring[0] and len(set(ring[:n].tolist())) == n
-    for k in range(n):
-        a, b = img[ring[k]], img[ring[k + 1]]
-        cross = (b[0] - a[0]) * (img[:, 1] - a[1]) - (b[1] - a[1]) * (img[:, 0] - a[0])
-        assert (cross >= -1e-9 * scale * scale).all()
 
 
 def test_the_cases_above_are_not_vacuous():

@@ -37,6 +37,7 @@ import numpy as np
 from numba import njit
 
 from . import workers
+from .quad import _hull
 
 #: A gap along an axis separates only beyond this share of the coordinates' magnitude.
 MARGIN = 1e-9
@@ -116,7 +117,6 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     corner = np.empty((8, 4))  # scratch of _clipped_outline
     rel = np.empty((_CLIPPED, 3))
     img = np.empty((_CLIPPED, 2))
-    ring = np.empty(_CLIPPED + 1, np.int64)
     k = 0
     for j in range(count):
         i = nodes[j]
@@ -144,7 +144,7 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
                     if not known_unit[i] & 4:
                         known_unit[i] |= 4
                         clipped_count[i] = _clipped_outline(box, i, eye, planes, near, clipped,
-                                                            corner, rel, img, ring)
+                                                            corner, rel, img)
                     apart = clipped_count[i] > 0 and _outside(clipped, clipped_count, i,
                                                               corners, t, eye, box)
                 keep = not apart and not _separated(box, i, corners, t, h, u, local)
@@ -429,8 +429,8 @@ def _near_only(box, i, planes, rows, t) -> bool:
     return not s < r
 
 
-@njit(cache=True, _nrt=False)
-def _clipped_outline(box, i, eye, planes, p, out, corner, rel, img, ring) -> int:
+@njit(cache=True)
+def _clipped_outline(box, i, eye, planes, p, out, corner, rel, img) -> int:
     """Into ``out[i]``, as :func:`_outline`'s rows: the planes through ``eye`` and each edge of
     the outline, seen from ``eye``, of the part of bound ``i`` (its box grown by its ball) in
     front of plane ``p`` (inward normal; ``eye`` behind it: a pyramid's near plane). A frustum
@@ -439,7 +439,7 @@ def _clipped_outline(box, i, eye, planes, p, out, corner, rel, img, ring) -> int
     rounding in the outline can only make it looser. How many (0: none to be had, and the
     caller falls back to the axes: the eye not behind the plane, a box flat to nothing, a
     part flat or empty). Scratch: ``corner (8, 4)``, ``rel (_CLIPPED, 3)``, ``img (_CLIPPED,
-    2)``, ``ring (_CLIPPED + 1,)``."""
+    2)``."""
     nx, ny, nz, nd = planes[p, 0], planes[p, 1], planes[p, 2], planes[p, 3]
     length = math.sqrt(nx * nx + ny * ny + nz * nz)
     if not (length > 0.0 and nx * eye[0] + ny * eye[1] + nz * eye[2] + nd < 0.0):
@@ -489,11 +489,12 @@ def _clipped_outline(box, i, eye, planes, p, out, corner, rel, img, ring) -> int
             return 0
         img[q, 0] = (ux * rel[q, 0] + uy * rel[q, 1] + uz * rel[q, 2]) / depth
         img[q, 1] = (vx * rel[q, 0] + vy * rel[q, 1] + vz * rel[q, 2]) / depth
-    n_ring = _wrap(img, m, ring)
-    if n_ring < 3:
+    hull = _hull(img[:m])
+    n_hull = hull.shape[0]
+    if n_hull < 3:
         return 0
-    for h in range(n_ring):  # counter-clockwise: the inside on the left of each edge
-        a, b = ring[h], ring[h + 1]
+    for h in range(n_hull):  # counter-clockwise: the inside on the left of each edge
+        a, b = hull[h], hull[(h + 1) % n_hull]
         ax = img[a, 0] * ux + img[a, 1] * vx + nx
         ay = img[a, 0] * uy + img[a, 1] * vy + ny
         az = img[a, 0] * uz + img[a, 1] * vz + nz
@@ -510,43 +511,7 @@ def _clipped_outline(box, i, eye, planes, p, out, corner, rel, img, ring) -> int
         out[i, h, 0], out[i, h, 1], out[i, h, 2] = ox, oy, oz
         out[i, h, 3] = ox * eye[0] + oy * eye[1] + oz * eye[2] + reach
         out[i, h, 4] = size
-    return n_ring
-
-
-@njit(cache=True, _nrt=False)
-def _wrap(img, m, ring) -> int:
-    """The convex hull of points ``img[:m]``, counter-clockwise, by gift wrapping: its
-    vertices into ``ring`` (the first again at the end); how many (fewer than 3: no area, or
-    no closed ring in ``m`` steps)."""
-    first = 0
-    for q in range(1, m):
-        if img[q, 0] < img[first, 0] or (img[q, 0] == img[first, 0]
-                                          and img[q, 1] < img[first, 1]):
-            first = q
-    n = 0
-    here = first
-    while n < m:
-        ring[n] = here
-        n += 1
-        best = -1
-        for q in range(m):
-            if q == here:
-                continue
-            if best < 0:
-                best = q
-                continue
-            cross = ((img[best, 0] - img[here, 0]) * (img[q, 1] - img[here, 1])
-                     - (img[best, 1] - img[here, 1]) * (img[q, 0] - img[here, 0]))
-            if cross < 0.0 or (cross == 0.0 and (img[q, 0] - img[here, 0]) ** 2
-                               + (img[q, 1] - img[here, 1]) ** 2
-                               > (img[best, 0] - img[here, 0]) ** 2
-                               + (img[best, 1] - img[here, 1]) ** 2):
-                best = q  # q lies right of here -> best (or on it, farther): it is next
-        if best < 0 or best == first:
-            ring[n] = first
-            return n
-        here = best
-    return 0
+    return n_hull
 
 
 @njit(cache=True, inline="always")
