@@ -40,7 +40,7 @@ from numba import njit
 from . import lowilie, workers
 from . import settings as cfg
 from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
-from .projection import look_at, mirrored_views, rigid_inverse, view_matrix
+from .projection import look_at, mirrored_views, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, matrix_quaternion
 

@@ -117,7 +117,7 @@ def run(task: Callable[[int, int, int], object], ranges: Sequence[tuple[int, int
     taken = itertools.count()  # next() of a count is atomic under the interpreter's lock
 
     def work():
-        for k in iter(taken.__next__, None):
+        for k in taken:
             if k >= len(ranges):
                 return
             results[k] = task(k, *ranges[k])
