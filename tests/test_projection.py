@@ -431,7 +431,8 @@ def test_mirrored_views_is_the_reflected_view_and_the_oblique_projection():
         scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
         assert (np.abs(oblique - expected) <= 1e-9 * scale).all()
     assert 0 in seen and len(seen) > 1  # matrices made, and refused
-    bad = projections.copy()
-    bad[3, 3, 3] = 1.0
-    with pytest.raises(ValueError, match="row 4"):
-        mirrored_views(views, bad, reflection, plane)
+    for wrong in (1.0, np.nan):
+        bad = projections.copy()
+        bad[3, 3, 3] = wrong
+        with pytest.raises(ValueError, match="row 4"):
+            mirrored_views(views, bad, reflection, plane)

@@ -354,8 +354,7 @@ def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
     1 (through the camera), 2 (camera on the visible side) or 3 (clips everything), as
     :class:`ClipPlaneError`'s reasons; those rows are left as they were."""
     m = np.asarray(projections, dtype=np.float64)
-    if m.ndim != 3 or m.shape[1:] != (4, 4) or \
-            not (np.abs(m[:, 3] - (0.0, 0.0, -1.0, 0.0)) <= 1e-12).all():
+    if m.ndim != 3 or m.shape[1:] != (4, 4) or not _perspective(m):
         raise ValueError("oblique_near needs a perspective projection with row 4 = (0, 0, -1, 0)")
     c = np.asarray(clip_plane, np.float64)  # checked before it is repeated for every matrix
     if not (np.isfinite(c).all() and (np.linalg.norm(c[..., :3], axis=-1) > 0).all()):
@@ -394,15 +393,24 @@ def mirrored_views(views: np.ndarray, projections: np.ndarray, reflection: np.nd
 
 
 @njit(cache=True, nogil=True)
+def _perspective(projections) -> bool:
+    """Whether every matrix of ``projections (k, 4, 4)`` has the fourth row ``(0, 0, -1, 0)``
+    (within 1e-12; not NaN) that :func:`oblique_near` needs."""
+    for t in range(projections.shape[0]):
+        m = projections[t]
+        if not (abs(m[3, 0]) <= 1e-12 and abs(m[3, 1]) <= 1e-12 and abs(m[3, 2] + 1.0) <= 1e-12
+                and abs(m[3, 3]) <= 1e-12):
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def _mirrored(views, projections, reflection, plane, rtol, out_views, oblique, reason):
     """The body of :func:`mirrored_views` (``views (1 or k, 4, 4)``); False if a projection's
     fourth row is not ``(0, 0, -1, 0)``."""
+    if not _perspective(projections):
+        return False
     k = projections.shape[0]
-    for t in range(k):
-        m = projections[t]
-        if abs(m[3, 0]) > 1e-12 or abs(m[3, 1]) > 1e-12 or abs(m[3, 2] + 1.0) > 1e-12 \
-                or abs(m[3, 3]) > 1e-12:
-            return False
     for t in range(views.shape[0]):
         v = views[t]
         for i in range(4):
