@@ -317,6 +317,30 @@ def test_lights_fitted_together_as_each_alone(monkeypatch):
     assert any(len(c) == 3 for c in casters)  # each light's own casters
 
 
+def test_casters_that_overflow_their_room_are_culled_again(monkeypatch):
+    """A part of the shadow pass whose casters do not fit in its output runs again with twice
+    the room, until they do: the same fits as with room enough from the start."""
+    from wallcull.cull import _Buffers
+
+    lit = {"lights": [{"name": "sun", "position": [12.0, 25.0, 8.0]},
+                      {"name": "lamp", "position": [0, 0.5, 0]}]}
+    _, roomy = fitted(lit_scene(), lit)
+    monkeypatch.setattr(fitmod, "CASTERS", 1)
+    monkeypatch.setenv("WALLCULL_THREADS", "1")  # one part: the buffers seeded below
+    scene = lit_scene()
+    scene.settings = lit
+    wall = Wall.from_dict(WALL)
+    session = Session(scene, wall, fit=FitOptions())
+    tight = _Buffers()
+    tight.arrays.update(out_n=np.empty(1, np.int64), out_t=np.empty(1, np.int64))
+    session.state.__dict__["_shadow_buffers"] = [tight]
+    result = session.frame(FRAME)
+    assert len(tight.arrays["out_n"]) > 1  # it did overflow, and grew
+    fits = [result.fits[t] for t in range(wall.tiles)]
+    assert fits == [roomy.fits[t] for t in range(wall.tiles)]
+    assert sum(len(s["casters"]) for tile in fits for s in tile.get("shadows", [])) > 0
+
+
 def test_eye_behind_mirror_sees_nothing_in_it():
     scene = lit_scene()
     below = {"position": [0, -5, 30], "orientation": [1, 0, 0, 0]}

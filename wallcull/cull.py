@@ -1396,6 +1396,17 @@ class Regions:
         return leaf_lists(self.scene, self.start, self.nodes)
 
 
+def stack_depth(state: SceneState) -> int:
+    """The deepest a depth-first traversal of the scene's hierarchy gets (its stack's size;
+    kept on ``state``)."""
+    depth = state.__dict__.get("_stack_depth")
+    if depth is None:
+        scene = state.scene
+        depth = state.__dict__["_stack_depth"] = \
+            (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
+    return depth
+
+
 def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarray,
                  region_size: np.ndarray | None = None, work: np.ndarray | None = None
                  ) -> Regions:
@@ -1418,10 +1429,7 @@ def cull_regions(state: SceneState, planes: np.ndarray, region_planes: np.ndarra
     scene = state.scene
     box = packed(state)
     force = (np.int64(1) << region_size) - 1
-    stack = state.__dict__.get("_region_stack")
-    if stack is None:  # the deepest a depth-first traversal's stack gets
-        stack = state.__dict__["_region_stack"] = \
-            (int(scene.depth.max()) + 2) * int(scene.child_count.max()) + 1
+    stack = stack_depth(state)
     root = np.zeros(1, np.int64)
     ranges = workers.chunks(count, work, per_thread=workers.SPLIT)
     pool = state.__dict__.setdefault("_region_buffers", [])  # kept: outputs grow once

@@ -18,10 +18,11 @@ Per tile and frame:
   near plane at the mirror, and the leaves culled against the reflected frustum (bounded by the
   mirror's outline when it has one).
 
-Every tile of a frame is fitted at once: one compiled Low-Ilie pass over all lights and tiles
-(:func:`wallcull.lowilie.fit_lights`), one object-hierarchy pass over every light's and
-tile's caster region (:func:`wallcull.cull.cull_regions`), and per mirror the wall's own cull
-of the reflected frusta, run beside the lights' passes. The results stay arrays
+Every tile of a frame is fitted at once: one pass over all lights and tiles, split among
+threads, each part one compiled call that fits its tiles' Low-Ilie frusta, culls their casters
+(the object hierarchy against each caster region) and pulls their near planes in
+(:func:`shadow_sets`); and per mirror the wall's own cull of the reflected frusta, run beside
+the lights' pass. The results stay arrays
 (:class:`Fits`, :class:`ShadowSet`, :class:`MirrorSet`) that read as per-tile dicts. Lists are
 leaf ids, as in packets. A scene without lights or mirrors never reaches the code for them.
 """
@@ -39,7 +40,8 @@ from numba import njit
 
 from . import lowilie, workers
 from . import settings as cfg
-from .cull import Culler, Visibility, cull_regions, depth_ranges as node_depths, farthest
+from .cull import (_R_SPHERE, Culler, Visibility, _Buffers, _depth_ranges, _expand, _oh,
+                   depth_ranges as node_depths, packed, stack_depth)
 from .projection import look_at, mirrored_views, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, matrix_quaternion
@@ -241,66 +243,76 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     light and the receivers shade them: they are culled against the frustum's side and far
     planes (not its near plane), and the near plane is then pulled in to the nearest caster.
     A tile whose receivers no single frustum from the light holds (the light is among them)
-    gets a cube map, with the casters in the cube around the light. All lights' fits are one
-    pass, and all their caster regions another: each pass split among threads once."""
+    gets a cube map, with the casters in the cube around the light.
+
+    Each tile's shadow is independent of the others', so it is one pass over every light's
+    tiles, split among threads once (:mod:`wallcull.workers`, by receivers): in each part one
+    compiled call fits the tiles' frusta, culls their casters and pulls their near planes in
+    (:func:`_shadow_part`). Only the parts' caster lists are joined afterwards."""
     if not lights:
         return []
-    spots = [(light.direction, math.cos(math.radians(light.angle)))
-             if light.kind == "spot" else None for light in lights]
-    fits = lowilie.fit_lights([light.position for light in lights], state.bounds,
-                              visibility.start, visibility.nodes,
-                              [light.resolution for light in lights], effort, spots)
-    shaded, caster_regions, out = [], [], []
-    for k, light in enumerate(lights):
-        kind = _KIND_OF_STATUS[fits["status"][k]]
-        view, projection = fits["view"][k], fits["projection"][k]
-        near, far = fits["near"][k], fits["far"][k]
-        cubes = np.flatnonzero(kind == CUBE)  # the light among the receivers: a cube map
-        if len(cubes):
-            far[cubes] = farthest(state, visibility.start, visibility.nodes,
-                                  light.position)[cubes] * (1 + 1e-6)
-            near[cubes] = far[cubes] * 1e-4
-            projection[cubes] = 0.0
-            projection[cubes, 0, 0] = projection[cubes, 1, 1] = 1.0
-            projection[cubes, 3, 2] = -1.0
-        # each tile's caster region: the fitted frustum's side and far planes (rows of
-        # projection @ view, Gribb-Hartmann), or the cube around the light
-        lit = np.flatnonzero(kind)
-        caster_regions.append(_caster_regions(projection[lit] @ view[lit], kind, lit, far,
-                                              np.asarray(light.position, np.float64),
-                                              visibility.start))
-        shaded.append(lit)
-        cube_views = _cube_views(tuple(light.position)) if len(cubes) else None
-        out.append(ShadowSet(light, kind, view, projection, near, far, fits["coverage"][k],
-                             None, None, cube_views))
-    # one culling pass for every light's regions, one depth pass for their nearest casters
-    planes, regions, sizes, work = _joined(caster_regions)
-    culled = cull_regions(state, planes, regions, sizes, work)
-    forward = np.concatenate([-s.view[lit, 2, :3] for s, lit in zip(out, shaded)])
-    origin = np.repeat([light.position for light in lights], [len(lit) for lit in shaded], axis=0)
-    lo, _ = node_depths(state, culled.start, culled.nodes, forward, origin, (np.nan, np.nan))
-    start, leaves = culled.leaf_lists()
-    first = 0
-    for s, lit in zip(out, shaded):
-        last = first + len(lit)
-        _pull_near(lo[first:last], s.kind, lit, s.near, s.far, s.projection)
-        mine = start[first:last + 1]
-        s.casters_start = _spread(mine - mine[0], lit, len(s.kind))
-        s.casters = leaves[mine[0]:mine[-1]]
-        first = last
+    if effort not in lowilie.EFFORTS:
+        raise ValueError(f"effort must be one of {', '.join(lowilie.EFFORTS)}, got {effort!r}")
+    count, tiles = len(lights), len(visibility.start) - 1
+    b, scene, box = state.bounds, state.scene, packed(state)
+    leaf_start, leaf_count = scene.leaf_range
+    start, nodes = visibility.start, visibility.nodes
+    status = np.zeros((count, tiles), np.int64)
+    kind, casters = np.zeros((count, tiles), np.int64), np.zeros((count, tiles), np.int64)
+    view, projection = np.zeros((count, tiles, 4, 4)), np.zeros((count, tiles, 4, 4))
+    near, far, coverage = (np.zeros((count, tiles)) for _ in range(3))
+    # every light's tiles one after the other, split by their receivers
+    total = start[-1] - start[0]
+    work = np.append((start[:-1] - start[0] + total * np.arange(count)[:, None]).ravel(),
+                     total * count)
+    stack = stack_depth(state)
+    ranges = workers.chunks(count * tiles, work, per_thread=workers.SPLIT)
+    pool = state.__dict__.setdefault("_shadow_buffers", [])  # kept: outputs grow once
+    pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
+    efforts = lowilie.EFFORTS.index(effort)
+
+    def part(k, a, z):  # tiles [a, z) of the lights' sequence
+        buf, leaves = pool[k], []
+        for j in range(a // tiles, (z - 1) // tiles + 1):
+            lo, hi = max(a - j * tiles, 0), min(z - j * tiles, tiles)
+            light = lights[j]
+            spot = light.kind == "spot"
+            while True:
+                got = _shadow_part(
+                    np.asarray(light.position, np.float64), float(light.resolution[0]),
+                    float(light.resolution[1]), efforts, spot,
+                    np.asarray(light.direction if spot else (0.0, 0.0, 0.0), np.float64),
+                    math.cos(math.radians(light.angle)) if spot else 1.0,
+                    b.center, b.axes, b.half, b.radius, start[lo:hi + 1], nodes, box,
+                    scene.child_start, scene.leaf_child_count, scene.children, leaf_start,
+                    leaf_count, scene.leaves, scene.cluster_leaf, view[j, lo:hi],
+                    projection[j, lo:hi], near[j, lo:hi], far[j, lo:hi], coverage[j, lo:hi],
+                    status[j, lo:hi], kind[j, lo:hi], casters[j, lo:hi],
+                    buf.get("stack_n", stack), buf.get("stack_m", stack),
+                    buf.get("out_n", CASTERS), buf.get("out_t", CASTERS))
+                if got is not None:
+                    break
+                for name in ("out_n", "out_t"):  # the casters overflowed: again, with room
+                    buf.arrays[name] = np.empty(2 * len(buf.arrays[name]), np.int64)
+            leaves.append(got)
+        return leaves
+
+    parts = workers.run(part, ranges)
+    leaves = np.concatenate([a for p in parts for a in p]) if parts else np.zeros(0, np.int64)
+    edges = np.concatenate([[0], np.cumsum(casters.ravel())])
+    out = []
+    for j, light in enumerate(lights):
+        first = edges[j * tiles:(j + 1) * tiles + 1]
+        cube_views = _cube_views(tuple(light.position)) if (kind[j] == CUBE).any() else None
+        out.append(ShadowSet(light, kind[j], view[j], projection[j], near[j], far[j],
+                             coverage[j], first - first[0], leaves[first[0]:first[-1]],
+                             cube_views))
     return out
 
 
-def _joined(parts: list) -> tuple:
-    """Several lights' :func:`_caster_regions` as one set of regions (in order)."""
-    planes = np.concatenate([p[0] for p in parts])
-    base = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
-    regions = np.concatenate([p[1] + b for p, b in zip(parts, base)])
-    sizes = np.concatenate([p[2] for p in parts])
-    done = np.cumsum([0] + [p[3][-1] for p in parts[:-1]])  # each light's costs after the last's
-    work = np.concatenate([[0]] + [p[3][1:] + d for p, d in zip(parts, done)])
-    return planes, regions, sizes, work
-
+#: Caster pairs (node, tile) a part of :func:`shadow_sets` has room for at first: doubled
+#: while they overflow, and kept from frame to frame.
+CASTERS = 4096
 
 #: A fit's status (:mod:`wallcull.lowilie`) to the kind of shadow it gives: ``OK`` a frustum,
 #: ``EMPTY`` and ``UNLIT`` none, any other (no single frustum holds the receivers) a cube map.
@@ -308,20 +320,83 @@ _KIND_OF_STATUS = np.full(lowilie.BAD_DEPTH + 1, CUBE, np.int64)
 _KIND_OF_STATUS[[lowilie.OK, lowilie.EMPTY, lowilie.UNLIT]] = FRUSTUM, NONE, NONE
 
 
+@njit(cache=True, nogil=True)
+def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center, axes, half,
+                 radius, start, nodes, box, child_start, child_count, children, leaf_start,
+                 leaf_count, leaves, cluster_leaf, view, projection, near, far, coverage,
+                 status, kind, casters, stack_n, stack_m, out_n, out_t):
+    """One light's shadows for a run of tiles (receivers ``nodes[start[t]:start[t + 1]]``),
+    written into its rows of the frame's arrays: the Low-Ilie fits, a cube map where none
+    holds the receivers, the caster culls (the ``oh`` kernel, ``out_n``/``out_t`` its room),
+    each frustum's near plane pulled in to its nearest caster, and ``casters[t]``, how many
+    leaves each tile's casters are. Returns those leaves, tile after tile (sorted in each), or
+    None when the casters did not fit in ``out_n`` (nothing is then complete)."""
+    n = start.shape[0] - 1
+    lowilie._fit_boxes(light, center, axes, half, radius, start, nodes, width, height, effort,
+                       spot, spot_dir, spot_cos, view, projection, near, far, coverage, status)
+    shaded = 0
+    for t in range(n):
+        kind[t] = _KIND_OF_STATUS[status[t]]
+        shaded += kind[t] != NONE
+    lit = np.empty(shaded, np.int64)
+    shaded = 0
+    for t in range(n):
+        if kind[t] != NONE:
+            lit[shaded] = t
+            shaded += 1
+        if kind[t] == CUBE:  # the light among the receivers: a cube map
+            reach = 0.0
+            for j in range(start[t], start[t + 1]):
+                i = nodes[j]
+                reach = max(reach, math.sqrt((box[i, 0] - light[0]) ** 2 + (box[i, 1] - light[1])
+                                             ** 2 + (box[i, 2] - light[2]) ** 2) + box[i, _R_SPHERE])
+            far[t] = reach * (1 + 1e-6)
+            near[t] = far[t] * 1e-4
+            projection[t] = 0.0
+            projection[t, 0, 0] = projection[t, 1, 1] = 1.0
+            projection[t, 3, 2] = -1.0
+    # each tile's caster region: the fitted frustum's side and far planes (rows of
+    # projection @ view, Gribb-Hartmann), or the cube around the light
+    pv = np.zeros((shaded, 4, 4))
+    forward = np.empty((shaded, 3))
+    for k in range(shaded):
+        t = lit[k]
+        pv[k] = np.dot(projection[t], view[t])
+        for a in range(3):
+            forward[k, a] = -view[t, 2, a]
+    planes, regions, sizes = _caster_regions(pv, kind, lit, far, light)
+    root = np.zeros(1, np.int64)
+    pairs, _ = _oh(root, root, child_start, child_count, children, box, planes, regions, sizes,
+                   (np.int64(1) << sizes) - 1, np.zeros(shaded, np.int64), stack_n, stack_m,
+                   out_n, out_t)
+    if pairs < 0:
+        return None
+    culled = np.zeros(shaded + 1, np.int64)  # the pairs come region after region
+    for j in range(pairs):
+        culled[out_t[j] + 1] += 1
+    for k in range(shaded):
+        culled[k + 1] += culled[k]
+    lo, _ = _depth_ranges(culled, out_n, box, forward, light.reshape(1, 3), np.nan, np.nan)
+    _pull_near(lo, kind, lit, near, far, projection)
+    first, out = _expand(culled, out_n, leaf_start, leaf_count, leaves, cluster_leaf)
+    casters[:] = 0
+    for k in range(shaded):
+        casters[lit[k]] = first[k + 1] - first[k]
+    return out
+
+
 @njit(cache=True)
-def _caster_regions(pv, kind, shaded, far, light, start):
-    """The caster regions of the ``shaded`` tiles, as :func:`~wallcull.cull.cull_regions`
-    takes them: six plane rows each (inward unit normals; a frustum uses its first five, its
-    side and far planes from ``pv``, the rows of projection @ view; a cube map all six, the
-    cube of half-width ``far`` around the light), and each tile's receivers as its cost."""
+def _caster_regions(pv, kind, shaded, far, light):
+    """The caster regions of the ``shaded`` tiles, as the ``oh`` kernel takes them: six plane
+    rows each (inward unit normals; a frustum uses its first five, its side and far planes from
+    ``pv``, the rows of projection @ view; a cube map all six, the cube of half-width ``far``
+    around the light)."""
     n = shaded.shape[0]
     planes = np.zeros((6 * n, 4))
     regions = np.arange(6 * n).reshape(n, 6)
     sizes = np.empty(n, np.int64)
-    work = np.zeros(n + 1, np.int64)
     for k in range(n):
         t = shaded[k]
-        work[k + 1] = work[k] + start[t + 1] - start[t]
         rows = planes[6 * k:6 * k + 6]
         if kind[t] == CUBE:
             sizes[k] = 6
@@ -339,7 +414,7 @@ def _caster_regions(pv, kind, shaded, far, light, start):
                                  + rows[p, 2] * rows[p, 2]), 1e-300)
             for j in range(4):
                 rows[p, j] /= norm
-    return planes, regions, sizes, work
+    return planes, regions, sizes
 
 
 @njit(cache=True)
@@ -355,19 +430,6 @@ def _pull_near(lo, kind, shaded, near, far, projection):
         n = near[t]
         projection[t, 2, 2] = -(f + n) / (f - n)
         projection[t, 2, 3] = -2 * f * n / (f - n)
-
-
-@njit(cache=True)
-def _spread(start, shaded, tiles):
-    """CSR ``start`` over the ``shaded`` tiles, spread over all ``tiles`` (the others empty)."""
-    out = np.zeros(tiles + 1, np.int64)
-    k = 0
-    for t in range(tiles):
-        out[t + 1] = out[t]
-        if k < shaded.shape[0] and shaded[k] == t:
-            out[t + 1] += start[k + 1] - start[k]
-            k += 1
-    return out
 
 
 @lru_cache(maxsize=64)
