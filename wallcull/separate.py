@@ -87,9 +87,9 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
         kept = chunk(0, 0, count)
         return nodes[:kept], regions[:kept]
     ranges = [(count * k // parts, count * (k + 1) // parts) for k in range(parts)]
-    ends = workers.run(chunk, ranges)
-    keep = np.concatenate([np.arange(a, end) for (a, _), end in zip(ranges, ends)])
-    return nodes[keep], regions[keep]
+    ends = workers.run(chunk, ranges)  # each chunk's kept pairs at its start: copied as runs
+    return (np.concatenate([nodes[a:end] for (a, _), end in zip(ranges, ends)]),
+            np.concatenate([regions[a:end] for (a, _), end in zip(ranges, ends)]))
 
 
 @njit(cache=True, nogil=True)
