@@ -104,6 +104,9 @@ FINE = 0.125
 #: least this many box-plane tests (about a millisecond; below it a thread costs more than it
 #: saves).
 PARALLEL_TESTS = 100_000
+#: ... its hierarchy cut into this many subtrees a thread, dealt out to the threads each frame
+#: by what their tiles listed the frame before (:class:`_Split`).
+SUBTREES = 4
 
 _OUT, _CUTS, _FULL = 0, 1, 2
 
@@ -1117,15 +1120,17 @@ class Culler:
         height = int(scene.depth.max()) + wall.hierarchy.height + 2
         self._depth_bound = height * max(int(scene.child_count.max()), 2)
         self._everywhere = np.ones(len(self._fh), np.uint8)
-        self._parts = _fh_parts(self._fh, workers.count())
-        self._buffers = [_Buffers() for _ in range(max(1, len(self._parts)))]
+        self._split = _Split(self._fh, workers.count())
+        self._buffers = [_Buffers() for _ in range(max(1, self._split.threads))]
         self._last_tests = 0
+        self._last_pairs = None  # each tile's pairs in the last frame (balances the threads)
 
     def _run_adaptive(self, args, stack):
         """``adaptive`` over the whole frustum hierarchy, or, when the last frame took at least
         ``PARALLEL_TESTS`` tests, over its parts in threads at once (their tiles are disjoint,
         so the pairs are those of one call, each tile's in the same order)."""
-        parts = self._parts if self._last_tests >= PARALLEL_TESTS else []
+        parts = self._split.parts(self._last_pairs) if self._last_tests >= PARALLEL_TESTS \
+            else []
 
         def task(k, *_):
             buf = self._buffers[k]
@@ -1242,6 +1247,8 @@ class Culler:
         kept = len(nodes)
         t2 = time.perf_counter()
         start, ordered = _by_region(nodes, tiles, wall.tiles)
+        if reflection is None:  # how the frame's next cull deals its threads
+            self._last_pairs = np.diff(start)
         t3 = time.perf_counter()
         return Visibility(self.state.scene, start, ordered, {
             "method": self.method, "roots": int(count), "primary_tests": int(primary_tests),
@@ -1297,51 +1304,66 @@ def _merge_lists(start_a, nodes_a, start_b, nodes_b, size):
     return out_start, out[:k]
 
 
-def _fh_parts(table: np.ndarray, threads: int) -> list[np.ndarray]:
-    """The frustum hierarchy in up to ``threads`` parts of disjoint tiles, for ``adaptive`` in
-    threads: each part's flags per frustum node (its subtrees and their ancestors). The
-    hierarchy is cut level by level until it has ``threads`` subtrees, and these are dealt out
-    by tile count, largest first to the lightest part. No parts for one thread."""
-    n = len(table)
-    if threads < 2 or n < 3:
-        return []
-    first, second = table[:, _FIRST], table[:, _SECOND]
-    parent = np.full(n, -1)
-    inner = table[:, _TILE] < 0
-    parent[first[inner]] = np.flatnonzero(inner)
-    parent[second[inner]] = np.flatnonzero(inner)
-    order = [0]  # breadth first: every node after its parent
-    for f in order:
-        if inner[f]:
-            order += [first[f], second[f]]
-    below = np.zeros(n, np.int64)  # tiles under each node
-    for f in reversed(order):
-        below[f] = below[first[f]] + below[second[f]] if inner[f] else 1
-    frontier = [0]
-    while len(frontier) < threads and any(inner[f] for f in frontier):
-        frontier = [c for f in frontier for c in ((first[f], second[f]) if inner[f] else (f,))]
-    groups: list[list[int]] = [[] for _ in range(min(threads, len(frontier)))]
-    load = [0] * len(groups)
-    for f in sorted(frontier, key=lambda f: -below[f]):
-        k = load.index(min(load))
-        groups[k].append(f)
-        load[k] += below[f]
-    parts = []
-    for group in groups:
-        flags = np.zeros(n, np.uint8)
-        for f in group:
+class _Split:
+    """The frustum hierarchy cut into subtrees of disjoint tiles, dealt out to threads for
+    ``adaptive`` (:meth:`parts`). The hierarchy is cut level by level until it has
+    :data:`SUBTREES` subtrees a thread; each frame deals them out afresh, the heaviest first to
+    the lightest thread, weighed by the pairs their tiles listed the frame before (what a
+    part costs follows what its tiles show, which a split by tile count does not know: on
+    64 x 64 one thread's half took a third longer than the other's). Nothing for one thread."""
+
+    def __init__(self, table: np.ndarray, threads: int):
+        self.threads = threads
+        self.flags = np.zeros((0, len(table)), np.uint8)
+        self.of_tile = np.zeros(0, np.int64)
+        self._parts: dict = {}
+        n = len(table)
+        if threads < 2 or n < 3:
+            return
+        first, second, tile = table[:, _FIRST], table[:, _SECOND], table[:, _TILE]
+        inner = tile < 0
+        parent = np.full(n, -1)
+        parent[first[inner]] = np.flatnonzero(inner)
+        parent[second[inner]] = np.flatnonzero(inner)
+        frontier = [0]
+        while len(frontier) < threads * SUBTREES and any(inner[f] for f in frontier):
+            frontier = [c for f in frontier for c in ((first[f], second[f]) if inner[f] else (f,))]
+        self.flags = np.zeros((len(frontier), n), np.uint8)  # per subtree: it, its ancestors
+        self.of_tile = np.zeros(int(tile.max()) + 1, np.int64)
+        for k, f in enumerate(frontier):
             a = parent[f]
             while a >= 0:
-                flags[a] = 1
+                self.flags[k, a] = 1
                 a = parent[a]
             todo = [f]
             while todo:
                 g = todo.pop()
-                flags[g] = 1
+                self.flags[k, g] = 1
                 if inner[g]:
                     todo += [first[g], second[g]]
-        parts.append(flags)
-    return parts
+                else:
+                    self.of_tile[tile[g]] = k
+
+    def parts(self, pairs: np.ndarray | None) -> list[np.ndarray]:
+        """Each thread's flags per frustum node, from the pairs each tile listed the frame
+        before (None: as many as it has tiles)."""
+        count = len(self.flags)
+        if count < 2:
+            return []
+        weight = np.bincount(self.of_tile, None if pairs is None else pairs, count)
+        groups = min(self.threads, count)
+        load, deal = np.zeros(groups), np.empty(count, np.int64)
+        for k in np.argsort(-weight, kind="stable"):
+            deal[k] = int(np.argmin(load))
+            load[deal[k]] += weight[k] + 1  # + 1: a subtree is work even when empty
+        key = deal.tobytes()
+        parts = self._parts.get(key)
+        if parts is None:
+            if len(self._parts) > 256:  # a walkthrough deals few ways; keep those
+                self._parts.clear()
+            parts = self._parts[key] = [np.bitwise_or.reduce(self.flags[deal == g], axis=0)
+                                        for g in range(groups)]
+        return parts
 
 
 def _screen_fh_table(wall) -> tuple[np.ndarray, np.ndarray]:
