@@ -237,6 +237,30 @@ def test_analyze_counts_drops_and_takes_the_latest_tile():
     assert [t["dropped"] for t in out["tiles"]] == [0, 1]
 
 
+def test_analyze_weighs_full_lists_on_the_frames_nodes_sampled():
+    """Render nodes size their messages as full lists on some frames only (NaN on the others,
+    ``sim.FULL_SIZE_EVERY``): the reduction is over those frames' packets alone, against what
+    the same packets weighed; the bytes received are over every frame."""
+    nan = float("nan")
+    driver = {"log": {"frame": [0, 1, 2, 3], "send": [9.0, 10.0, 11.0, 12.0]}}
+
+    def tile(t):
+        return {"tile": t, "frame": [0, 1, 2, 3], "recv": [9.01, 10.01, 11.01, 12.01],
+                "posted": [9.0, 10.0, 11.0, 12.0], "full": [True, False, False, False],
+                "bytes": [400, 100, 50, 100], "full_bytes": [400, nan, 300, nan],
+                "list_bytes": [40, nan, 5, nan], "full_list_bytes": [40, nan, 30, nan],
+                "fit_bytes": [20, nan, 20, nan], "errors": [], "base_misses": 0,
+                "mesh_fetches": 1, "mesh_not_modified": 0, "mesh_bytes": 9}
+
+    b = analyze(driver, [tile(0), tile(1)])["bytes"]
+    assert b["per_frame"] == pytest.approx(2 * 650 / 4)  # every frame received
+    assert b["sampled_frames"] == 2
+    assert b["per_frame_if_full"] == pytest.approx(2 * 700 / 2)
+    assert b["reduction"] == pytest.approx(700 / 450)  # frames 0 and 2 alone
+    assert b["lists_reduction"] == pytest.approx(70 / 45)
+    assert b["fits_per_frame"] == pytest.approx(2 * 40 / 2)
+
+
 # --------------------------------------------------------------------------- against a server
 
 

@@ -324,24 +324,36 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
                          "display": dist(display), "per_tile": dist(pooled)}
     out["dropped"] = {"tile_frames": int(np.isnan(exact).sum()),
                       "frames_not_on_every_tile": int((~complete).sum())}
-    # bytes, over the measured window
-    sums = Counter()
+    # bytes, over the measured window; sizes as full lists where a node worked them out (a
+    # render node on the frames it samples, NaN on the others: sim.FULL_SIZE_EVERY), each
+    # against what the same packets weighed
+    sums, sampled_frames = Counter(), set()
     for t in tiles:
-        mask = np.isin(np.asarray(t["frame"]), measured)
+        frame = np.asarray(t["frame"], dtype=np.int64)
+        mask = np.isin(frame, measured)
         full = np.asarray(t["full"], dtype=bool)
-        for key in ("bytes", "full_bytes", "list_bytes", "full_list_bytes", "fit_bytes"):
-            if len(t.get(key, ())) == len(mask):
-                sums[key] += int(np.asarray(t[key])[mask].sum())
+        size = np.asarray(t["bytes"], dtype=float)
+        sums["bytes"] += size[mask].sum()
+        if len(t.get("full_bytes", ())) == len(mask):
+            sampled = mask & ~np.isnan(np.asarray(t["full_bytes"], dtype=float))
+            sampled_frames.update(frame[sampled].tolist())
+            sums["sampled_bytes"] += size[sampled].sum()
+            for key in ("full_bytes", "list_bytes", "full_list_bytes", "fit_bytes"):
+                if len(t.get(key, ())) == len(mask):
+                    sums[key] += np.asarray(t[key], dtype=float)[sampled].sum()
         sums["packets"] += int(mask.sum())
         sums["full_packets"] += int((mask & full).sum())
-    n = max(len(measured), 1)
+    n, m = max(len(measured), 1), max(len(sampled_frames), 1)
     b = {"packets": sums["packets"], "full_packets": sums["full_packets"],
          "delta_packets": sums["packets"] - sums["full_packets"],
-         "per_frame": sums["bytes"] / n, "per_frame_if_full": sums["full_bytes"] / n,
-         "lists_per_frame": sums["list_bytes"] / n,
-         "lists_per_frame_if_full": sums["full_list_bytes"] / n,
-         "fits_per_frame": sums["fit_bytes"] / n}
-    b["reduction"] = b["per_frame_if_full"] / b["per_frame"] if b["per_frame"] else None
+         "per_frame": sums["bytes"] / n, "sampled_frames": len(sampled_frames),
+         "sampled_per_frame": sums["sampled_bytes"] / m,
+         "per_frame_if_full": sums["full_bytes"] / m,
+         "lists_per_frame": sums["list_bytes"] / m,
+         "lists_per_frame_if_full": sums["full_list_bytes"] / m,
+         "fits_per_frame": sums["fit_bytes"] / m}
+    b["reduction"] = (b["per_frame_if_full"] / b["sampled_per_frame"]
+                      if b["sampled_per_frame"] else None)
     b["lists_reduction"] = (b["lists_per_frame_if_full"] / b["lists_per_frame"]
                             if b["lists_per_frame"] else None)
     out["bytes"] = b
@@ -828,8 +840,10 @@ def markdown(report: dict) -> str:
               f"| per-tile latency p50 / p99 ms | {_f(lat['per_tile'].get('p50'), '{:.2f}')} / "
               f"{_f(lat['per_tile'].get('p99'), '{:.2f}')} |",
               f"| bytes/frame received (deltas) | {b['per_frame']:.0f} |",
-              f"| bytes/frame as full lists | {b['per_frame_if_full']:.0f} |",
-              f"| reduction, whole packets | {_f(b['reduction'])}x |",
+              f"| bytes/frame as full lists (on {b['sampled_frames']} frames sized so) | "
+              f"{b['per_frame_if_full']:.0f} |",
+              f"| reduction, whole packets (the same frames' deltas: "
+              f"{b['sampled_per_frame']:.0f} bytes/frame) | {_f(b['reduction'])}x |",
               f"| leaf-id bytes/frame: deltas / full | {b['lists_per_frame']:.0f} / "
               f"{b['lists_per_frame_if_full']:.0f} ({_f(b['lists_reduction'])}x) |",
               f"| fitted-frusta bytes/frame (in every packet) | {b['fits_per_frame']:.0f} |",
