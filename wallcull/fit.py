@@ -361,7 +361,12 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
     forward = np.empty((shaded, 3))
     for k in range(shaded):
         t = lit[k]
-        pv[k] = np.dot(projection[t], view[t])
+        for r in range(4):  # (no BLAS here: numba's would be SciPy's, which is an extra)
+            for c in range(4):
+                total = 0.0
+                for m in range(4):
+                    total += projection[t, r, m] * view[t, m, c]
+                pv[k, r, c] = total
         for a in range(3):
             forward[k, a] = -view[t, 2, a]
     planes, regions, sizes = _caster_regions(pv, kind, lit, far, light)
