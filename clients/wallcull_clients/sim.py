@@ -76,6 +76,20 @@ try:
 except ImportError:  # pragma: no cover - 3.10
     _timeout = None
 
+async def _next(source, timeout: float | None):
+    """The next message of a WebSocket (``recv``) or a queue (``get``), or
+    :class:`asyncio.TimeoutError` after ``timeout`` seconds (None: no limit). On Python 3.11 and
+    later without a task per message, as ``wait_for`` makes (with a UUID, in nats-py's
+    ``next_msg``): a few percent of a simulated node's CPU."""
+    take = source.recv if hasattr(source, "recv") else source.get
+    if timeout is None:
+        return await take()
+    if _timeout is None:  # Python 3.10
+        return await asyncio.wait_for(take(), timeout)
+    async with _timeout(timeout):
+        return await take()
+
+
 KEEP = 256  # at most this many lists of recent frames kept for delta bases (see _prune)
 DEFAULT_CACHE = 256 << 20
 #: A render node's message is sized as full lists on the frames whose number this divides (the
@@ -626,13 +640,7 @@ class TileClient:
                 while not self._done(until):
                     timeout = idle_timeout if self.last_frame >= 0 else None
                     try:
-                        if timeout is None:
-                            message = await ws.recv()
-                        elif _timeout is not None:  # no task per message, unlike wait_for
-                            async with _timeout(timeout):
-                                message = await ws.recv()
-                        else:
-                            message = await asyncio.wait_for(ws.recv(), timeout)
+                        message = await _next(ws, timeout)
                     except asyncio.TimeoutError:
                         return True
                     recv = time.time()
@@ -820,11 +828,16 @@ class NodeClient(TileClient):
         import nats
         from nats.errors import TimeoutError as NatsTimeout
 
+        inbox: asyncio.Queue = asyncio.Queue()
+
+        async def arrived(msg) -> None:  # in order, from the subscription's own task
+            inbox.put_nowait(msg)
+
         self._nc = await nats.connect(self.nats, name=f"wallcull-node-{self.wall_id}-"
                                       f"{self.tiles[0]}", max_reconnect_attempts=-1,
                                       reconnect_time_wait=0.5)
         try:
-            sub = await self._nc.subscribe(self.subject("node"))
+            await self._nc.subscribe(self.subject("node"), cb=arrived)
             self.stats.connects += 1
             self.connected.set()
             self._wants_full = True
@@ -840,12 +853,10 @@ class NodeClient(TileClient):
                     await self._take(reply.data)
                     continue
                 try:
-                    msg = await sub.next_msg(timeout=idle_timeout if idle_timeout and
-                                             self.last_frame >= 0 else 3600)
-                except NatsTimeout:
-                    if idle_timeout and self.last_frame >= 0:
-                        return
-                    continue
+                    msg = await _next(inbox, idle_timeout if idle_timeout and
+                                      self.last_frame >= 0 else None)
+                except asyncio.TimeoutError:
+                    return
                 await self._take(msg.data)
         finally:
             nc, self._nc = self._nc, None
