@@ -76,6 +76,7 @@ try:
 except ImportError:  # pragma: no cover - 3.10
     _timeout = None
 
+
 async def _next(source, timeout: float | None):
     """The next message of a WebSocket (``recv``) or a queue (``get``), or
     :class:`asyncio.TimeoutError` after ``timeout`` seconds (None: no limit). On Python 3.11 and
