@@ -83,6 +83,20 @@ def test_loadtest_ws(tmp_path):
     assert report["nodes"]["mesh_fetches"] == 4 * len(load("powerplant").meshes)
 
 
+def test_loadtest_render_nodes_size_full_lists_on_sampled_frames(tmp_path):
+    """Render nodes of two tiles each: their messages are sized as full lists on one frame in
+    ``FULL_SIZE_EVERY``, and the report's reduction comes from those frames alone."""
+    from wallcull_clients.sim import FULL_SIZE_EVERY
+
+    report = loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "60",
+                      "--duration", "3", "--tiles-per-node", "2", "--prefetch")
+    check_walkthrough(report, 4, 180)
+    b = report["bytes"]
+    measured = report["frames_measured"]
+    assert 0 < b["sampled_frames"] <= measured // FULL_SIZE_EVERY + 1
+    assert 0 < b["sampled_per_frame"] < b["per_frame_if_full"]
+
+
 def test_loadtest_pull_barrier_two_processes(tmp_path):
     # a busy machine may hold a frame's last acknowledgement back for more than a second
     report = loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "40",
