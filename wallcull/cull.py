@@ -894,21 +894,6 @@ def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
     return lo, hi
 
 
-@njit(cache=True)
-def _farthest(start, nodes, box, origin):
-    """Per region, an upper bound on the distance from ``origin`` to its nodes' bounds (the
-    distance to a centre plus the radius of the sphere around the bound); 0 for none."""
-    m = start.shape[0] - 1
-    out = np.zeros(m)
-    for t in range(m):
-        for j in range(start[t], start[t + 1]):
-            i = nodes[j]
-            d = math.sqrt((box[i, 0] - origin[0]) ** 2 + (box[i, 1] - origin[1]) ** 2
-                          + (box[i, 2] - origin[2]) ** 2) + box[i, _R_SPHERE]
-            out[t] = max(out[t], d)
-    return out
-
-
 # --------------------------------------------------------------------------- public API
 
 
@@ -1491,18 +1476,11 @@ def depth_ranges(state: SceneState, start: np.ndarray, nodes: np.ndarray, forwar
     """Per region of a CSR node list, the depth range ``(lo, hi)`` along unit ``forward[q]``
     from ``origin[q]`` (``(R, 3)`` each, or ``(1, 3)`` for all) that its nodes' bounds span;
     ``empty`` for a region with no node. Compiled, next to the traversal: a wall's tight depth
-    ranges and its shadow frusta's nearest casters."""
+    ranges (the shadow pass calls the kernel itself, for each tile's nearest caster)."""
     return _depth_ranges(start, nodes, packed(state),
                          np.ascontiguousarray(forward, np.float64).reshape(-1, 3),
                          np.ascontiguousarray(origin, np.float64).reshape(-1, 3),
                          float(empty[0]), float(empty[1]))
-
-
-def farthest(state: SceneState, start: np.ndarray, nodes: np.ndarray,
-             origin: np.ndarray) -> np.ndarray:
-    """Per region of a CSR node list, an upper bound on how far from ``origin`` its nodes'
-    bounds reach (a cube-map shadow's far plane)."""
-    return _farthest(start, nodes, packed(state), np.asarray(origin, np.float64))
 
 
 def cull(state: SceneState, frusta: Frusta, method: str = "adaptive",
