@@ -894,6 +894,22 @@ def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
     return lo, hi
 
 
+@njit(cache=True)
+def _farthest(start, nodes, box, origin):
+    """Per region, an upper bound on the distance from ``origin`` to its nodes' bounds (the
+    distance to a centre plus the radius of the sphere around the bound); 0 for none. (A
+    cube-map shadow's far plane: :func:`wallcull.fit.shadow_sets`.)"""
+    m = start.shape[0] - 1
+    out = np.zeros(m)
+    for t in range(m):
+        for j in range(start[t], start[t + 1]):
+            i = nodes[j]
+            d = math.sqrt((box[i, 0] - origin[0]) ** 2 + (box[i, 1] - origin[1]) ** 2
+                          + (box[i, 2] - origin[2]) ** 2) + box[i, _R_SPHERE]
+            out[t] = max(out[t], d)
+    return out
+
+
 # --------------------------------------------------------------------------- public API
 
 

@@ -40,7 +40,7 @@ from numba import njit
 
 from . import lowilie, workers
 from . import settings as cfg
-from .cull import (_R_SPHERE, Culler, Visibility, _Buffers, _depth_ranges, _expand, _oh,
+from .cull import (Culler, Visibility, _Buffers, _depth_ranges, _expand, _farthest, _oh,
                    depth_ranges as node_depths, packed, stack_depth)
 from .projection import look_at, mirrored_views, view_matrix
 from .scene import SceneState
@@ -251,8 +251,7 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     (:func:`_shadow_part`). Only the parts' caster lists are joined afterwards."""
     if not lights:
         return []
-    if effort not in lowilie.EFFORTS:
-        raise ValueError(f"effort must be one of {', '.join(lowilie.EFFORTS)}, got {effort!r}")
+    efforts = lowilie.effort_code(effort)
     count, tiles = len(lights), len(visibility.start) - 1
     b, scene, box = state.bounds, state.scene, packed(state)
     leaf_start, leaf_count = scene.leaf_range
@@ -269,7 +268,6 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     ranges = workers.chunks(count * tiles, work, per_thread=workers.SPLIT)
     pool = state.__dict__.setdefault("_shadow_buffers", [])  # kept: outputs grow once
     pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
-    efforts = lowilie.EFFORTS.index(effort)
 
     def part(k, a, z):  # tiles [a, z) of the lights' sequence
         buf, leaves = pool[k], []
@@ -345,12 +343,7 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
             lit[shaded] = t
             shaded += 1
         if kind[t] == CUBE:  # the light among the receivers: a cube map
-            reach = 0.0
-            for j in range(start[t], start[t + 1]):
-                i = nodes[j]
-                reach = max(reach, math.sqrt((box[i, 0] - light[0]) ** 2 + (box[i, 1] - light[1])
-                                             ** 2 + (box[i, 2] - light[2]) ** 2) + box[i, _R_SPHERE])
-            far[t] = reach * (1 + 1e-6)
+            far[t] = _farthest(start[t:t + 2], nodes, box, light)[0] * (1 + 1e-6)
             near[t] = far[t] * 1e-4
             projection[t] = 0.0
             projection[t, 0, 0] = projection[t, 1, 1] = 1.0

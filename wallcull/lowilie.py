@@ -46,7 +46,7 @@ from .projection import dot, frustum, look_at, matmul
 from .quad import COLLINEAR, OCTANTS, _greedy, _hull, _polygon_area, _refine
 
 __all__ = ["FitError", "FrustumFit", "fit_frustum", "float32_error", "bench_fit",
-           "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "fit_boxes", "fit_lights"]
+           "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "effort_code", "fit_boxes"]
 
 #: The widest sample frustum, half-angle in degrees. Beyond it (or when no cone around the
 #: points' mean direction holds them all) :func:`fit_frustum` raises :class:`FitError`.
@@ -722,52 +722,40 @@ def _fit_boxes(eye, center, axes, half, radius, start, nodes, width, height, eff
         near[q], far[q], coverage[q] = info[_NEAR], info[_FAR], info[_COVERAGE]
 
 
+def effort_code(effort: str) -> int:
+    """The compiled fits' code of a fitting effort (:data:`EFFORTS`: 0 sphere, 1 greedy, 2
+    refined); ValueError for any other word."""
+    if effort not in EFFORTS:
+        raise ValueError(f"effort must be one of {', '.join(EFFORTS)}, got {effort!r}")
+    return EFFORTS.index(effort)
+
+
 def fit_boxes(eye, bounds, start: np.ndarray, nodes: np.ndarray, width: int, height: int,
               effort: str = "refined", spot: tuple | None = None) -> dict:
     """Low-Ilie fits from ``eye`` around many sets of bounds at once (a wall's tiles, each
-    around the bounds of what it shows): set ``q`` is ``bounds`` rows
-    ``nodes[start[q]:start[q + 1]]``, fitted around the corners of the boxes that enclose
-    them. ``spot``: ``(direction, cos_angle)`` of a spot light, whose sets wholly behind it are
-    ``UNLIT``. Returns arrays: ``status (Q,)`` (``OK``, ``EMPTY``, ``UNLIT``, or why no single
-    frustum fits), ``view``, ``projection (Q, 4, 4)``, ``near``, ``far``, ``coverage (Q,)``."""
-    out = fit_lights([eye], bounds, start, nodes, [(width, height)], effort, [spot])
-    return {key: value[0] for key, value in out.items()}
+    around the bounds of what it shows), split among threads by their sizes: set ``q`` is
+    ``bounds`` rows ``nodes[start[q]:start[q + 1]]``, fitted around the corners of the boxes
+    that enclose them. ``spot``: ``(direction, cos_angle)`` of a spot light, whose sets wholly
+    behind it are ``UNLIT``. Returns arrays: ``status (Q,)`` (``OK``, ``EMPTY``, ``UNLIT``, or
+    why no single frustum fits), ``view``, ``projection (Q, 4, 4)``, ``near``, ``far``,
+    ``coverage (Q,)``. (A frame's shadows fit their tiles in :func:`wallcull.fit.shadow_sets`,
+    each part culling its casters in the same compiled call.)"""
+    code = effort_code(effort)
+    eye = np.asarray(eye, np.float64).reshape(3)
+    count = len(start) - 1
+    out = {"status": np.zeros(count, np.int64), "view": np.zeros((count, 4, 4)),
+           "projection": np.zeros((count, 4, 4)), "near": np.zeros(count),
+           "far": np.zeros(count), "coverage": np.zeros(count)}
+    direction, cos_angle = spot if spot is not None else (np.zeros(3), 1.0)
 
+    def chunk(k, a, b):  # sets [a, b): views of the arrays
+        _fit_boxes(eye, bounds.center, bounds.axes, bounds.half, bounds.radius,
+                   start[a:b + 1], nodes, float(width), float(height), code, spot is not None,
+                   np.asarray(direction, np.float64), float(cos_angle),
+                   *(out[key][a:b] for key in ("view", "projection", "near", "far", "coverage",
+                                               "status")))
 
-def fit_lights(eyes, bounds, start: np.ndarray, nodes: np.ndarray, sizes, effort: str = "refined",
-               spots=None) -> dict:
-    """:func:`fit_boxes` from several eyes (a frame's lights: ``eyes (L, 3)``, shadow maps of
-    ``sizes[l] = (width, height)``, ``spots[l]`` as ``spot`` or None) around the same sets, in
-    one pass split among threads: each light's arrays are row ``l`` of the ``(L, Q, ...)``
-    results. One pass rather than one per light: on a few cores, handing work to a thread and
-    waiting for it costs about a tenth of a millisecond each time."""
-    if effort not in EFFORTS:
-        raise ValueError(f"effort must be one of {', '.join(EFFORTS)}, got {effort!r}")
-    eyes = np.asarray(eyes, np.float64).reshape(-1, 3)
-    lights, count = len(eyes), len(start) - 1
-    spots = [None] * lights if spots is None else list(spots)
-    out = {"status": np.zeros((lights, count), np.int64), "view": np.zeros((lights, count, 4, 4)),
-           "projection": np.zeros((lights, count, 4, 4)), "near": np.zeros((lights, count)),
-           "far": np.zeros((lights, count)), "coverage": np.zeros((lights, count))}
-    # the sets of every light one after the other, split by their receivers
-    total = start[-1] - start[0]
-    work = np.append((start[:-1] - start[0] + total * np.arange(lights)[:, None]).ravel(),
-                     total * lights)
-
-    def chunk(k, a, b):  # sets [a, b) of the lights' sequence: views of the frame's arrays
-        for light in range(a // count, (b - 1) // count + 1):
-            lo, hi = max(a - light * count, 0), min(b - light * count, count)
-            spot = spots[light]
-            direction, cos_angle = spot if spot is not None else (np.zeros(3), 1.0)
-            width, height = sizes[light]
-            _fit_boxes(eyes[light], bounds.center, bounds.axes, bounds.half, bounds.radius,
-                       start[lo:hi + 1], nodes, float(width), float(height),
-                       EFFORTS.index(effort), spot is not None,
-                       np.asarray(direction, np.float64), float(cos_angle),
-                       *(out[key][light, lo:hi] for key in ("view", "projection", "near", "far",
-                                                            "coverage", "status")))
-
-    workers.run(chunk, workers.chunks(lights * count, work, per_thread=workers.SPLIT))
+    workers.run(chunk, workers.chunks(count, start, per_thread=workers.SPLIT))
     return out
 
 
@@ -833,14 +821,13 @@ def fit_frustum(eye, points, width: int, height: int, near: float | None = None,
     if not (width > 0 and height > 0):
         raise ValueError(f"viewport must have a positive size, got {width} x {height}")
     effort = effort or ("refined" if refine else "greedy")
-    if effort not in EFFORTS:
-        raise ValueError(f"effort must be one of {', '.join(EFFORTS)}, got {effort!r}")
+    code = effort_code(effort)
     view, projection = np.empty((4, 4)), np.empty((4, 4))
     quad, target, rays, axis = np.empty((4, 2)), np.empty((4, 2)), np.empty((4, 3)), np.empty(3)
     info = np.zeros(INFO_SIZE)
     status = _fit_core(eye, pts, np.zeros((len(pts), 3, 3)), float(width), float(height),
                        np.nan if near is None else float(near),
-                       np.nan if far is None else float(far), EFFORTS.index(effort), view,
+                       np.nan if far is None else float(far), code, view,
                        projection, quad, target, rays, axis, info)
     if status in _STATUS_ERRORS:
         kind, message = _STATUS_ERRORS[status]
