@@ -455,3 +455,50 @@ def test_adaptive_in_threads_lists_what_one_pass_lists(powerplant, monkeypatch, 
             assert (np.sum(parts, axis=0)[leaves] == 1).all()  # each tile in exactly one
             got = culler.cull(frusta)
             assert np.array_equal(got.start, e.start) and np.array_equal(got.nodes, e.nodes)
+
+
+@pytest.mark.parametrize("wall_name, path, stereo", [
+    ("wall-8x8.json", "fly", None), ("wall-8x8.json", "orbit", 0.064),
+    ("wall-cave.json", "fly", None), ("wall-angled.json", "fly", None)])
+def test_the_separating_pass_told_the_cuts_drops_what_it_drops_testing_them(
+        powerplant, monkeypatch, wall_name, path, stereo):
+    """``adaptive`` tells the separating pass which of a tile's planes cut each listed node,
+    so that the pass need not test them again: never a plane that does not cut the node, and
+    the pass then keeps exactly the pairs it keeps when it tests the planes itself."""
+    import json
+    from pathlib import Path
+
+    from wallcull import cull as C, separate
+    from wallcull.paths import scene_path
+
+    wall = Wall.from_dict(json.loads((Path(__file__).parents[1] / "examples" / wall_name)
+                                     .read_text()))
+    real = separate.drop_all
+    seen = {"pairs": 0, "two_cuts": 0, "depth": 0, "dropped": 0}
+
+    def both(nodes, regions, count, box, planes, rows, child_count, eye, small, scratch,
+             cuts=None):
+        assert cuts is not None and len(cuts) >= count
+        for j in np.flatnonzero(child_count[nodes[:count]] == 0):
+            i, t = nodes[j], regions[j]
+            actual = sum(1 << q for q in range(rows.shape[1])
+                         if np.subtract(*separate._offset(box, i, planes, rows[t, q])) < 0)
+            assert cuts[j] & ~actual == 0, (i, t, bin(cuts[j]), bin(actual))
+            seen["two_cuts"] += bin(cuts[j]).count("1") > 1
+            seen["depth"] += bin(cuts[j]).count("1") > 1 and cuts[j] & 48 != 0
+        seen["pairs"] += count
+        told = real(nodes.copy(), regions.copy(), count, box, planes, rows, child_count, eye,
+                    small, [], cuts)
+        tested = real(nodes.copy(), regions.copy(), count, box, planes, rows, child_count,
+                      eye, small, [])
+        assert all(np.array_equal(a, b) for a, b in zip(told, tested))
+        seen["dropped"] += count - len(told[0])
+        return told
+
+    monkeypatch.setattr(C, "drop_all", both)
+    culler = Culler(SceneState(powerplant), wall)
+    for f in scene_path(powerplant, wall, path, 6):
+        if stereo:
+            f = Frame.make(f.position, f.orientation, f.eye, wall, (stereo, (1.0, 0, 0, 0)))
+        culler.cull(Frusta.build(wall, f))
+    assert seen["pairs"] > 1000 and seen["two_cuts"] > 50 and seen["dropped"] > 0, seen

@@ -384,7 +384,7 @@ def _fh(roots, masks, leaves, leaf_start, leaf_count, box, planes, fh, near_bit,
 @njit(cache=True, nogil=True)
 def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh, fh_unfold,
               tile_planes, view, pitch_x, pitch_y, near_bit, unknown_at_root, regions, parts,
-              fine, allowed, so, sf, sm, ts, tm, out_n, out_t):
+              fine, allowed, so, sf, sm, ts, tm, out_n, out_t, out_c):
     """Algorithm 2 with an adaptive choice of hierarchy and plane masking (module docstring).
 
     A stack entry is (object ``so``, frustum node ``sf``, mask ``sm``). At an internal frustum
@@ -411,6 +411,13 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
     covers. Parts whose tiles are disjoint run in threads at once (:class:`Culler`), each
     listing exactly the pairs, in the same order, that one call over everything lists for its
     tiles.
+
+    ``out_c`` gets, per pair, the tile's planes (left, right, top, bottom, near, far: bits) it
+    found cutting the node, for the separating pass (:mod:`wallcull.separate`): on a grid,
+    the wall's outer sides and the near and far planes as the first-level cull found them
+    (``masks``: only nodes without children can be cut by them there), the others from the
+    node's own tests. A plane a node's ancestor lay inside is not among them, even where the
+    node's own bound reaches across it.
     """
     sides = 4 if regions is None else 6
     k = 0
@@ -421,6 +428,8 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
         so[sp] = roots[j]
         sf[sp] = 0
         sm[sp] = unknown_at_root | (_BEHIND if masks[j] & near_bit else 0)
+        if near_bit:  # a grid: the first-level planes cutting it are its border tiles' sides,
+            sm[sp] |= (masks[j] & _UNKNOWN) << _CUT  # and every tile's near and far
         sp += 1
     while sp > 0:
         sp -= 1
@@ -504,6 +513,7 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                 return -1, tests
             out_n[k] = o
             out_t[k] = tile
+            out_c[k] = cut
             k += 1
             continue
         tp = 0  # cull o's subtree to this tile, over the planes o is cut by
@@ -533,6 +543,7 @@ def _adaptive(roots, masks, child_start, child_count, children, box, planes, fh,
                     return -1, tests
                 out_n[k] = i
                 out_t[k] = tile
+                out_c[k] = mm
                 k += 1
                 continue
             for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
@@ -1019,16 +1030,18 @@ class _Buffers:
             a = self.arrays[name] = np.empty(max(size, 1024), dtype)
         return a
 
-    def run(self, kernel, *args):
-        """Call ``kernel(*args, out_n, out_t)``, doubling the outputs until they hold it all:
-        ``(nodes, regions, tests)``."""
+    def run(self, kernel, *args, cuts: bool = False):
+        """Call ``kernel(*args, out_n, out_t)`` (``cuts``: and ``out_c``), doubling the outputs
+        until they hold it all: ``(nodes, regions, tests)`` (``cuts``: ``(nodes, regions,
+        cuts, tests)``)."""
+        names = ("out_n", "out_t", "out_c") if cuts else ("out_n", "out_t")
         while True:
-            out_n, out_t = self.get("out_n", 4096), self.get("out_t", 4096)
-            k, tests = kernel(*args, out_n, out_t)
+            outs = [self.get(name, 4096) for name in names]
+            k, tests = kernel(*args, *outs)
             if k >= 0:
-                return out_n[:k], out_t[:k], tests
-            self.arrays["out_n"] = np.empty(2 * len(out_n), np.int64)
-            self.arrays["out_t"] = np.empty(2 * len(out_t), np.int64)
+                return (*(out[:k] for out in outs), tests)
+            for name, out in zip(names, outs):
+                self.arrays[name] = np.empty(2 * len(out), np.int64)
 
 
 def packed(state: SceneState) -> np.ndarray:
@@ -1138,13 +1151,13 @@ class Culler:
             return buf.run(_adaptive, *args, parts[k] if parts else self._everywhere,
                            buf.get("stack_n", stack), buf.get("stack_m", stack),
                            buf.get("stack_o", stack), buf.get("tile_n", stack),
-                           buf.get("tile_m", stack))
+                           buf.get("tile_m", stack), cuts=True)
 
         if not parts:
             return task(0)
         done = workers.run(task, [(k, k + 1) for k in range(len(parts))])
-        return (np.concatenate([d[0] for d in done]), np.concatenate([d[1] for d in done]),
-                sum(d[2] for d in done))
+        return (*(np.concatenate([d[j] for d in done]) for j in range(3)),
+                sum(d[3] for d in done))
 
     def cull(self, frusta: Frusta) -> Visibility:
         """The frame's per-tile node lists."""
@@ -1221,6 +1234,7 @@ class Culler:
                                         stack_n, stack_m)
         roots, masks = roots[:count], masks[:count]
         regions = None if wall.kind == "grid" else self._tile_planes
+        cuts = None  # the planes that cut each pair, where the traversal tells them
         if self.method == "naive":
             nodes, tiles, tests = buf.run(_naive, roots, masks, *units, box, planes,
                                           self._tile_planes, self._force, self._inherit)
@@ -1235,7 +1249,7 @@ class Culler:
             nodes, tiles, tests = _pseudo(roots, masks, *tree, box, planes, fh,
                                           self._near_bit, self._tile_sides)
         else:
-            nodes, tiles, tests = self._run_adaptive(
+            nodes, tiles, cuts, tests = self._run_adaptive(
                 (roots, masks, *tree, box, planes, fh, self._unfold, self._tile_sides,
                  view, pitch[0], pitch[1], self._near_bit, self._unknown_at_root, regions,
                  self._parts_of_leaves, self.fine * tile_angle),
@@ -1244,7 +1258,7 @@ class Culler:
         listed = len(nodes)
         t1 = time.perf_counter()
         nodes, tiles = drop_all(nodes, tiles, listed, box, planes, self._tile_planes,
-                                tree[1], eye, SMALL * tile_angle, self._separate)
+                                tree[1], eye, SMALL * tile_angle, self._separate, cuts)
         kept = len(nodes)
         t2 = time.perf_counter()
         start, ordered = _by_region(nodes, tiles, wall.tiles)

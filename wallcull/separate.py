@@ -56,14 +56,16 @@ _EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7
 
 
 def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
-             scratch: list) -> tuple[np.ndarray, np.ndarray]:
+             scratch: list, cuts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The first ``count`` pairs ``(nodes, regions)`` but the separated ones
     (:func:`drop_separated`), in threads over chunks of pairs on a frame with many (a 64 x 64
     wall lists tens of thousands, most of them cut by two of their small tile's planes).
     ``scratch``: the tiles' corners and the units' outline planes, and per thread which it
     knows, kept between frames. The threads share the corners (12.6 MB on 256 x 256) and the
     planes: a thread reads a tile's or a unit's only after it wrote them itself, and another
-    thread that writes them at the same time writes the same numbers."""
+    thread that writes them at the same time writes the same numbers. ``cuts``: per pair, the
+    tile's planes the traversal found cutting the node (bits, see :func:`_open`), when it
+    tells them; else the pass tests the planes again."""
     parts = 1 if count < 2 * THREAD_PAIRS else min(workers.count(), count // THREAD_PAIRS)
     tiles = len(tile_rows)
     if not scratch:
@@ -81,7 +83,8 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
         known_unit[:] = 0
         return a + drop_separated(nodes[a:b], regions[a:b], b - a, box, planes, tile_rows,
                                   child_count, eye, small, corners, known, axes, axis_count,
-                                  known_unit, clipped, clipped_count, clipped_by)
+                                  known_unit, clipped, clipped_count, clipped_by,
+                                  _NO_CUTS if cuts is None else cuts[a:b])
 
     if parts == 1:  # most frames: no thread to hand over to
         kept = chunk(0, 0, count)
@@ -95,7 +98,7 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
 @njit(cache=True, nogil=True)
 def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
                    corners, known, axes, axis_count, known_unit, clipped, clipped_count,
-                   clipped_by):
+                   clipped_by, cuts):
     """Keep the first ``count`` pairs ``(nodes[j], regions[j])`` but those whose node has no
     children, is not small (its sphere's radius over its distance from ``eye`` at least
     ``small``) and is found apart from the tile's frustum: by its outline when it lies between
@@ -110,7 +113,7 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     outline planes (:func:`_outline`; ``known_unit`` bit 1); ``clipped (nodes, _CLIPPED,
     5)``, ``clipped_count`` and ``clipped_by (nodes,)``, the outline of its part in front of
     near plane ``clipped_by`` (bit 2: a pair with that plane seen; bit 4: its outline made);
-    each computed when first needed."""
+    each computed when first needed. ``cuts``: see :func:`drop_all` (empty when not told)."""
     h = np.empty(3)  # scratch of _separated
     u = np.empty((3, 3))
     local = np.empty((8, 3))
@@ -123,7 +126,8 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
         t = regions[j]
         keep = True
         if child_count[i] == 0 and _large(box, i, eye, small):
-            cut = _undecided(box, i, planes, tile_rows, t)
+            cut = _open(cuts[j], box, i, planes, tile_rows, t) if cuts.shape[0] else \
+                _undecided(box, i, planes, tile_rows, t)
             if cut and not known[t]:
                 known[t] = _frustum(planes, tile_rows, t, corners, eye)
             if cut == _SIDES and known[t] == _CONE:  # its outline decides (see the module)
@@ -188,6 +192,27 @@ def _undecided(box, i, planes, rows, t) -> int:
     if not (out and cuts > 1):
         return _DECIDED
     return _DEPTH if depth else _SIDES
+
+
+_NO_CUTS = np.zeros(0, np.int64)
+
+
+@njit(cache=True, inline="always")
+def _open(cut, box, i, planes, rows, t) -> int:
+    """:func:`_undecided` from the planes ``rows[t]`` that the traversal found cutting bound
+    ``i`` (bits ``cut``: left, right, top, bottom, near, far): only their centre distances
+    are left to work out (a centre outside a plane puts the bound across it)."""
+    cuts = 0
+    out = False
+    for q in range(6):
+        if cut >> q & 1:
+            cuts += 1
+            p = rows[t, q]
+            nx, ny, nz = planes[p, 0], planes[p, 1], planes[p, 2]
+            out = out or nx * box[i, 0] + ny * box[i, 1] + nz * box[i, 2] + planes[p, 3] < 0
+    if not (out and cuts > 1):
+        return _DECIDED
+    return _DEPTH if cut & 48 else _SIDES
 
 
 @njit(cache=True, inline="always")
