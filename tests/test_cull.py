@@ -463,8 +463,9 @@ def test_adaptive_in_threads_lists_what_one_pass_lists(powerplant, monkeypatch, 
 def test_the_separating_pass_told_the_cuts_drops_what_it_drops_testing_them(
         powerplant, monkeypatch, wall_name, path, stereo):
     """``adaptive`` tells the separating pass which of a tile's planes cut each listed node,
-    so that the pass need not test them again: never a plane that does not cut the node, and
-    the pass then keeps exactly the pairs it keeps when it tests the planes itself."""
+    so that the pass need not test them again: never a plane that does not cut the node; and
+    a grid's frame, so that its outline test takes each tile's near face as a rectangle. The
+    pass then keeps the pairs it keeps when it tests the planes and corners itself."""
     import json
     from pathlib import Path
 
@@ -477,7 +478,7 @@ def test_the_separating_pass_told_the_cuts_drops_what_it_drops_testing_them(
     seen = {"pairs": 0, "two_cuts": 0, "depth": 0, "dropped": 0}
 
     def both(nodes, regions, count, box, planes, rows, child_count, eye, small, scratch,
-             cuts=None):
+             cuts=None, basis=None):
         assert cuts is not None and len(cuts) >= count
         for j in np.flatnonzero(child_count[nodes[:count]] == 0):
             i, t = nodes[j], regions[j]
@@ -488,7 +489,7 @@ def test_the_separating_pass_told_the_cuts_drops_what_it_drops_testing_them(
             seen["depth"] += bin(cuts[j]).count("1") > 1 and cuts[j] & 48 != 0
         seen["pairs"] += count
         told = real(nodes.copy(), regions.copy(), count, box, planes, rows, child_count, eye,
-                    small, [], cuts)
+                    small, [], cuts, basis)
         tested = real(nodes.copy(), regions.copy(), count, box, planes, rows, child_count,
                       eye, small, [])
         assert all(np.array_equal(a, b) for a, b in zip(told, tested))

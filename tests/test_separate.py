@@ -12,7 +12,7 @@ from wallcull import oracle
 from wallcull.cull import RECORD
 from wallcull.separate import _CLIPPED, _CONE, _DEPTH, _OTHER, _SIDES, _clipped_outline
 from wallcull.separate import _corners as _corners_into, _frustum, _near_only, _outline
-from wallcull.separate import _outside, _undecided
+from wallcull.separate import _flat, _outside, _outside_rect, _rect, _undecided
 from wallcull.separate import _separated as _separated_into
 
 from .randscene import random_wall
@@ -36,6 +36,17 @@ def _apart_by_outline(box, eye, corners) -> bool:
     axes = np.empty((1, 6, 5))
     count = np.array([_outline(box, 0, np.asarray(eye, float), axes)])
     return _outside(axes, count, 0, corners[None], 0, np.asarray(eye, float), box)
+
+
+def _apart_by_outline_rect(box, eye, corners) -> bool:
+    """The outline test against the tile's near face as a rectangle of display space (a grid
+    tile's, as the traversal's frame hands it to the pass)."""
+    eye = np.asarray(eye, float)
+    axes, flat, rects = np.empty((1, 6, 5)), np.empty((1, 6, 5)), np.empty((1, 7))
+    count = np.array([_outline(box, 0, eye, axes)])
+    _flat(axes, count[0], 0, eye, np.eye(3), flat)
+    _rect(corners[None], 0, eye, np.eye(3), rects)
+    return _outside_rect(flat, count, 0, rects, 0, eye, box)
 
 
 def _apart_by_clipped_outline(box, eye, planes, corners) -> bool:
@@ -112,13 +123,26 @@ def test_a_box_apart_by_its_outline_never_meets_the_frustum(seed):
         assert not box_meets(center, axes, half, planes, corners)
 
 
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_a_box_apart_by_its_outline_from_the_tiles_rectangle_is_apart_from_its_corners(seed):
+    """The outline test against the tile's near face taken whole, as a rectangle: a box it
+    finds apart every corner of the frustum finds apart too (the far corners lie further out
+    on the rays from the eye through the near ones), and so does the exact test."""
+    planes, corners, center, axes, half, eye = near_corner_case(seed)
+    box = record(center, axes, half)
+    if _apart_by_outline_rect(box, eye, corners):
+        assert _apart_by_outline(box, eye, corners)
+        assert not box_meets(center, axes, half, planes, corners)
+
+
 def test_the_outline_finds_every_separation_between_near_and_far():
     """A box wholly between the near and far planes that the tile's planes leave open (outside
     none of them, cut by two or more) and that is apart from the frustum is found apart by its
     outline: on a screen, the box's image and the tile's rectangle are two convex polygons,
     and two that do not meet are apart along a side of one of them (the margin relative to the
     coordinates aside)."""
-    apart = found = 0
+    apart = found = by_rect = 0
     for seed in range(8000):
         planes, corners, center, axes, half, eye = near_corner_case(seed)
         box = record(center, axes, half)
@@ -130,9 +154,12 @@ def test_the_outline_finds_every_separation_between_near_and_far():
         if not box_meets(center, axes, half, planes, corners):
             apart += 1
             found += _apart_by_outline(box, eye, corners)
+            by_rect += _apart_by_outline_rect(box, eye, corners)
         else:
             assert not _apart_by_outline(box, eye, corners)
-    assert found == apart and apart > 100
+            assert not _apart_by_outline_rect(box, eye, corners)
+    # against the rectangle, with a margin a little wider: all but a near touch in a thousand
+    assert found == apart and apart > 100 and by_rect >= apart - apart // 1000
 
 
 def _cut_by_near(seed):

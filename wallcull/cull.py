@@ -1257,8 +1257,10 @@ class Culler:
         self._last_tests = tests
         listed = len(nodes)
         t1 = time.perf_counter()
+        # a grid's tiles' near faces are rectangles along the view's x and y
+        basis = frame.rotation.T if wall.kind == "grid" and reflection is None else None
         nodes, tiles = drop_all(nodes, tiles, listed, box, planes, self._tile_planes,
-                                tree[1], eye, SMALL * tile_angle, self._separate, cuts)
+                                tree[1], eye, SMALL * tile_angle, self._separate, cuts, basis)
         kept = len(nodes)
         t2 = time.perf_counter()
         start, ordered = _by_region(nodes, tiles, wall.tiles)

@@ -56,7 +56,8 @@ _EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7
 
 
 def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
-             scratch: list, cuts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             scratch: list, cuts: np.ndarray | None = None, basis: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """The first ``count`` pairs ``(nodes, regions)`` but the separated ones
     (:func:`drop_separated`), in threads over chunks of pairs on a frame with many (a 64 x 64
     wall lists tens of thousands, most of them cut by two of their small tile's planes).
@@ -65,26 +66,31 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
     planes: a thread reads a tile's or a unit's only after it wrote them itself, and another
     thread that writes them at the same time writes the same numbers. ``cuts``: per pair, the
     tile's planes the traversal found cutting the node (bits, see :func:`_open`), when it
-    tells them; else the pass tests the planes again."""
+    tells them; else the pass tests the planes again. ``basis``: rows ``x, y, forward`` of the
+    view (unit vectors) when every tile's near face is a rectangle along ``x`` and ``y`` (a
+    grid's): the outline test then takes each tile's rectangle, not its corners
+    (:func:`_outside_rect`)."""
     parts = 1 if count < 2 * THREAD_PAIRS else min(workers.count(), count // THREAD_PAIRS)
     tiles = len(tile_rows)
     if not scratch:
         scratch += [np.empty((tiles, 8, 3)), np.empty((len(box), 6, 5)),
-                    np.empty(len(box), np.int64)]
-    while len(scratch) < 3 + parts:
+                    np.empty(len(box), np.int64), np.empty((tiles, 7)),
+                    np.empty((len(box), 6, 5))]
+    while len(scratch) < _SHARED + parts:
         n = len(box)
         scratch.append((np.zeros(tiles, np.uint8), np.zeros(n, np.uint8),
                         np.empty((n, _CLIPPED, 5)), np.empty(n, np.int64), np.empty(n, np.int64)))
-    corners, axes, axis_count = scratch[:3]
+    corners, axes, axis_count, rects, flat = scratch[:_SHARED]
+    basis = _NO_BASIS if basis is None else np.ascontiguousarray(basis, np.float64)
 
     def chunk(k, a, b):  # pairs [a, b) compacted in place; returns where they end
-        known, known_unit, clipped, clipped_count, clipped_by = scratch[3 + k]
+        known, known_unit, clipped, clipped_count, clipped_by = scratch[_SHARED + k]
         known[:] = 0
         known_unit[:] = 0
         return a + drop_separated(nodes[a:b], regions[a:b], b - a, box, planes, tile_rows,
                                   child_count, eye, small, corners, known, axes, axis_count,
                                   known_unit, clipped, clipped_count, clipped_by,
-                                  _NO_CUTS if cuts is None else cuts[a:b])
+                                  _NO_CUTS if cuts is None else cuts[a:b], basis, rects, flat)
 
     if parts == 1:  # most frames: no thread to hand over to
         kept = chunk(0, 0, count)
@@ -98,7 +104,7 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
 @njit(cache=True, nogil=True)
 def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
                    corners, known, axes, axis_count, known_unit, clipped, clipped_count,
-                   clipped_by, cuts):
+                   clipped_by, cuts, basis, rects, flat):
     """Keep the first ``count`` pairs ``(nodes[j], regions[j])`` but those whose node has no
     children, is not small (its sphere's radius over its distance from ``eye`` at least
     ``small``) and is found apart from the tile's frustum: by its outline when it lies between
@@ -113,7 +119,10 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     outline planes (:func:`_outline`; ``known_unit`` bit 1); ``clipped (nodes, _CLIPPED,
     5)``, ``clipped_count`` and ``clipped_by (nodes,)``, the outline of its part in front of
     near plane ``clipped_by`` (bit 2: a pair with that plane seen; bit 4: its outline made);
-    each computed when first needed. ``cuts``: see :func:`drop_all` (empty when not told)."""
+    each computed when first needed. ``cuts``: see :func:`drop_all` (empty when not told).
+    ``basis``: see :func:`drop_all` (empty when there is none); then ``rects (tiles, 7)``, each
+    tile's near face in it (:func:`_rect`), and ``flat (nodes, 6, 5)``, each unit's outline
+    planes in it (:func:`_flat`), computed with the corners and the planes."""
     h = np.empty(3)  # scratch of _separated
     u = np.empty((3, 3))
     local = np.empty((8, 3))
@@ -125,16 +134,25 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
         i = nodes[j]
         t = regions[j]
         keep = True
-        if child_count[i] == 0 and _large(box, i, eye, small):
-            cut = _open(cuts[j], box, i, planes, tile_rows, t) if cuts.shape[0] else \
+        told = cuts.shape[0] > 0
+        # (one plane cutting it, as told, decides: see _undecided)
+        if child_count[i] == 0 and (not told or cuts[j] & (cuts[j] - 1)) and \
+                _large(box, i, eye, small):
+            cut = _open(cuts[j], box, i, planes, tile_rows, t) if told else \
                 _undecided(box, i, planes, tile_rows, t)
             if cut and not known[t]:
                 known[t] = _frustum(planes, tile_rows, t, corners, eye)
+                if known[t] == _CONE and basis.shape[0]:
+                    _rect(corners, t, eye, basis, rects)
             if cut == _SIDES and known[t] == _CONE:  # its outline decides (see the module)
                 if not known_unit[i] & 1:
                     known_unit[i] |= 1
                     axis_count[i] = _outline(box, i, eye, axes)
-                keep = not _outside(axes, axis_count, i, corners, t, eye, box)
+                    if basis.shape[0]:
+                        _flat(axes, axis_count[i], i, eye, basis, flat)
+                keep = not (_outside_rect(flat, axis_count, i, rects, t, eye, box)
+                            if basis.shape[0] else
+                            _outside(axes, axis_count, i, corners, t, eye, box))
             elif cut == _DEPTH and known[t] == _CONE and _near_only(box, i, planes, tile_rows,
                                                                     t):
                 # its outline in front of the near plane, from its second pair with that
@@ -159,6 +177,59 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
             regions[k] = t
             k += 1
     return k
+
+
+@njit(cache=True, _nrt=False)
+def _rect(corners, t, eye, basis, rects):
+    """Into ``rects[t]``: a box around tile ``t``'s near corners seen from ``eye`` in
+    ``basis`` (``x0, x1, y0, y1, f0, f1``: their offsets from the eye along its rows), and
+    their largest ``|c|_1`` (the outline test's margin grows with it). Each number is written
+    once, final: another thread may be reading the row (see :func:`drop_all`)."""
+    largest = 0.0
+    for c in range(0, 8, 2):  # the near corners
+        largest = max(largest, abs(corners[t, c, 0]) + abs(corners[t, c, 1])
+                      + abs(corners[t, c, 2]))
+    for a in range(3):
+        lo, hi = np.inf, -np.inf
+        for c in range(0, 8, 2):
+            d = (basis[a, 0] * (corners[t, c, 0] - eye[0]) + basis[a, 1] * (corners[t, c, 1]
+                 - eye[1]) + basis[a, 2] * (corners[t, c, 2] - eye[2]))
+            lo, hi = min(lo, d), max(hi, d)
+        rects[t, 2 * a], rects[t, 2 * a + 1] = lo, hi
+    rects[t, 6] = largest
+
+
+@njit(cache=True, _nrt=False)
+def _flat(axes, count, i, eye, basis, flat):
+    """Into ``flat[i]``: unit ``i``'s outline planes (:func:`_outline`) in ``basis``: per
+    plane its normal's components along the rows, how far the bound reaches past the plane
+    through the eye, and ``|n|_1``."""
+    for q in range(count):
+        for a in range(3):
+            flat[i, q, a] = (axes[i, q, 0] * basis[a, 0] + axes[i, q, 1] * basis[a, 1]
+                             + axes[i, q, 2] * basis[a, 2])
+        flat[i, q, 3] = axes[i, q, 3] - (axes[i, q, 0] * eye[0] + axes[i, q, 1] * eye[1]
+                                         + axes[i, q, 2] * eye[2])
+        flat[i, q, 4] = axes[i, q, 4]
+
+
+@njit(cache=True, inline="always")
+def _outside_rect(flat, axis_count, i, rects, t, eye, box) -> bool:
+    """:func:`_outside` with tile ``t``'s near face as the box ``rects[t]`` (:func:`_rect`):
+    every point of that box, each near corner among them, lies beyond one of the planes by
+    the margin of its largest near corner and twice more of the rest (the eye's and the
+    unit's); then its far corners, ``m`` times as far out on the same rays from the eye, lie
+    beyond by ``m`` times that, more than their own margin. One test a plane, not eight."""
+    base = abs(eye[0]) + abs(eye[1]) + abs(eye[2]) + abs(box[i, 0]) + abs(box[i, 1]) \
+        + abs(box[i, 2]) + box[i, 13]
+    for q in range(axis_count[i]):
+        gap = -flat[i, q, 3]
+        for a in range(3):
+            n = flat[i, q, a]
+            gap += n * (rects[t, 2 * a] if n > 0 else rects[t, 2 * a + 1])
+        if gap > MARGIN * flat[i, q, 4] * (rects[t, 6] + 3 * base):
+            return True
+    return False
 
 
 @njit(cache=True, inline="always")
@@ -195,6 +266,9 @@ def _undecided(box, i, planes, rows, t) -> int:
 
 
 _NO_CUTS = np.zeros(0, np.int64)
+_NO_BASIS = np.zeros((0, 3))
+#: The scratch arrays all threads of :func:`drop_all` share (then one tuple per thread).
+_SHARED = 5
 
 
 @njit(cache=True, inline="always")
