@@ -49,14 +49,20 @@ def _apart_by_outline_rect(box, eye, corners) -> bool:
     return _outside_rect(flat, count, 0, rects, 0, eye, box)
 
 
-def _apart_by_clipped_outline(box, eye, planes, corners) -> bool:
-    """The test by the outline of the box's part in front of the near plane (row 4)."""
+def _apart_by_clipped_outline(box, eye, planes, corners, rect=False) -> bool:
+    """The test by the outline of the box's part in front of the near plane (row 4); against
+    the near face as a rectangle of display space with ``rect``."""
+    eye = np.asarray(eye, float)
     axes = np.empty((1, _CLIPPED, 5))
     count = np.array([_clipped_outline(
-        box, 0, np.asarray(eye, float), planes, 4, axes, np.empty((8, 4)),
-        np.empty((_CLIPPED, 3)), np.empty((_CLIPPED, 2)))])
-    return bool(count[0]) and _outside(axes, count, 0, corners[None], 0, np.asarray(eye, float),
-                                       box)
+        box, 0, eye, planes, 4, axes, np.empty((8, 4)), np.empty((_CLIPPED, 3)),
+        np.empty((_CLIPPED, 2)))])
+    if not rect:
+        return bool(count[0]) and _outside(axes, count, 0, corners[None], 0, eye, box)
+    flat, rects = np.empty((1, _CLIPPED, 5)), np.empty((1, 7))
+    _flat(axes, count[0], 0, eye, np.eye(3), flat)
+    _rect(corners[None], 0, eye, np.eye(3), rects)
+    return bool(count[0]) and _outside_rect(flat, count, 0, rects, 0, eye, box)
 
 
 #: the oracle's planes (bottom, right, top, left, near, far) as the culler orders them
@@ -182,15 +188,18 @@ def test_a_box_apart_by_the_outline_of_its_part_in_front_never_meets_the_frustum
     its part in front of that plane; any with every corner of the frustum beyond it has the two
     apart."""
     planes, corners, center, axes, half, eye = near_corner_case(seed)
-    if _apart_by_clipped_outline(record(center, axes, half), eye, planes, corners):
+    box = record(center, axes, half)
+    if _apart_by_clipped_outline(box, eye, planes, corners):
         assert not box_meets(center, axes, half, planes, corners)
+    if _apart_by_clipped_outline(box, eye, planes, corners, rect=True):  # a grid's tile
+        assert _apart_by_clipped_outline(box, eye, planes, corners)
 
 
 def test_the_outline_of_the_part_in_front_finds_the_separations():
     """Of the boxes the near plane cuts that are apart from the frustum, the outline of their
     part in front of it finds all but a few (the axes then find them), and never one that meets
     the frustum."""
-    apart = found = meet = 0
+    apart = found = by_rect = meet = 0
     for seed in range(6000):
         case = _cut_by_near(seed)
         if case is None:
@@ -199,10 +208,13 @@ def test_the_outline_of_the_part_in_front_finds_the_separations():
         if box_meets(center, axes, half, planes, corners):
             meet += 1
             assert not _apart_by_clipped_outline(box, eye, planes, corners)
+            assert not _apart_by_clipped_outline(box, eye, planes, corners, rect=True)
         else:
             apart += 1
             found += _apart_by_clipped_outline(box, eye, planes, corners)
+            by_rect += _apart_by_clipped_outline(box, eye, planes, corners, rect=True)
     assert apart > 200 and meet > 200 and found >= 0.99 * apart
+    assert by_rect >= found - found // 1000
 
 
 def test_the_cases_above_are_not_vacuous():

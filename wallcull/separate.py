@@ -79,18 +79,20 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
     while len(scratch) < _SHARED + parts:
         n = len(box)
         scratch.append((np.zeros(tiles, np.uint8), np.zeros(n, np.uint8),
-                        np.empty((n, _CLIPPED, 5)), np.empty(n, np.int64), np.empty(n, np.int64)))
+                        np.empty((n, _CLIPPED, 5)), np.empty(n, np.int64), np.empty(n, np.int64),
+                        np.empty((n, _CLIPPED, 5))))
     corners, axes, axis_count, rects, flat = scratch[:_SHARED]
     basis = _NO_BASIS if basis is None else np.ascontiguousarray(basis, np.float64)
 
     def chunk(k, a, b):  # pairs [a, b) compacted in place; returns where they end
-        known, known_unit, clipped, clipped_count, clipped_by = scratch[_SHARED + k]
+        known, known_unit, clipped, clipped_count, clipped_by, flat_clipped = scratch[_SHARED + k]
         known[:] = 0
         known_unit[:] = 0
         return a + drop_separated(nodes[a:b], regions[a:b], b - a, box, planes, tile_rows,
                                   child_count, eye, small, corners, known, axes, axis_count,
                                   known_unit, clipped, clipped_count, clipped_by,
-                                  _NO_CUTS if cuts is None else cuts[a:b], basis, rects, flat)
+                                  _NO_CUTS if cuts is None else cuts[a:b], basis, rects, flat,
+                                  flat_clipped)
 
     if parts == 1:  # most frames: no thread to hand over to
         kept = chunk(0, 0, count)
@@ -104,7 +106,7 @@ def drop_all(nodes, regions, count, box, planes, tile_rows, child_count, eye, sm
 @njit(cache=True, nogil=True)
 def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, eye, small,
                    corners, known, axes, axis_count, known_unit, clipped, clipped_count,
-                   clipped_by, cuts, basis, rects, flat):
+                   clipped_by, cuts, basis, rects, flat, flat_clipped):
     """Keep the first ``count`` pairs ``(nodes[j], regions[j])`` but those whose node has no
     children, is not small (its sphere's radius over its distance from ``eye`` at least
     ``small``) and is found apart from the tile's frustum: by its outline when it lies between
@@ -121,8 +123,9 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     near plane ``clipped_by`` (bit 2: a pair with that plane seen; bit 4: its outline made);
     each computed when first needed. ``cuts``: see :func:`drop_all` (empty when not told).
     ``basis``: see :func:`drop_all` (empty when there is none); then ``rects (tiles, 7)``, each
-    tile's near face in it (:func:`_rect`), and ``flat (nodes, 6, 5)``, each unit's outline
-    planes in it (:func:`_flat`), computed with the corners and the planes."""
+    tile's near face in it (:func:`_rect`), and ``flat (nodes, 6, 5)`` and ``flat_clipped
+    (nodes, _CLIPPED, 5)``, each unit's outline planes in it (:func:`_flat`), computed with
+    the corners and the planes."""
     h = np.empty(3)  # scratch of _separated
     u = np.empty((3, 3))
     local = np.empty((8, 3))
@@ -167,8 +170,12 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
                         known_unit[i] |= 4
                         clipped_count[i] = _clipped_outline(box, i, eye, planes, near, clipped,
                                                             corner, rel, img)
-                    apart = clipped_count[i] > 0 and _outside(clipped, clipped_count, i,
-                                                              corners, t, eye, box)
+                        if basis.shape[0]:
+                            _flat(clipped, clipped_count[i], i, eye, basis, flat_clipped)
+                    apart = clipped_count[i] > 0 and (
+                        _outside_rect(flat_clipped, clipped_count, i, rects, t, eye, box)
+                        if basis.shape[0] else
+                        _outside(clipped, clipped_count, i, corners, t, eye, box))
                 keep = not apart and not _separated(box, i, corners, t, h, u, local)
             elif cut and known[t] != _NONE:
                 keep = not _separated(box, i, corners, t, h, u, local)
@@ -203,13 +210,14 @@ def _rect(corners, t, eye, basis, rects):
 def _flat(axes, count, i, eye, basis, flat):
     """Into ``flat[i]``: unit ``i``'s outline planes (:func:`_outline`) in ``basis``: per
     plane its normal's components along the rows, how far the bound reaches past the plane
-    through the eye, and ``|n|_1``."""
+    through the eye (at least 0: the far corners' argument of :func:`_outside_rect` needs
+    it, and more only makes the test stricter), and ``|n|_1``."""
     for q in range(count):
         for a in range(3):
             flat[i, q, a] = (axes[i, q, 0] * basis[a, 0] + axes[i, q, 1] * basis[a, 1]
                              + axes[i, q, 2] * basis[a, 2])
-        flat[i, q, 3] = axes[i, q, 3] - (axes[i, q, 0] * eye[0] + axes[i, q, 1] * eye[1]
-                                         + axes[i, q, 2] * eye[2])
+        through = axes[i, q, 0] * eye[0] + axes[i, q, 1] * eye[1] + axes[i, q, 2] * eye[2]
+        flat[i, q, 3] = max(0.0, axes[i, q, 3] - through)
         flat[i, q, 4] = axes[i, q, 4]
 
 
