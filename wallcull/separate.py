@@ -27,6 +27,14 @@ it finds two thirds of its pairs apart, a tenth off the cull). Conservative: the
 corners come from its planes, the box's reach includes its ball, and a separation counts only
 when the gap exceeds a margin relative to the coordinates. Applied the same way after every
 method, so the methods still agree where they agreed.
+
+Two shortcuts, with the same answers. ``adaptive`` tells the pass which of a tile's planes cut
+each pair it lists (it tested them), so the pass does not test them again (:func:`_open`). And
+on a grid, every tile's near face is a rectangle along the view's right and up directions:
+the outline planes go through the eye, so a plane has the whole frustum beyond it when it has
+that rectangle beyond it (the far corners lie further out on the same rays), one test a
+plane rather than eight corners (:func:`_outside_rect`; its margin a little wider: on 15
+frames of a 64 x 64 wall it kept 25 pairs in 513,556 that the corners would drop).
 """
 
 from __future__ import annotations
