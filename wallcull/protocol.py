@@ -451,13 +451,25 @@ def apply_parts(held: dict | None, pkt: dict, leaves: np.ndarray, base: Any = _O
             raise InputError(f"delta against frame {base}, whose ranges are not held")
         whole = set(pkt.get("whole", ()))
         kept = [leaf for leaf in held if leaf not in whole]
-        listed = np.isin(kept, leaves) if kept else []
-        out = {leaf: held[leaf] for leaf, ok in zip(kept, listed) if ok}
+        out = {leaf: held[leaf] for leaf, ok in zip(kept, _listed(kept, leaves)) if ok}
     for item in pkt.get("ranges", ()):
         if len(item) < 3 or len(item) % 2 != 1:
             raise InputError(f"a tile's ranges must be [leaf, first, count, ...], got {item}")
         out[int(item[0])] = np.asarray(item[1:], dtype=np.int64).reshape(-1, 2)
     return out
+
+
+def _listed(ids: list, leaves: np.ndarray) -> np.ndarray:
+    """Whether each of ``ids`` is in ``leaves``: by binary search where ``leaves`` is sorted,
+    as lists are (a node applies a delta every frame, and ``np.isin`` sorts both)."""
+    ids = np.asarray(ids, np.int64)
+    if not len(ids) or not len(leaves):
+        return np.zeros(len(ids), bool)
+    leaves = np.asarray(leaves)
+    if (leaves[1:] < leaves[:-1]).any():
+        return np.isin(ids, leaves)
+    at = np.minimum(np.searchsorted(leaves, ids), len(leaves) - 1)
+    return leaves[at] == ids
 
 
 def apply(held: np.ndarray | None, pkt: dict, base: Any = _OWN) -> np.ndarray:

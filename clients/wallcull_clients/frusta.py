@@ -49,6 +49,11 @@ def projection(extent, depth, reversed_z: bool = False) -> np.ndarray:
     return m
 
 
+#: Projections a :class:`Frusta` keeps built (a 256 x 256 wall's node of 64 tiles in stereo
+#: needs 128 a frame).
+PROJECTIONS_KEPT = 4096
+
+
 def view(rigid: dict) -> np.ndarray:
     """The ``(4, 4)`` matrix of a rigid view (module docstring)."""
     w, x, y, z = (float(v) for v in rigid["rotation"])
@@ -69,6 +74,9 @@ class Frusta:
     def __init__(self, keep: int = 256):
         self.keep = keep
         self.held: OrderedDict[int, dict] = OrderedDict()  # frame -> {(tile, eye, key): value}
+        # (extent, depth, reversed_z) -> its projection, read-only: most tiles keep theirs
+        # from one frame to the next (a delta leaves them out), so each is built once
+        self._projections: dict[tuple, np.ndarray] = {}
 
     def take(self, message: dict) -> dict[int, dict]:
         """``{tile: {"view", "projection", "near", "far", "left"?, "right"?}}`` of a node
@@ -102,8 +110,8 @@ class Frusta:
                         shared[eye] = view(shared_view)
                     matrix = shared[eye]
                 matrices[eye] = {"view": matrix,
-                                 "projection": projection(now[tile, eye, "extent"], depth,
-                                                          reversed_z),
+                                 "projection": self._projection(now[tile, eye, "extent"], depth,
+                                                                reversed_z),
                                  "near": float(depth[0]), "far": float(depth[1])}
             record = matrices.pop(None)
             record.update(matrices)
@@ -115,3 +123,14 @@ class Frusta:
         while len(self.held) > self.keep:
             self.held.popitem(last=False)
         return out
+
+    def _projection(self, extent, depth, reversed_z: bool) -> np.ndarray:
+        """:func:`projection`, built once for the same numbers (read-only)."""
+        key = (*extent, *depth, reversed_z)
+        found = self._projections.get(key)
+        if found is None:
+            if len(self._projections) >= PROJECTIONS_KEPT:
+                self._projections.clear()
+            found = self._projections[key] = projection(extent, depth, reversed_z)
+            found.flags.writeable = False
+        return found
