@@ -511,3 +511,13 @@ def test_a_delta_is_applied_as_set_operations_would(held, removed, added):
 
     want = np.union1d(np.setdiff1d(arr(held), arr(removed), assume_unique=True), arr(added))
     assert np.array_equal(_apply_delta(arr(held), arr(removed), arr(added)), want)
+
+
+@settings(max_examples=200, deadline=None)
+@given(ids=st.lists(st.integers(0, 60), max_size=12),
+       leaves=st.lists(st.integers(0, 60), max_size=40), shuffled=st.booleans())
+def test_which_held_leaves_are_still_listed_is_what_isin_says(ids, leaves, shuffled):
+    """A node keeps a partial leaf's ranges when the tile still lists the leaf: found by binary
+    search in the (sorted) list, or by ``np.isin`` when a list is not sorted."""
+    leaves = np.array(sorted(set(leaves)) if not shuffled else leaves, np.int64)
+    assert np.array_equal(protocol._listed(ids, leaves), np.isin(ids, leaves))
