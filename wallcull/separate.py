@@ -140,12 +140,12 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     corner = np.empty((8, 4))  # scratch of _clipped_outline
     rel = np.empty((_CLIPPED, 3))
     img = np.empty((_CLIPPED, 2))
+    told = cuts.shape[0] > 0
     k = 0
     for j in range(count):
         i = nodes[j]
         t = regions[j]
         keep = True
-        told = cuts.shape[0] > 0
         # (one plane cutting it, as told, decides: see _undecided)
         if child_count[i] == 0 and (not told or cuts[j] & (cuts[j] - 1)) and \
                 _large(box, i, eye, small):
@@ -233,9 +233,10 @@ def _flat(axes, count, i, eye, basis, flat):
 def _outside_rect(flat, axis_count, i, rects, t, eye, box) -> bool:
     """:func:`_outside` with tile ``t``'s near face as the box ``rects[t]`` (:func:`_rect`):
     every point of that box, each near corner among them, lies beyond one of the planes by
-    the margin of its largest near corner and twice more of the rest (the eye's and the
-    unit's); then its far corners, ``m`` times as far out on the same rays from the eye, lie
-    beyond by ``m`` times that, more than their own margin. One test a plane, not eight."""
+    the margin of its largest near corner, with three times the share of the eye's and the
+    unit's coordinates; then its far corners, ``m`` times as far out on the same rays from the
+    eye, lie beyond by ``m`` times that, more than their own margin. One test a plane, not
+    eight."""
     base = abs(eye[0]) + abs(eye[1]) + abs(eye[2]) + abs(box[i, 0]) + abs(box[i, 1]) \
         + abs(box[i, 2]) + box[i, 13]
     for q in range(axis_count[i]):
