@@ -140,7 +140,8 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
     corner = np.empty((8, 4))  # scratch of _clipped_outline
     rel = np.empty((_CLIPPED, 3))
     img = np.empty((_CLIPPED, 2))
-    told = cuts.shape[0] > 0
+    told = cuts.shape[0] > 0  # the traversal's cuts
+    grid = basis.shape[0] > 0  # tiles' near faces as rectangles
     k = 0
     for j in range(count):
         i = nodes[j]
@@ -153,16 +154,16 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
                 _undecided(box, i, planes, tile_rows, t)
             if cut and not known[t]:
                 known[t] = _frustum(planes, tile_rows, t, corners, eye)
-                if known[t] == _CONE and basis.shape[0]:
+                if known[t] == _CONE and grid:
                     _rect(corners, t, eye, basis, rects)
             if cut == _SIDES and known[t] == _CONE:  # its outline decides (see the module)
                 if not known_unit[i] & 1:
                     known_unit[i] |= 1
                     axis_count[i] = _outline(box, i, eye, axes)
-                    if basis.shape[0]:
+                    if grid:
                         _flat(axes, axis_count[i], i, eye, basis, flat)
                 keep = not (_outside_rect(flat, axis_count, i, rects, t, eye, box)
-                            if basis.shape[0] else
+                            if grid else
                             _outside(axes, axis_count, i, corners, t, eye, box))
             elif cut == _DEPTH and known[t] == _CONE and _near_only(box, i, planes, tile_rows,
                                                                     t):
@@ -178,11 +179,11 @@ def drop_separated(nodes, regions, count, box, planes, tile_rows, child_count, e
                         known_unit[i] |= 4
                         clipped_count[i] = _clipped_outline(box, i, eye, planes, near, clipped,
                                                             corner, rel, img)
-                        if basis.shape[0]:
+                        if grid:
                             _flat(clipped, clipped_count[i], i, eye, basis, flat_clipped)
                     apart = clipped_count[i] > 0 and (
                         _outside_rect(flat_clipped, clipped_count, i, rects, t, eye, box)
-                        if basis.shape[0] else
+                        if grid else
                         _outside(clipped, clipped_count, i, corners, t, eye, box))
                 keep = not apart and not _separated(box, i, corners, t, h, u, local)
             elif cut and known[t] != _NONE:
