@@ -11,8 +11,8 @@ from hypothesis import assume, given, settings, strategies as st
 from scipy.spatial import ConvexHull
 
 from wallcull.quad import (
-    best_quad_exhaustive, bounding_quad, contains, convex_hull_2d, greedy_quad, hull_indices,
-    quad_area, ratio_report, refine_quad)
+    OCTANTS, _by_x_then_y, best_quad_exhaustive, bounding_quad, contains, convex_hull_2d,
+    extremes, greedy_quad, hull_indices, quad_area, ratio_report, refine_quad)
 
 FAST = settings(max_examples=80, deadline=None)
 coord = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False, allow_subnormal=False)
@@ -153,6 +153,26 @@ def test_hull_degenerate_inputs():
         convex_hull_2d(np.zeros((0, 2)))
     with pytest.raises(ValueError):
         convex_hull_2d([[0.0, np.nan]])
+
+
+def test_the_hulls_order_is_x_then_y_then_index():
+    """The chain's order, from one sort and runs of equal x sorted apart, is the lexicographic
+    one (x, y, index): on a small grid, where ties in x and in both are the rule (and lists
+    long enough that the sort is not an insertion sort, which would keep ties in order)."""
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        n = int(rng.integers(1, 400))
+        pts = rng.integers(-3, 4, size=(n, 2)).astype(float)
+        keep = np.sort(rng.choice(n, size=int(rng.integers(1, n + 1)), replace=False))
+        expected = keep[np.lexsort((keep, pts[keep, 1], pts[keep, 0]))]
+        np.testing.assert_array_equal(_by_x_then_y(pts, keep), expected)
+
+
+@FAST
+@given(point_sets(min_size=1))
+def test_the_octagons_corners_are_the_first_extreme_points(pts):
+    keys = pts @ OCTANTS.T  # (m, 8): np.argmin takes the first of equal keys
+    np.testing.assert_array_equal(extremes(pts), np.argmin(keys, axis=0))
 
 
 # ------------------------------------------------------------------------------------ greedy

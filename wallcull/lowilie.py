@@ -43,7 +43,7 @@ from numba import njit
 
 from . import workers
 from .projection import dot, frustum, look_at, matmul
-from .quad import COLLINEAR, OCTANTS, _greedy, _hull, _polygon_area, _refine
+from .quad import COLLINEAR, _greedy, _hull, _polygon_area, _refine, extremes
 
 __all__ = ["FitError", "FrustumFit", "fit_frustum", "float32_error", "bench_fit",
            "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "effort_code", "fit_boxes"]
@@ -315,14 +315,7 @@ def _box_images(rel, g, u, disc, rot_s, axis, points):
     real corner images, inside the hull; a box whose image disc lies farther inside it than the
     hull's collinearity tolerance cannot add a hull vertex and is skipped."""
     n = u.shape[0]
-    pick = np.zeros(8, np.int64)
-    best = np.full(8, -np.inf)
-    for i in range(n):
-        for k in range(8):
-            key = -(OCTANTS[k, 0] * u[i, 0] + OCTANTS[k, 1] * u[i, 1])  # min x, min x + y, ...
-            if key > best[k]:
-                best[k] = key
-                pick[k] = i
+    pick = extremes(u)
     out = np.empty((points, 2))
     corner = np.empty((8, 3))
     k = 0
@@ -364,14 +357,7 @@ def _image(p, q, rot_s, axis, out, k):
 def _octagon(points):
     """Edges ``(8, 3)`` (inward unit normal, offset) of the polygon of the points extreme in
     x, x + y, y, y - x, ... (CCW); zero rows for edges of no length."""
-    ext = np.zeros(8, np.int64)
-    best = np.full(8, np.inf)
-    for i in range(points.shape[0]):
-        for k in range(8):
-            key = OCTANTS[k, 0] * points[i, 0] + OCTANTS[k, 1] * points[i, 1]
-            if key < best[k]:
-                best[k] = key
-                ext[k] = i
+    ext = extremes(points)
     edges = np.zeros((8, 3))
     for k in range(8):
         a, b = ext[k], ext[(k + 1) % 8]

@@ -170,13 +170,8 @@ def hull_indices(points) -> np.ndarray:
 @njit(cache=True)
 def _hull(points):
     """:func:`hull_indices`, compiled (for callers that are compiled too)."""
-    x, y = points[:, 0], points[:, 1]
-    diameter = math.hypot(x.max() - x.min(), y.max() - y.min())
-    eps = COLLINEAR * diameter
-    keep = _candidates(points, eps)
-    by_y = np.argsort(y[keep], kind="mergesort")
-    order = keep[by_y][np.argsort(x[keep][by_y], kind="mergesort")]  # x, then y: lexsort
-    idx = _monotone_chain(points, order, eps)
+    keep, eps = _candidates(points)
+    idx = _monotone_chain(points, _by_x_then_y(points, keep), eps)
     if idx.shape[0] == 2 and points[idx[0], 0] == points[idx[1], 0] \
             and points[idx[0], 1] == points[idx[1], 1]:
         idx = idx[:1]
@@ -184,23 +179,73 @@ def _hull(points):
 
 
 @njit(cache=True)
-def _candidates(points, eps):
-    """Indices of the points that can be hull vertices (Akl-Toussaint): a point farther than
-    ``2 eps`` inside the octagon of the extreme points in x, y, x + y and x - y is not one, and
-    is dropped before the sort. The octagon's vertices are input points, so the hull and the
-    chain's collinearity decisions (within ``eps``) are the same as over all points."""
-    m = points.shape[0]
-    if m <= 16:
-        return np.arange(m)
-    ext = np.zeros(8, np.int64)  # the octagon's vertices (see OCTANTS)
-    best = np.full(8, np.inf)
-    for i in range(m):
+def _by_x_then_y(points, keep):
+    """``keep`` (increasing indices) ordered by x, then y, then index: what two stable sorts
+    (by y, then by x) give, for half their time. One sort by x, then each run of equal x put in
+    order by y and index (such runs are short: a few repeated points)."""
+    x = points[:, 0]
+    order = keep[np.argsort(x[keep])]
+    n = order.shape[0]
+    i = 0
+    while i < n:
+        j = i + 1
+        while j < n and x[order[j]] == x[order[i]]:
+            j += 1
+        for a in range(i + 1, j):  # insertion sort of the run [i, j)
+            v = order[a]
+            b = a - 1
+            while b >= i and (points[order[b], 1] > points[v, 1]
+                              or (points[order[b], 1] == points[v, 1] and order[b] > v)):
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = v
+        i = j
+    return order
+
+
+@njit(cache=True)
+def extremes(points):
+    """The first of ``points`` ``(m, 2)`` with the least ``OCTANTS[k] . p``, for each ``k``:
+    the least x, x + y, y and y - x, then the greatest. None of them for ``m == 0`` (zeros)."""
+    e0 = e1 = e2 = e3 = e4 = e5 = e6 = e7 = 0
+    lx, ls, ly, ld = np.inf, np.inf, np.inf, np.inf
+    gx, gs, gy, gd = -np.inf, -np.inf, -np.inf, -np.inf
+    for i in range(points.shape[0]):
         px, py = points[i, 0], points[i, 1]
-        for k in range(8):
-            key = OCTANTS[k, 0] * px + OCTANTS[k, 1] * py
-            if key < best[k]:
-                best[k] = key
-                ext[k] = i
+        s, d = px + py, py - px
+        if px < lx:
+            lx, e0 = px, i
+        if s < ls:
+            ls, e1 = s, i
+        if py < ly:
+            ly, e2 = py, i
+        if d < ld:
+            ld, e3 = d, i
+        if px > gx:
+            gx, e4 = px, i
+        if s > gs:
+            gs, e5 = s, i
+        if py > gy:
+            gy, e6 = py, i
+        if d > gd:
+            gd, e7 = d, i
+    return np.array([e0, e1, e2, e3, e4, e5, e6, e7])
+
+
+@njit(cache=True)
+def _candidates(points):
+    """Indices of the points that can be hull vertices, and ``eps``, :data:`COLLINEAR` times
+    the diameter of their bounding box. Akl-Toussaint: a point farther than ``2 eps`` inside
+    the octagon of the extreme points in x, y, x + y and x - y is not one, and is dropped
+    before the sort. The octagon's vertices are input points, so the hull and the chain's
+    collinearity decisions (within ``eps``) are the same as over all points."""
+    m = points.shape[0]
+    ext = extremes(points)  # the octagon's vertices
+    lx, ly = points[ext[0], 0], points[ext[2], 1]
+    gx, gy = points[ext[4], 0], points[ext[6], 1]
+    eps = COLLINEAR * math.hypot(gx - lx, gy - ly)
+    if m <= 16:
+        return np.arange(m), eps
     # each edge a -> b as an inward normal and offset, the offset moved in by 2 eps
     nx, ny, off = np.zeros(8), np.zeros(8), np.full(8, -np.inf)
     for k in range(8):
@@ -211,7 +256,7 @@ def _candidates(points, eps):
             nx[k], ny[k] = -ey / length, ex / length
             off[k] = nx[k] * points[a, 0] + ny[k] * points[a, 1] + 2 * eps
     if not np.isfinite(off).any():  # all points coincide: no inside to drop
-        return np.arange(m)
+        return np.arange(m), eps
     out = np.empty(m, np.int64)
     n = 0
     for i in range(m):
@@ -221,7 +266,7 @@ def _candidates(points, eps):
                 out[n] = i
                 n += 1
                 break
-    return out[:n]
+    return out[:n], eps
 
 
 def convex_hull_2d(points) -> np.ndarray:
