@@ -57,12 +57,11 @@ PROJECTIONS_KEPT = 4096
 def view(rigid: dict) -> np.ndarray:
     """The ``(4, 4)`` matrix of a rigid view (module docstring)."""
     w, x, y, z = (float(v) for v in rigid["rotation"])
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                 [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = rigid["translation"]
-    return m
+    tx, ty, tz = (float(v) for v in rigid["translation"])
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), tx],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ty],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), tz],
+                     [0.0, 0.0, 0.0, 1.0]])
 
 
 class Frusta:
@@ -87,34 +86,17 @@ class Frusta:
         held = self.held.get(base, {}) if base is not None else {}
         reversed_z = bool(message.get("reversed_z", False))
         now, out = {}, {}
-        shared = {}  # eye -> the matrix of the message's shared view: built once for all tiles
-        entries = {tile: {"tile": tile} for tile, eye, key in held if eye is None}
+        # a tile the delta left out: as an entry of nothing but its tile
+        entries = {tile: {} for tile, eye, key in held if eye is None}
         entries.update((entry["tile"], entry) for entry in message["tiles"])
-        for tile, entry in sorted(entries.items()):
-            parts = {None: (entry, message.get("view"))}
-            parts.update({eye: (entry[eye], message.get(eye, {}).get("view"))
-                          for eye in EYES if eye in entry})
-            matrices = {}
-            for eye, (part, shared_view) in parts.items():
-                for key in ("extent", "depth"):
-                    value = part.get(key, held.get((tile, eye, key)))
-                    if value is None:
-                        raise KeyError(f"tile {tile}: the delta's {key} is that of frame "
-                                       f"{base}, which is not held")
-                    now[tile, eye, key] = value
-                depth = now[tile, eye, "depth"]
-                if "view" in part:
-                    matrix = view(part["view"])
-                else:
-                    if eye not in shared:
-                        shared[eye] = view(shared_view)
-                    matrix = shared[eye]
-                matrices[eye] = {"view": matrix,
-                                 "projection": self._projection(now[tile, eye, "extent"], depth,
-                                                                reversed_z),
-                                 "near": float(depth[0]), "far": float(depth[1])}
-            record = matrices.pop(None)
-            record.update(matrices)
+        shared = {}  # eye -> the matrix of the message's shared view: built once for all tiles
+        for tile in sorted(entries):
+            entry = entries[tile]
+            record = self._eye(tile, None, entry, message, held, now, shared, reversed_z, base)
+            for eye in EYES:
+                if eye in entry:
+                    record[eye] = self._eye(tile, eye, entry[eye], message, held, now, shared,
+                                            reversed_z, base)
             out[tile] = record
         self.held[message["frame"]] = now
         if base is not None:
@@ -123,6 +105,31 @@ class Frusta:
         while len(self.held) > self.keep:
             self.held.popitem(last=False)
         return out
+
+    def _eye(self, tile, eye, part, message, held, now, shared, reversed_z, base) -> dict:
+        """One tile's (one eye's) matrices from its ``part`` of the message, the rest from
+        ``held``; its extent and depth go into ``now``."""
+        values = []
+        for key in ("extent", "depth"):
+            value = part.get(key)
+            if value is None:
+                value = held.get((tile, eye, key))
+                if value is None:
+                    raise KeyError(f"tile {tile}: the delta's {key} is that of frame {base}, "
+                                   "which is not held")
+            now[tile, eye, key] = value
+            values.append(value)
+        extent, depth = values
+        if "view" in part:
+            matrix = view(part["view"])
+        else:
+            matrix = shared.get(eye)
+            if matrix is None:
+                rigid = message.get("view") if eye is None else \
+                    message.get(eye, {}).get("view")
+                matrix = shared[eye] = view(rigid)
+        return {"view": matrix, "projection": self._projection(extent, depth, reversed_z),
+                "near": float(depth[0]), "far": float(depth[1])}
 
     def _projection(self, extent, depth, reversed_z: bool) -> np.ndarray:
         """:func:`projection`, built once for the same numbers (read-only)."""
