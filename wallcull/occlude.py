@@ -1657,8 +1657,8 @@ def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
     [j0, j1)`` that its outline touches, at its depth there (:func:`_bound`). The texel of its
     centre first (its outline always touches it); then blocks of texels, read at a level of
     the pyramid (its least over the block), and texel by texel only in those where that does
-    not settle it; a texel is out of its outline when all four of its corners lie outside
-    one of the outline's edges."""
+    not settle it and that its outline reaches; a block or a texel is out of its outline when
+    all four of its corners lie outside one of the outline's edges."""
     if re[_R_READY] == 0.0:
         _planes_of(re, rect, w, h)
     at = offsets[0]
@@ -1680,8 +1680,11 @@ def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
                 continue  # hidden over the whole block
             if re[_R_READY] == 1.0:
                 _outline_of(re, rect, w, h)
-            for j in range(max(j0, J * s), min(j1, J * s + s)):
-                for i in range(max(i0, I * s), min(i1, I * s + s)):
+            xa, xb, ya, yb = max(i0, I * s), min(i1, I * s + s), max(j0, J * s), min(j1, J * s + s)
+            if _beyond(re, xa, ya, xb, yb):
+                continue  # the block is out of its outline
+            for j in range(ya, yb):
+                for i in range(xa, xb):
                     if _touches(re, i, j, izlo[at + j * w + i]):
                         return False
     return True
@@ -1694,14 +1697,21 @@ def _touches(re, i, j, iz):
     bound = _bound(re, i, j, 1)
     if not bound > 0 or iz > (1 + DEPTH_MARGIN) * bound:
         return False  # hidden there, or none of it there
+    return not _beyond(re, i, j, i + 1.0, j + 1.0)
+
+
+@njit(cache=True, inline="always")
+def _beyond(re, x0, y0, x1, y1):
+    """Whether the rectangle ``[x0, x1] x [y0, y1]`` (texel coordinates) lies wholly outside
+    an edge of the outline of the node of record ``re`` (ready): its corner most inside is
+    outside."""
     n = int(re[_R_CORNERS])
     hull = _R_HULL
-    for e in range(n):  # out when the texel's corner most inside is outside
+    for e in range(n):
         a = int(re[_R_ORDER + e])
         b = int(re[_R_ORDER + (e + 1) % n])
         ax, ay = re[hull + 2 * a], re[hull + 2 * a + 1]
         ex, ey = re[hull + 2 * b] - ax, re[hull + 2 * b + 1] - ay
-        if ex * (j + (1.0 if ex > 0 else 0.0) - ay) \
-                - ey * (i + (1.0 if ey < 0 else 0.0) - ax) < 0:
-            return False
-    return True
+        if ex * ((y1 if ex > 0 else y0) - ay) - ey * ((x1 if ey < 0 else x0) - ax) < 0:
+            return True
+    return False
