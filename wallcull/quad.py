@@ -205,8 +205,9 @@ def _by_x_then_y(points, keep):
 
 @njit(cache=True)
 def extremes(points):
-    """The first of ``points`` ``(m, 2)`` with the least ``OCTANTS[k] . p``, for each ``k``:
-    the least x, x + y, y and y - x, then the greatest. None of them for ``m == 0`` (zeros)."""
+    """For each ``k``, the index of the first of ``points`` ``(m, 2)`` with the least
+    ``OCTANTS[k] . p``: the least x, x + y, y and y - x, then the greatest (zeros when
+    ``m == 0``)."""
     e0 = e1 = e2 = e3 = e4 = e5 = e6 = e7 = 0
     lx, ls, ly, ld = np.inf, np.inf, np.inf, np.inf
     gx, gs, gy, gd = -np.inf, -np.inf, -np.inf, -np.inf
@@ -240,6 +241,8 @@ def _candidates(points):
     before the sort. The octagon's vertices are input points, so the hull and the chain's
     collinearity decisions (within ``eps``) are the same as over all points."""
     m = points.shape[0]
+    if m == 0:
+        return np.arange(0), 0.0
     ext = extremes(points)  # the octagon's vertices
     lx, ly = points[ext[0], 0], points[ext[2], 1]
     gx, gy = points[ext[4], 0], points[ext[6], 1]
