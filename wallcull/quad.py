@@ -182,7 +182,8 @@ def _hull(points):
 def _by_x_then_y(points, keep):
     """``keep`` (increasing indices) ordered by x, then y, then index: what two stable sorts
     (by y, then by x) give, for half their time. One sort by x, then each run of equal x put in
-    order by y and index (such runs are short: a few repeated points)."""
+    order by y and index: by insertion where it is short (a few repeated points, the rule), by
+    two sorts where it is long (a column of aligned boxes)."""
     x = points[:, 0]
     order = keep[np.argsort(x[keep])]
     n = order.shape[0]
@@ -191,6 +192,11 @@ def _by_x_then_y(points, keep):
         j = i + 1
         while j < n and x[order[j]] == x[order[i]]:
             j += 1
+        if j - i > 16:
+            run = np.sort(order[i:j])
+            order[i:j] = run[np.argsort(points[run, 1], kind="mergesort")]
+            i = j
+            continue
         for a in range(i + 1, j):  # insertion sort of the run [i, j)
             v = order[a]
             b = a - 1
