@@ -43,7 +43,7 @@ from numba import njit
 
 from . import workers
 from .projection import dot, frustum, look_at, matmul
-from .quad import COLLINEAR, _greedy, _hull, _polygon_area, _refine, extremes
+from .quad import COLLINEAR, _greedy, _hull, _polygon_area, _refine, extremes, octagon
 
 __all__ = ["FitError", "FrustumFit", "fit_frustum", "float32_error", "bench_fit",
            "MAX_HALF_ANGLE_DEG", "SPHERE_PAD", "EFFORTS", "effort_code", "fit_boxes"]
@@ -327,7 +327,7 @@ def _box_images(rel, g, u, disc, rot_s, axis, points):
             _image(corner, q, rot_s, axis, out, k)
             k += 1
         disc[i] = -1.0
-    inner = _octagon(out[:k])
+    inner = octagon(out[:k], extremes(out[:k]))
     lox, hix, loy, hiy = np.inf, -np.inf, np.inf, -np.inf
     for i in range(n):
         lox, hix = min(lox, u[i, 0] - disc[i]), max(hix, u[i, 0] + disc[i])
@@ -351,22 +351,6 @@ def _image(p, q, rot_s, axis, out, k):
     depth = axis[0] * x + axis[1] * y + axis[2] * z
     out[k, 0] = (rot_s[0, 0] * x + rot_s[0, 1] * y + rot_s[0, 2] * z) / depth
     out[k, 1] = (rot_s[1, 0] * x + rot_s[1, 1] * y + rot_s[1, 2] * z) / depth
-
-
-@njit(cache=True)
-def _octagon(points):
-    """Edges ``(8, 3)`` (inward unit normal, offset) of the polygon of the points extreme in
-    x, x + y, y, y - x, ... (CCW); zero rows for edges of no length."""
-    ext = extremes(points)
-    edges = np.zeros((8, 3))
-    for k in range(8):
-        a, b = ext[k], ext[(k + 1) % 8]
-        ex, ey = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
-        length = math.hypot(ex, ey)
-        if length > 0.0:
-            edges[k, 0], edges[k, 1] = -ey / length, ex / length
-            edges[k, 2] = edges[k, 0] * points[a, 0] + edges[k, 1] * points[a, 1]
-    return edges
 
 
 # The per-box helpers below allocate nothing and are compiled without reference counting

@@ -240,6 +240,22 @@ def extremes(points):
 
 
 @njit(cache=True)
+def octagon(points, ext):
+    """Edges ``(8, 3)`` (inward unit normal, offset) of the polygon of ``points[ext]``, the
+    points extreme in x, x + y, y, y - x, ... (:func:`extremes`; counter-clockwise); zero rows
+    for edges of no length."""
+    edges = np.zeros((8, 3))
+    for k in range(8):
+        a, b = ext[k], ext[(k + 1) % 8]
+        ex, ey = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
+        length = math.hypot(ex, ey)
+        if length > 0.0:
+            edges[k, 0], edges[k, 1] = -ey / length, ex / length
+            edges[k, 2] = edges[k, 0] * points[a, 0] + edges[k, 1] * points[a, 1]
+    return edges
+
+
+@njit(cache=True)
 def _candidates(points):
     """Indices of the points that can be hull vertices, and ``eps``, :data:`COLLINEAR` times
     the diameter of their bounding box. Akl-Toussaint: a point farther than ``2 eps`` inside
@@ -255,15 +271,11 @@ def _candidates(points):
     eps = COLLINEAR * math.hypot(gx - lx, gy - ly)
     if m <= 16:
         return np.arange(m), eps
-    # each edge a -> b as an inward normal and offset, the offset moved in by 2 eps
-    nx, ny, off = np.zeros(8), np.zeros(8), np.full(8, -np.inf)
-    for k in range(8):
-        a, b = ext[k], ext[(k + 1) % 8]
-        ex, ey = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1]
-        length = math.hypot(ex, ey)
-        if length > 0.0:
-            nx[k], ny[k] = -ey / length, ex / length
-            off[k] = nx[k] * points[a, 0] + ny[k] * points[a, 1] + 2 * eps
+    edges = octagon(points, ext)
+    nx, ny, off = edges[:, 0], edges[:, 1], np.full(8, -np.inf)
+    for k in range(8):  # each edge's offset moved in by 2 eps
+        if nx[k] != 0.0 or ny[k] != 0.0:
+            off[k] = edges[k, 2] + 2 * eps
     if not np.isfinite(off).any():  # all points coincide: no inside to drop
         return np.arange(m), eps
     out = np.empty(m, np.int64)
