@@ -38,15 +38,21 @@ def _apart_by_outline(box, eye, corners) -> bool:
     return _outside(axes, count, 0, corners[None], 0, np.asarray(eye, float), box)
 
 
-def _apart_by_outline_rect(box, eye, corners) -> bool:
-    """The outline test against the tile's near face as a rectangle of display space (a grid
-    tile's, as the traversal's frame hands it to the pass)."""
-    eye = np.asarray(eye, float)
-    axes, flat, rects = np.empty((1, 6, 5)), np.empty((1, 6, 5)), np.empty((1, 7))
-    count = np.array([_outline(box, 0, eye, axes)])
+def _outside_the_rect(axes, count, box, eye, corners) -> bool:
+    """Outline planes ``axes`` against the tile's near face as a rectangle of display space (a
+    grid tile's, as the traversal's frame hands it to the pass)."""
+    flat, rects = np.empty(axes.shape), np.empty((1, 7))
     _flat(axes, count[0], 0, eye, np.eye(3), flat)
     _rect(corners[None], 0, eye, np.eye(3), rects)
     return _outside_rect(flat, count, 0, rects, 0, eye, box)
+
+
+def _apart_by_outline_rect(box, eye, corners) -> bool:
+    """The outline test against the tile's near face as a rectangle."""
+    eye = np.asarray(eye, float)
+    axes = np.empty((1, 6, 5))
+    count = np.array([_outline(box, 0, eye, axes)])
+    return _outside_the_rect(axes, count, box, eye, corners)
 
 
 def _apart_by_clipped_outline(box, eye, planes, corners, rect=False) -> bool:
@@ -59,10 +65,7 @@ def _apart_by_clipped_outline(box, eye, planes, corners, rect=False) -> bool:
         np.empty((_CLIPPED, 2)))])
     if not rect:
         return bool(count[0]) and _outside(axes, count, 0, corners[None], 0, eye, box)
-    flat, rects = np.empty((1, _CLIPPED, 5)), np.empty((1, 7))
-    _flat(axes, count[0], 0, eye, np.eye(3), flat)
-    _rect(corners[None], 0, eye, np.eye(3), rects)
-    return bool(count[0]) and _outside_rect(flat, count, 0, rects, 0, eye, box)
+    return bool(count[0]) and _outside_the_rect(axes, count, box, eye, corners)
 
 
 #: the oracle's planes (bottom, right, top, left, near, far) as the culler orders them

@@ -231,6 +231,14 @@ def _flat(axes, count, i, eye, basis, flat):
 
 
 @njit(cache=True, inline="always")
+def _scale(eye, box, i):
+    """The size of the coordinates an outline test of unit ``i`` works with, beside a corner's
+    own: the eye's and the unit's centre's ``|.|_1`` and its ball; its margin grows with it."""
+    return abs(eye[0]) + abs(eye[1]) + abs(eye[2]) + abs(box[i, 0]) + abs(box[i, 1]) \
+        + abs(box[i, 2]) + box[i, 13]
+
+
+@njit(cache=True, inline="always")
 def _outside_rect(flat, axis_count, i, rects, t, eye, box) -> bool:
     """:func:`_outside` with tile ``t``'s near face as the box ``rects[t]`` (:func:`_rect`):
     every point of that box, each near corner among them, lies beyond one of the planes by
@@ -238,8 +246,7 @@ def _outside_rect(flat, axis_count, i, rects, t, eye, box) -> bool:
     unit's coordinates; then its far corners, ``m`` times as far out on the same rays from the
     eye, lie beyond by ``m`` times that, more than their own margin. One test a plane, not
     eight."""
-    base = abs(eye[0]) + abs(eye[1]) + abs(eye[2]) + abs(box[i, 0]) + abs(box[i, 1]) \
-        + abs(box[i, 2]) + box[i, 13]
+    base = _scale(eye, box, i)
     for q in range(axis_count[i]):
         gap = -flat[i, q, 3]
         for a in range(3):
@@ -646,8 +653,7 @@ def _outside(axes, axis_count, i, corners, t, eye, box) -> bool:
     """Whether every corner of tile ``t``'s frustum lies beyond one of unit ``i``'s outline
     planes (:func:`_outline`), by the margin of its own coordinates (the corners near the eye,
     where the planes meet, are only a near plane's distance beyond them)."""
-    base = abs(eye[0]) + abs(eye[1]) + abs(eye[2]) + abs(box[i, 0]) + abs(box[i, 1]) \
-        + abs(box[i, 2]) + box[i, 13]
+    base = _scale(eye, box, i)
     for q in range(axis_count[i]):
         beyond = True
         for c in range(8):
