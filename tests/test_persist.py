@@ -19,7 +19,8 @@ from wallcull.errors import InputError
 from wallcull.limits import Limits
 from wallcull.persist import StateFolder
 from wallcull.server import create_app
-from wallcull.service import SceneStore, Walls
+from wallcull.scene import load
+from wallcull.service import FrameNumbers, SceneStore, Walls
 from wallcull.wall import Wall
 
 from .test_access import FRAME, OPERATOR, TOKEN, WALL, bearer
@@ -54,6 +55,40 @@ def test_walls_come_back_after_a_restart(tmp_path):
         r = c.get(f"/walls/{info['id']}/tiles/0/packets/4", headers=node0)
         assert r.status_code == 410  # frames themselves do not survive: nodes get full lists
         assert c.get(f"/walls/{info['id']}/tiles/1/packets/5", headers=node0).status_code == 403
+
+
+def test_frame_numbers_are_written_ahead_and_exactly_at_a_clean_stop(tmp_path, monkeypatch):
+    """One write for every ``AHEAD`` frames, never below a number handed out; a clean stop
+    writes the last number handed out, a kill leaves the one written ahead: after either,
+    numbers go on above every number handed out."""
+    monkeypatch.setattr(FrameNumbers, "AHEAD", 4)
+    folder = StateFolder(tmp_path)
+    writes = []
+    set_last_frame = folder.set_last_frame
+    monkeypatch.setattr(folder, "set_last_frame",
+                        lambda wid, n: (writes.append(n), set_last_frame(wid, n)))
+
+    def on_disk():
+        with sqlite3.connect(tmp_path / "walls.sqlite3") as db:
+            return db.execute("SELECT last_frame FROM walls").fetchone()[0]
+
+    walls = Walls(state=folder)
+    session = walls.create(load("fatehpur"), Wall.from_dict(WALL), "adaptive", "obb", False, 8)
+    for number in range(11):
+        record, _ = session.compute_frame(FRAME)
+        assert record.number == number and on_disk() >= number
+        session.publish(record)
+    assert writes == [4, 9, 14] and on_disk() == 14
+    folder.close()  # killed: what was written ahead stays
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.get(f"/walls/{session.id}").json()["latest"] == 14
+        again = c.app.state.server.walls.get(session.id)
+        record, _ = again.compute_frame(FRAME)
+        again.publish(record)
+        assert record.number == 15 and on_disk() == 15 + 4
+    assert on_disk() == 15  # a clean stop: the last number handed out
+    with TestClient(create_app(None, token=TOKEN, state=tmp_path)) as c:
+        assert c.get(f"/walls/{session.id}").json()["latest"] == 15
 
 
 def test_only_digests_of_credentials_are_at_rest(tmp_path):

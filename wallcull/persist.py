@@ -34,7 +34,7 @@ CREATE TABLE IF NOT EXISTS walls (
     id TEXT PRIMARY KEY,
     created REAL NOT NULL,
     spec TEXT NOT NULL,                      -- JSON: the POST /walls body as validated
-    last_frame INTEGER NOT NULL DEFAULT -1   -- the newest frame number handed out
+    last_frame INTEGER NOT NULL DEFAULT -1   -- no frame number above it was handed out
 );
 CREATE TABLE IF NOT EXISTS credentials (
     digest TEXT PRIMARY KEY,                 -- SHA-256 of the token, hex; never the token
@@ -192,9 +192,16 @@ class StateFolder:
         self._write(lambda db: db.execute("DELETE FROM walls WHERE id = ?", (wid,)))
 
     def set_last_frame(self, wid: str, number: int) -> None:
+        """Frame numbers up to ``number`` may be handed out (never lowers what is written)."""
         self._write(lambda db: db.execute(
             "UPDATE walls SET last_frame = ? WHERE id = ? AND last_frame < ?",
             (number, wid, number)))
+
+    def settle_last_frame(self, wid: str, number: int) -> None:
+        """``number`` is the last frame number handed out (a clean stop: it may lower a
+        number written ahead, :class:`wallcull.service.FrameNumbers`)."""
+        self._write(lambda db: db.execute("UPDATE walls SET last_frame = ? WHERE id = ?",
+                                          (number, wid)))
 
     def walls(self) -> list[WallRow]:
         """The walls found at start (checked then)."""

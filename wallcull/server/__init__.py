@@ -115,6 +115,7 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
         if server.bridge is not None:
             await server.bridge.close()
         if folder is not None:
+            walls_.settle()
             folder.close()
 
     app = App(title="wallcull", version="0.1.0", lifespan=lifespan, docs_url=None,
