@@ -5,7 +5,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from wallcull.errors import InputError
-from wallcull.wall import Frame, Frusta, Wall, display_planes
+from wallcull.wall import (Frame, Frusta, Wall, display_planes, matrix_quaternion,
+                           matrix_quaternions, quaternion_matrix)
 
 from wallcull.oracle import tile_planes_display
 
@@ -148,3 +149,21 @@ def test_wall_defaults():
     wall = Wall.from_dict({"cols": 2, "rows": 1, "tile_size": [1, 1], "distance": 1})
     assert (wall.gap, wall.near, wall.far, wall.resolution) == ((0, 0), 0.1, 1000.0, (1920, 1080))
     assert Wall.from_dict(wall.to_dict()) == wall
+
+
+def test_matrix_quaternions_round_trip_with_w_not_negative():
+    """Random rotations and the half turns (``w = 0``: Shepperd's other branches), one by one
+    and all at once: each quaternion is of unit length, has ``w >= 0`` and gives the matrix
+    back."""
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    turns = [np.diag(d) for d in ([1.0, -1, -1], [-1.0, 1, -1], [-1.0, -1, 1])]
+    m = np.array([*(quaternion_matrix(p) for p in q), np.eye(3), *turns])
+    batch = matrix_quaternions(m)
+    for k, rotation in enumerate(m):
+        one = matrix_quaternion(rotation)
+        assert np.array_equal(one, batch[k])
+        assert one[0] >= 0 and abs(np.linalg.norm(one) - 1) < 1e-15
+        assert np.abs(quaternion_matrix(one) - rotation).max() < 1e-14
+    assert np.allclose(np.abs(batch[:500]), np.abs(q), atol=1e-14)  # the same up to sign

@@ -44,7 +44,7 @@ from .cull import (Culler, Visibility, _Buffers, _depth_ranges, _expand, _farthe
                    depth_ranges as node_depths, packed, stack_depth)
 from .projection import look_at, mirrored_views, view_matrix
 from .scene import SceneState
-from .wall import Frame, Frusta, matrix_quaternion
+from .wall import Frame, Frusta, matrix_quaternions
 
 #: Depth ranges are widened by this fraction of their far distance, so that rounding in the
 #: client's float32 matrices never clips a surface lying exactly on a fitted plane.
@@ -660,8 +660,7 @@ def _differ(a, b, out):
 def rigid_parts(views: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(V, 4)`` rotation quaternions ``(w, x, y, z)`` and ``(V, 3)`` translations of rigid
     view matrices ``(V, 4, 4)``."""
-    return (np.array([matrix_quaternion(v[:3, :3]) for v in views]).reshape(-1, 4),
-            np.ascontiguousarray(views[:, :3, 3]))
+    return matrix_quaternions(views[:, :3, :3]), np.ascontiguousarray(views[:, :3, 3])
 
 
 def _tangents(projection: np.ndarray) -> np.ndarray:

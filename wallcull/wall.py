@@ -212,24 +212,46 @@ def quaternion_matrix(q: np.ndarray) -> np.ndarray:
 def matrix_quaternion(m: np.ndarray) -> np.ndarray:
     """Unit quaternion ``(w, x, y, z)`` of a rotation matrix, with ``w >= 0`` (Shepperd's
     method: the largest of the four squared components is taken first, for stability)."""
-    m = np.asarray(m, dtype=np.float64)
-    trace = np.trace(m)
-    squares = np.array([1 + trace, 1 + 2 * m[0, 0] - trace, 1 + 2 * m[1, 1] - trace,
-                        1 + 2 * m[2, 2] - trace])
-    k = int(np.argmax(squares))
+    return matrix_quaternions(np.asarray(m, dtype=np.float64)[None])[0]
+
+
+def matrix_quaternions(m: np.ndarray) -> np.ndarray:
+    """:func:`matrix_quaternion` of each rotation matrix ``m (V, 3, 3)``: ``(V, 4)``. (A
+    screens wall's tiles each have a view of their own: 72 of them one by one in Python took
+    0.6 ms a frame.)"""
+    return _quaternions(np.ascontiguousarray(m, dtype=np.float64))
+
+
+@njit(cache=True)
+def _quaternions(m):
+    out = np.empty((m.shape[0], 4))
     q = np.empty(4)
-    q[k] = np.sqrt(squares[k]) / 2
-    s = 1 / (4 * q[k])
-    if k == 0:
-        q[1:] = (m[2, 1] - m[1, 2]) * s, (m[0, 2] - m[2, 0]) * s, (m[1, 0] - m[0, 1]) * s
-    elif k == 1:
-        q[[0, 2, 3]] = (m[2, 1] - m[1, 2]) * s, (m[0, 1] + m[1, 0]) * s, (m[0, 2] + m[2, 0]) * s
-    elif k == 2:
-        q[[0, 1, 3]] = (m[0, 2] - m[2, 0]) * s, (m[0, 1] + m[1, 0]) * s, (m[1, 2] + m[2, 1]) * s
-    else:
-        q[[0, 1, 2]] = (m[1, 0] - m[0, 1]) * s, (m[0, 2] + m[2, 0]) * s, (m[1, 2] + m[2, 1]) * s
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    for v in range(m.shape[0]):
+        trace = m[v, 0, 0] + m[v, 1, 1] + m[v, 2, 2]
+        best, k = 1 + trace, 0
+        for j in range(3):
+            square = 1 + 2 * m[v, j, j] - trace
+            if square > best:
+                best, k = square, j + 1
+        q[k] = math.sqrt(best) / 2
+        s = 1 / (4 * q[k])
+        a, b, c = (m[v, 2, 1] - m[v, 1, 2]) * s, (m[v, 0, 2] - m[v, 2, 0]) * s, \
+            (m[v, 1, 0] - m[v, 0, 1]) * s
+        xy, xz, yz = (m[v, 0, 1] + m[v, 1, 0]) * s, (m[v, 0, 2] + m[v, 2, 0]) * s, \
+            (m[v, 1, 2] + m[v, 2, 1]) * s
+        if k == 0:
+            q[1], q[2], q[3] = a, b, c
+        elif k == 1:
+            q[0], q[2], q[3] = a, xy, xz
+        elif k == 2:
+            q[0], q[1], q[3] = b, xy, yz
+        else:
+            q[0], q[1], q[2] = c, xz, yz
+        norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+        sign = -1.0 if q[0] < 0 else 1.0  # w >= 0
+        for j in range(4):
+            out[v, j] = sign * (q[j] / norm)
+    return out
 
 
 @dataclass(frozen=True)
