@@ -9,7 +9,7 @@ import trimesh
 from hypothesis import given, settings, strategies as st
 
 from wallcull import occlude
-from wallcull.cull import cull
+from wallcull.cull import RECORD, cull
 from wallcull.fit import FitOptions
 from wallcull.occlude import Occluder, OcclusionOptions
 from wallcull.pipeline import Session
@@ -58,16 +58,52 @@ def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=Non
     first = np.array([a for r in runs for a, _ in r], np.int64)
     count = np.array([c for r in runs for _, c in r], np.int64)
     scratch = [occlude._scratch(len(table.faces), len(table.vertices)) for _ in range(threads)]
+    box = np.zeros((len(meshes), RECORD))  # each leaf's sphere, as a packed bound has it
+    for k, (points, _) in enumerate(meshes):
+        points = np.asarray(points, float).reshape(-1, 3)
+        box[k, :3] = (points.min(axis=0) + points.max(axis=0)) / 2
+        box[k, 13] = np.linalg.norm(points - box[k, :3], axis=1).max()
     canvas = occlude._canvas(w * h)
     canvas["work"][:] = 7  # cells left over from another frame: cleared
     for frame in ([rect + 0.05, rect] if reused else [rect]):
         buf = np.zeros(w * h)
         occlude._raster(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
-                        np.repeat(np.eye(4)[None], len(meshes), 0), table,
+                        np.repeat(np.eye(4)[None], len(meshes), 0), box, table,
                         occlude._outward(table), np.eye(3, 4)[None], frame[None],
                         np.array([[w, h]]), near, buf, np.array([0]), [(0, w * h)], scratch,
                         canvas, threads)
     return buf, rect
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_a_leaf_is_set_up_in_every_view_its_sphere_reaches(seed):
+    """A leaf is not set up in a view (:func:`wallcull.occlude._in_view`) only when no point
+    of its sphere lies beyond the near cut with its image within two texels of the view's
+    rectangle: there it could claim nothing."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    a = np.c_[Rotation.random(random_state=seed % 2**31).as_matrix(), rng.normal(size=3)]
+    x0, y0 = rng.uniform(-1.5, 0.5, 2)
+    rect = np.array([x0, x0 + rng.uniform(0.05, 2), y0, y0 + rng.uniform(0.05, 2)])
+    size = rng.integers(4, 64, 2)
+    cut = float(rng.uniform(0.01, 0.5))
+    box = np.zeros((1, RECORD))
+    box[0, :3] = rng.normal(size=3) * 3
+    box[0, 13] = rng.uniform(0.01, 1.5)
+    if occlude._in_view(box, 0, a, rect, size, cut):
+        return
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    points = box[0, :3] + d * box[0, 13] * rng.random((4000, 1)) ** (1 / 3)
+    v = points @ a[:, :3].T + a[:, 3]
+    depth = -v[:, 2]
+    ahead = depth >= cut
+    gx, gy = 1.99 * (rect[1] - rect[0]) / size[0], 1.99 * (rect[3] - rect[2]) / size[1]
+    x, y = v[ahead, 0] / depth[ahead], v[ahead, 1] / depth[ahead]
+    inside = (x >= rect[0] - gx) & (x <= rect[1] + gx) & (y >= rect[2] - gy) & (y <= rect[3] + gy)
+    assert not inside.any()
 
 
 def triangles(tris: np.ndarray):

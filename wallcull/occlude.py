@@ -299,7 +299,7 @@ class Occluder:
             self._scratch.append(_scratch(len(m.faces), len(m.vertices)))
         if len(self._canvas["work"]) != total:  # the cells gathered per texel (see _draw)
             self._canvas = _canvas(total)
-        _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, m,
+        _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, box, m,
                 self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
                 offsets[:, 0], spans, self._scratch, self._canvas, threads)
         for a, b in spans:
@@ -554,8 +554,8 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
     return out[:n]
 
 
-def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine, rect, size,
-            near, buf, at, spans, scratch, canvas, threads):
+def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, affine, rect,
+            size, near, buf, at, spans, scratch, canvas, threads):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]`` of the mesh table ``meshes``; a leaf's units next to each other, the nearest
     leaves first) into level 0 of each view's buffer ``buf`` (view ``v``'s texels from
@@ -577,7 +577,7 @@ def _raster(units, owner, first, count, mesh_of, world, meshes, outward, affine,
 
     def setup(k, a, b):  # units [a, b): their polygons and patches from their first face's
         start = int(before[k]) * views
-        return start, *_setup(units[a:b], owner[a:b], first, count, mesh_of, world,
+        return start, *_setup(units[a:b], owner[a:b], first, count, mesh_of, world, box,
                               meshes.vertex_start, meshes.vertices, meshes.face_start,
                               meshes.faces, meshes.face_neighbors, outward, affine, rect, size,
                               near, *scratch[k], polys, info, patches, boxes, start)
@@ -673,8 +673,28 @@ def _bands(polys, info, patches, which, size, shares):
     return bounds
 
 
+@njit(cache=True, inline="always")
+def _in_view(box, i, a, rect, size, cut):
+    """Whether node ``i``'s sphere reaches into the view of ``a`` (its rectangle ``rect``
+    grown by two texels each way, beyond depth ``cut``)."""
+    x, y, z = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
+    radius = box[i, 13]
+    if -z + radius < cut:
+        return False
+    gx = 2.0 * (rect[1] - rect[0]) / size[0]
+    gy = 2.0 * (rect[3] - rect[2]) / size[1]
+    for k, sign in ((0, 1.0), (1, -1.0)):  # x >= x0 depth, x <= x1 depth; the same for y
+        r = rect[k] - sign * gx
+        if sign * (x + r * z) < -radius * math.sqrt(1.0 + r * r):
+            return False
+        r = rect[2 + k] - sign * gy
+        if sign * (y + r * z) < -radius * math.sqrt(1.0 + r * r):
+            return False
+    return True
+
+
 @njit(cache=True, nogil=True)
-def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, face_start,
+def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertices, face_start,
            faces, neighbors, outward, affine, rect, size, near, face_marks, vertex_marks,
            stamps, polys, info, patches, boxes, start):
     """The *patches* of the occluders ``units`` in each view (see :func:`_raster`): a leaf's
@@ -696,7 +716,10 @@ def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, f
     (bits) and whether it is two faces (1 / depth affine on corners 0, 1, 2 and on 0, 2, 3;
     else on all), and per patch ``patches (Q, 3)`` its polygons' range and its view, and
     ``boxes (Q, 5)`` its image's box (x0, x1, y0, y1) and its most 1 / depth, all in the
-    order they are to be drawn; returns where the polygons and the patches end."""
+    order they are to be drawn; returns where the polygons and the patches end. A leaf whose
+    sphere (``box``, its packed bound) lies beyond a view's near plane or sides is not set up
+    in that view (it could claim nothing there): a screens wall has a view per screen, and a
+    leaf is in a few of them."""
     views = affine.shape[0]
     mark, slot_of = face_marks[0], face_marks[1]  # per face: the last leaf, its slot there
     vmark, vslot = vertex_marks[0], vertex_marks[1]  # per vertex: the same
@@ -772,6 +795,8 @@ def _setup(units, owner, first, count, mesh_of, world, vertex_start, vertices, f
         front = outward[m] * (1 if det > 0 else -1)
         for v in range(views):
             a = affine[v]
+            if not _in_view(box, leaf, a, rect[v], size[v], cut):
+                continue
             for r in range(3):  # world -> view, for this leaf
                 for c in range(4):
                     m_[r, c] = a[r, 0] * w[0, c] + a[r, 1] * w[1, c] + a[r, 2] * w[2, c] \
