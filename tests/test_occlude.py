@@ -447,7 +447,8 @@ def test_occluders_are_chosen_best_first():
         if choice == "visible":
             assert all(_under(scene, u, shown) for u in units)
             every = [u for u in every if _under(scene, u, shown)]
-        worth = {u: occ._solid[u] * occlude._image(box, u, views.affine, wall.near)
+        worth = {u: occ._solid[u] * occlude._image(box, u, views.affine, np.arange(1),
+                                                   wall.near)
                  / (count[u] if choice != "area" else 1) for u in every}
         spent = count[units].sum()
         least = min(worth[u] for u in units)
@@ -456,6 +457,43 @@ def test_occluders_are_chosen_best_first():
         assert 0 < spent <= 3000
         chosen[choice] = set(units.tolist())
     assert chosen["image"] != chosen["area"]
+
+
+def test_a_screens_walls_occluders_are_valued_in_their_own_screens_view():
+    """On a CAVE a unit's worth is its image in the view of the first screen it is found
+    under, not in any view: a node off to a screen's side would seem larger than it is. The
+    chosen are the best first by that worth."""
+    import json
+    from pathlib import Path
+
+    from wallcull.cull import packed
+
+    scene = load("powerplant")
+    state = SceneState(scene)
+    box = packed(state)
+    spec = json.loads((Path(__file__).parents[1] / "examples" / "wall-cave.json").read_text())
+    wall = Wall.from_dict(spec)
+    frame = Frame.from_dict({"position": [30, 10, 20], "orientation": [1, 0, 0, 0]}, wall)
+    vis = cull(state, Frusta.build(wall, frame))
+    count = scene.cluster_faces[1]
+    occ = Occluder(state, wall, OcclusionOptions(budget=3000))
+    views = occlude.Views.of(wall, frame, occ.options.texels)
+    units = occ.choose(vis, views, box)
+    every = Occluder(state, wall, OcclusionOptions(budget=10**7)).choose(vis, views, box)
+    lists = [set(vis.tile_nodes(t).tolist()) for t in range(wall.tiles)]
+
+    def worth(u, among):
+        tile = next(t for t in range(wall.tiles) if _under(scene, u, lists[t]))
+        return occ._solid[u] * occlude._image(box, u, views.affine, among(tile), wall.near) \
+            / count[u]
+
+    own = {u: worth(u, lambda t: views.tile_view[:, t]) for u in every}
+    least = min(own[u] for u in units)
+    spent = count[units].sum()
+    for u in set(every) - set(units.tolist()):
+        assert own[u] <= 1.03 * least or spent + count[u] > 3000, u
+    anywhere = {u: worth(u, lambda t: np.arange(len(views.affine))) for u in every}
+    assert sum(anywhere[u] > 1.03 * own[u] for u in every) > 10  # the rule makes a difference
 
 
 def test_visible_forgets_a_frame_it_did_not_cull():

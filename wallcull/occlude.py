@@ -202,7 +202,7 @@ class Occluder:
         # the eyes and texels, their views' layout and its pyramids' levels (see _levels)
         self._layout: tuple = (None, None, None)
         self._depth: tuple = (np.zeros(0), np.zeros(0))  # the buffers, kept between frames
-        self._shown: np.ndarray | None = None  # choice "visible": the frame before's lists
+        self._shown: tuple | None = None  # choice "visible": the frame before's lists (CSR)
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene).
@@ -248,7 +248,7 @@ class Occluder:
         nodes = np.concatenate([p[1] for p in parts])
         hidden = sum(p[2] for p in parts)
         if self.options.choice == "visible":
-            self._shown = nodes
+            self._shown = (start, nodes)
         out = Visibility(vis.scene, start, nodes, {
             **vis.stats, "pairs": len(nodes), "occluded": int(hidden),
             "occluder_units": len(d.units),
@@ -272,10 +272,12 @@ class Occluder:
         scene = self.state.scene
         self._frame += 1
         choice = self.options.choice
-        seeds = vis.nodes if choice != "visible" or self._shown is None else self._shown
-        return _pick(seeds, box, scene.child_start, scene.child_count, scene.children,
-                     self._solid, views.affine, self.wall.near, self._stamp, self._frame,
-                     scene.cluster_faces[1], self.options.budget, choice != "area")
+        start, seeds = (vis.start, vis.nodes) if choice != "visible" or self._shown is None \
+            else self._shown
+        return _pick(start, seeds, views.tile_view, box, scene.child_start, scene.child_count,
+                     scene.children, self._solid, views.affine, self.wall.near, self._stamp,
+                     self._frame, scene.cluster_faces[1], self.options.budget,
+                     choice != "area")
 
     def rasterize(self, units: np.ndarray, views: Views, box: np.ndarray, levels: tuple
                   ) -> "Depth":
@@ -418,12 +420,12 @@ def _to_view(a, x, y, z):
 
 
 @njit(cache=True, inline="always")
-def _angle(box, i, affine, near):
-    """The largest angle node ``i``'s sphere spans in any view (radians, about); one radian
-    when it reaches through the near plane (its part beyond is cut out and occludes), 0 when it
-    lies wholly before it in every view."""
+def _angle(box, i, affine, views, near):
+    """The largest angle node ``i``'s sphere spans in any of ``views`` (radians, about); one
+    radian when it reaches through the near plane (its part beyond is cut out and occludes), 0
+    when it lies wholly before it in every one."""
     best = 0.0
-    for v in range(affine.shape[0]):
+    for v in views:
         _, _, z = _to_view(affine[v], box[i, 0], box[i, 1], box[i, 2])
         d = -z - box[i, 13]
         if d > near:
@@ -434,11 +436,12 @@ def _angle(box, i, affine, near):
 
 
 @njit(cache=True, inline="always")
-def _image(box, i, affine, near):
-    """About the solid angle node ``i``'s box covers in any view: each face's area times its
-    slant to the eye, over the squared distance; one when it reaches through the near plane."""
+def _image(box, i, affine, views, near):
+    """About the solid angle node ``i``'s box covers in any of ``views``: each face's area
+    times its slant to the eye, over the squared distance; one when it reaches through the
+    near plane."""
     best = 0.0
-    for v in range(affine.shape[0]):
+    for v in views:
         a = affine[v]
         cx, cy, cz = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
         dist = math.sqrt(cx * cx + cy * cy + cz * cz)
@@ -484,20 +487,27 @@ def _depths(units, box, affine):
 
 
 @njit(cache=True)
-def _pick(seeds, box, child_start, child_count, children, solid, affine, near, stamp, frame,
-          count, budget, per_triangle):
-    """The units to rasterize: the childless nodes under ``seeds`` that may occlude (``stamp``
-    marks those seen this ``frame``), the best first within ``budget`` triangles. A unit's
-    worth: the image its box covers (:func:`_image`) times the share of the box its faces
-    fill (``solid``; 0 where it must not occlude), per triangle when ``per_triangle``: a wall's
-    two triangles before a pipe's forty, and a floor before a grating. Only nodes spanning at
-    least a 500th of a radian are opened (what is smaller hides little). The order is by worth
-    within a factor of 1.02 (buckets of its logarithm: linear time)."""
+def _pick(start, seeds, tile_view, box, child_start, child_count, children, solid, affine,
+          near, stamp, frame, count, budget, per_triangle):
+    """The units to rasterize: the childless nodes under ``seeds`` (each tile's, CSR
+    ``start``) that may occlude (``stamp`` marks those seen this ``frame``), the best first
+    within ``budget`` triangles. A unit's worth: the image its box covers (:func:`_image`),
+    in the views of the tile it is found under (``tile_view[:, t]``: on a grid every tile's;
+    a screen's own, where a node off to its side would seem larger than it is), times the
+    share of the box its faces fill (``solid``; 0 where it must not occlude), per triangle
+    when ``per_triangle``: a wall's two triangles before a pipe's forty, and a floor before a
+    grating. Only nodes spanning at least a 500th of a radian are opened (what is smaller
+    hides little). The order is by worth within a factor of 1.02 (buckets of its logarithm:
+    linear time)."""
     stack = np.empty(64, np.int64)
     found = np.empty(seeds.shape[0] + 64, np.int64)
     worth = np.empty(found.shape[0])
     k = 0
+    tile = 0
     for s in range(seeds.shape[0]):
+        while start[tile + 1] <= s:
+            tile += 1
+        views = tile_view[:, tile]
         sp = 0
         stack[sp] = seeds[s]
         sp += 1
@@ -507,14 +517,14 @@ def _pick(seeds, box, child_start, child_count, children, solid, affine, near, s
             if stamp[i] == frame or not solid[i] > 0:
                 continue
             stamp[i] = frame
-            if _angle(box, i, affine, near) < 0.002:
+            if _angle(box, i, affine, views, near) < 0.002:
                 continue
             if child_count[i] == 0:
                 if k == found.shape[0]:
                     found = np.concatenate((found, np.empty(found.shape[0], np.int64)))
                     worth = np.concatenate((worth, np.empty(worth.shape[0])))
                 found[k] = i
-                worth[k] = solid[i] * _image(box, i, affine, near)
+                worth[k] = solid[i] * _image(box, i, affine, views, near)
                 if per_triangle:
                     worth[k] /= max(count[i], 1)
                 k += 1
