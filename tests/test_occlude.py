@@ -523,6 +523,24 @@ def test_stereo_keeps_what_either_eye_sees():
     assert check_pixels(boxes_behind_a_wall(), WALL, frame, eyes=("left", "right")) > 0
 
 
+def test_screens_in_one_plane_share_a_view_and_lose_no_pixel():
+    """A wall of screens in one plane (a grid's tiles, one of them moved up, so that it is no
+    grid) is occlusion-culled in one view, as a grid is, and its tiles lose no pixel."""
+    grid = Wall.from_dict(WALL)
+    screens = []
+    for t in range(grid.tiles):
+        x0, x1, y0, y1 = np.add(grid.tile_rect(t), (0.0, 0.0, 0.05, 0.05)) if t == 0 \
+            else grid.tile_rect(t)
+        screens.append({"bottom_left": [x0, y0, -grid.distance],
+                        "bottom_right": [x1, y0, -grid.distance],
+                        "top_left": [x0, y1, -grid.distance], "resolution": [96, 64]})
+    spec = {"screens": screens, "near": grid.near, "far": grid.far}
+    wall = Wall.from_dict(spec)
+    assert wall.kind == "screens" and (occlude._screen_planes(wall) == 0).all()
+    frame = {"position": [0.3, 0.2, 0], "orientation": [1, 0, 0, 0]}
+    assert check_pixels(boxes_behind_a_wall(), spec, frame) > 0
+
+
 def test_cave_screens_lose_no_pixel():
     import json
     from pathlib import Path

@@ -136,6 +136,25 @@ class Views:
 Layout = tuple
 
 
+def _screen_planes(wall) -> np.ndarray:
+    """Per screen of a screens wall, the group of screens in its plane (numbered from 0, in
+    the order of their first screens): one view, one buffer, serves them all, and an
+    occluder seen across several is set up and drawn once."""
+    n = wall.basis[:, 2]
+    offset = (wall.corners[:, 0] * n).sum(axis=1)
+    scale = max(float(np.abs(wall.corners).max()), 1e-300)
+    group = np.full(wall.tiles, -1, np.int64)
+    count = 0
+    for t in range(wall.tiles):
+        if group[t] >= 0:
+            continue
+        same = (np.abs(n - n[t]).max(axis=1) <= 1e-9) & \
+            (np.abs(offset - offset[t]) <= 1e-9 * scale) & (group < 0)
+        group[same] = count
+        count += 1
+    return group
+
+
 def _layout(wall, eyes: np.ndarray, texels: int) -> Layout:
     """The views' parts that depend only on the wall and the eyes, kept while the eyes stay:
     per view, display space to its own axes (``basis (V, 3, 3)``, then less ``shift (V, 3)``,
@@ -155,18 +174,22 @@ def _layout(wall, eyes: np.ndarray, texels: int) -> Layout:
             boxes = (np.c_[wall.col_edges[col], wall.row_edges[row]]
                      - eye[[0, 0, 1, 1]]) / depth
             view = np.zeros(wall.tiles, np.int64)
-        else:  # a view per screen
-            views, boxes = [], []
-            for t in range(wall.tiles):
-                b = wall.basis[t]
-                quad = (wall.quads[t] - eye) @ b.T  # the screen in view coordinates
-                xy = quad[:, :2] / -quad[:, 2:3]
-                r = np.array([xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()])
-                h = min(MAX_TEXELS, max(1, round(texels * wall.size[t, 1] / wall.size[t, 0])))
-                views.append((b, b @ eye, r, (texels, h)))
-                boxes.append(r)
-            boxes = np.array(boxes)
-            view = np.arange(wall.tiles)
+        else:  # a view per plane of screens (a column of a curved wall's panels shares one)
+            views, boxes = [], np.zeros((wall.tiles, 4))
+            view = _screen_planes(wall)
+            for g in range(view.max() + 1):
+                group = np.flatnonzero(view == g)
+                b = wall.basis[group[0]]
+                for t in group:
+                    quad = (wall.quads[t] - eye) @ b.T  # the screen in view coordinates
+                    xy = quad[:, :2] / -quad[:, 2:3]
+                    boxes[t] = xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()
+                r = np.array([boxes[group, 0].min(), boxes[group, 1].max(),
+                              boxes[group, 2].min(), boxes[group, 3].max()])
+                across = texels / (boxes[group[0], 1] - boxes[group[0], 0])  # its first's
+                w = min(MAX_TEXELS, max(1, round(across * (r[1] - r[0]))))
+                h = min(MAX_TEXELS, max(1, round(across * (r[3] - r[2]))))
+                views.append((b, b @ eye, r, (w, h)))
         base = len(rect)
         for b, e, r, wh in views:
             basis.append(b)
