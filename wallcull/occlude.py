@@ -2,8 +2,9 @@
 
 After the frustum cull, a frame's best occluders are rasterized into small depth buffers, one
 per image plane: every tile of a planar grid shares the eye and the wall's plane, so one buffer
-serves the whole wall; each screen of a screens wall has its own; a stereo frame has one per
-eye. Then each tile's listed nodes are tested against the buffer over the tile's part of it,
+serves the whole wall; on a screens wall the screens in one plane share one (a column of a
+curved wall's panels), and a screen in no other's plane has its own; a stereo frame has one
+per eye. Then each tile's listed nodes are tested against the buffer over the tile's part of it,
 top down: a node hidden over every texel its projection touches is dropped; one that is not,
 but might be in part, is replaced by its children, and so on down to clusters; one that cannot
 be is kept whole.
@@ -526,37 +527,35 @@ def _pick(start, seeds, tile_view, box, child_start, child_count, children, soli
     found = np.empty(seeds.shape[0] + 64, np.int64)
     worth = np.empty(found.shape[0])
     k = 0
-    tile = 0
-    for s in range(seeds.shape[0]):
-        while start[tile + 1] <= s:
-            tile += 1
+    for tile in range(start.shape[0] - 1):
         views = tile_view[:, tile]
-        sp = 0
-        stack[sp] = seeds[s]
-        sp += 1
-        while sp > 0:
-            sp -= 1
-            i = stack[sp]
-            if stamp[i] == frame or not solid[i] > 0:
-                continue
-            stamp[i] = frame
-            if _angle(box, i, affine, views, near) < 0.002:
-                continue
-            if child_count[i] == 0:
-                if k == found.shape[0]:
-                    found = np.concatenate((found, np.empty(found.shape[0], np.int64)))
-                    worth = np.concatenate((worth, np.empty(worth.shape[0])))
-                found[k] = i
-                worth[k] = solid[i] * _image(box, i, affine, views, near)
-                if per_triangle:
-                    worth[k] /= max(count[i], 1)
-                k += 1
-                continue
-            while sp + child_count[i] > stack.shape[0]:
-                stack = np.concatenate((stack, np.empty(stack.shape[0], np.int64)))
-            for c in range(child_start[i], child_start[i] + child_count[i]):
-                stack[sp] = children[c]
-                sp += 1
+        for s in range(start[tile], start[tile + 1]):
+            sp = 0
+            stack[sp] = seeds[s]
+            sp += 1
+            while sp > 0:
+                sp -= 1
+                i = stack[sp]
+                if stamp[i] == frame or not solid[i] > 0:
+                    continue
+                stamp[i] = frame
+                if _angle(box, i, affine, views, near) < 0.002:
+                    continue
+                if child_count[i] == 0:
+                    if k == found.shape[0]:
+                        found = np.concatenate((found, np.empty(found.shape[0], np.int64)))
+                        worth = np.concatenate((worth, np.empty(worth.shape[0])))
+                    found[k] = i
+                    worth[k] = solid[i] * _image(box, i, affine, views, near)
+                    if per_triangle:
+                        worth[k] /= max(count[i], 1)
+                    k += 1
+                    continue
+                while sp + child_count[i] > stack.shape[0]:
+                    stack = np.concatenate((stack, np.empty(stack.shape[0], np.int64)))
+                for c in range(child_start[i], child_start[i] + child_count[i]):
+                    stack[sp] = children[c]
+                    sp += 1
     # buckets of log worth, the best first
     buckets = 1024
     top = -np.inf
@@ -751,8 +750,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
     ``boxes (Q, 5)`` its image's box (x0, x1, y0, y1) and its most 1 / depth, all in the
     order they are to be drawn; returns where the polygons and the patches end. A leaf whose
     sphere (``box``, its packed bound) lies beyond a view's near plane or sides is not set up
-    in that view (it could claim nothing there): a screens wall has a view per screen, and a
-    leaf is in a few of them."""
+    in that view (it could claim nothing there): a screens wall has a view per plane of
+    screens, and a leaf is in a few of them."""
     views = affine.shape[0]
     mark, slot_of = face_marks[0], face_marks[1]  # per face: the last leaf, its slot there
     vmark, vslot = vertex_marks[0], vertex_marks[1]  # per vertex: the same
