@@ -9,6 +9,7 @@ import pytest
 import trimesh
 
 from wallcull.cli import main
+from wallcull.occlude import PARTS
 from wallcull.paths import camera_path
 from wallcull.scene import load
 from wallcull.wall import Frusta, Wall
@@ -163,6 +164,10 @@ def test_bench_times_the_occlusion_dial(capsys):
     assert on["methods"]["adaptive"]["nothing_hidden"] == {"frames": 0}
     assert docs["orbit", "auto"]["methods"]["adaptive"]["nothing_hidden"] == {"frames": 0}
     assert "nothing_hidden" not in off["methods"]["adaptive"]
+    # where its time goes, part by part, on the frames it ran
+    parts = on["methods"]["adaptive"]["occlude_parts_median_ms"]
+    assert list(parts) == list(PARTS) and all(v >= 0 for v in parts.values())
+    assert docs["orbit", "auto"]["methods"]["adaptive"]["occlude_parts_median_ms"] == {}
 
 
 def test_bench_times_occlusion_where_it_hides_nothing(capsys, tmp_path):

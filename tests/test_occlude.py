@@ -11,7 +11,7 @@ from hypothesis import given, settings, strategies as st
 from wallcull import occlude
 from wallcull.cull import RECORD, cull
 from wallcull.fit import FitOptions
-from wallcull.occlude import Occluder, OcclusionOptions
+from wallcull.occlude import PARTS, Occluder, OcclusionOptions
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, SceneState, load
 from wallcull.wall import Frame, Frusta, Wall
@@ -330,6 +330,11 @@ def test_what_a_wall_hides_is_dropped():
     assert {f"hidden{k}" for k in range(6)} <= names(vis)
     assert names(out) == {"wall", "beside"}
     assert out.stats["occluded"] > 0 and out.stats["occluder_triangles"] > 0
+    # its parts, timed one after the other within it
+    parts = out.stats["occlude_parts_ms"]
+    assert set(parts) == set(PARTS)
+    assert all(v >= 0 for v in parts.values())
+    assert sum(parts.values()) <= out.stats["occlude_ms"]
     none = Occluder(state, wall, OcclusionOptions(budget=0)).occlude(vis, frame)  # no occluder
     assert none.stats["occluder_units"] == 0 and names(none) == names(vis)
 

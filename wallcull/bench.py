@@ -20,7 +20,7 @@ from .cull import METHODS
 from .errors import InputError
 from .encode import frame_packets, node_entries
 from .fit import FRUSTUM, FitOptions
-from .occlude import OcclusionOptions
+from .occlude import PARTS, OcclusionOptions
 from .paths import scene_path
 from .pipeline import Session
 from .protocol import FrameRecord, History
@@ -104,7 +104,8 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     (every tile's entry of the node messages, a delta against the previous frame as a
     streaming node gets it) and their ``total``, and ``encode_packets`` (every tile's packet,
     as a per-tile stream gets it; see :data:`STAGES`). ``occlusion``: the occlusion setting,
-    timed as the ``occlude`` stage, and apart on the frames where it hid nothing
+    timed as the ``occlude`` stage, part by part (``occlude_parts_median_ms``, see
+    :data:`~wallcull.occlude.PARTS`), and apart on the frames where it hid nothing
     (``nothing_hidden``). Also the triangles the tiles draw, a frame on average."""
     session = Session(scene, wall, method, bounds, pseudo_groups,
                       fit or (FitOptions() if stages else None), occlusion=occlusion)
@@ -120,7 +121,7 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     history = History(4)
     times, refits, tests, pairs, fits, ratios, coverages = [], [], [], [], [], [], []
     stage_ms = {name: [] for name in (*STAGES, "encode_packets")}
-    entry_bytes, triangles, idle = [], [], []
+    entry_bytes, triangles, idle, parts = [], [], [], []
     task = progress.add_task(f"{method:>8} {bounds}", total=len(frames)) if progress else None
     for k, frame in enumerate(frames):
         if motion is not None and len(motion.nodes):
@@ -155,7 +156,9 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
         tests.append(stats["tests"] + stats["primary_tests"])
         pairs.append(stats["pairs"])
         triangles.append(int(result.visibility.triangles().sum()))
-        if stats.get("occluded") == 0:  # occlusion ran and hid nothing: what it cost then
+        if "occlude_parts_ms" in stats:  # occlusion ran: where its time went
+            parts.append(stats["occlude_parts_ms"])
+        if stats.get("occluded") == 0:  # ... and hid nothing: what it cost then
             idle.append(result.timings["occlude_ms"])
         if progress:
             progress.advance(task)
@@ -167,6 +170,8 @@ def time_method(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     if occlusion is not None:
         out["nothing_hidden"] = {"frames": len(idle), **(
             {"occlude_median_ms": float(np.median(idle))} if idle else {})}
+        out["occlude_parts_median_ms"] = {name: float(np.median([p[name] for p in parts]))
+                                          for name in PARTS} if parts else {}
     if refits:
         out["refit_median_ms"] = float(np.median(refits))
         out["refit_p99_ms"] = float(np.percentile(refits, 99))

@@ -181,6 +181,10 @@ def _print_bench(result: dict) -> None:
                       f"{main['total']['median_ms']:.3f} ms median; "
                       f"{result['methods'][main['method']]['triangles_per_frame']:,.0f} "
                       f"triangles drawn a frame")
+        parts = result["methods"][main["method"]]["occlude_parts_median_ms"]
+        if parts:
+            console.print("  its parts, median ms: " + ", ".join(
+                f"{name} {ms:.3f}" for name, ms in parts.items()))
     if "adaptive_speedup_vs_oh" in result:
         console.print(f"adaptive is {result['adaptive_speedup_vs_oh']:.1f}x faster than oh")
     if "accuracy" in result:

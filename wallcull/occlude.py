@@ -77,6 +77,10 @@ TEST_CHUNK = 512
 #: first); ``visible``, as ``image`` but under what the frame before showed (its occlusion-culled
 #: lists: temporal coherence). Measured by ``wallcull experiment occluders``.
 CHOICES = ("image", "area", "visible")
+#: The parts of a frame's occlusion, each timed (``occlude_parts_ms`` in the culled lists'
+#: stats, ms): choosing the occluders, setting their patches up, drawing them, the pyramids
+#: over the buffers, and the test of the tiles' lists.
+PARTS = ("choose", "setup", "draw", "pyramids", "test")
 
 
 @dataclass(frozen=True)
@@ -227,6 +231,7 @@ class Occluder:
         self._layout: tuple = (None, None, None)
         self._depth: tuple = (np.zeros(0), np.zeros(0))  # the buffers, kept between frames
         self._shown: tuple | None = None  # choice "visible": the frame before's lists (CSR)
+        self._parts: dict = {}  # the last frame's time per part (see PARTS), ms
 
     def wanted(self, frame: Frame) -> bool:
         """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene).
@@ -248,6 +253,7 @@ class Occluder:
         d = self.depth(vis, frame)
         views = d.views
         eyes = views.tile_view.shape[0]
+        t_test = time.perf_counter()
         # tiles in threads, of equal lists
         ranges = workers.chunks(vis.tiles, vis.start, min_work=TEST_CHUNK)
         while len(self._buffers) < len(ranges):
@@ -273,11 +279,13 @@ class Occluder:
         hidden = sum(p[2] for p in parts)
         if self.options.choice == "visible":
             self._shown = (start, nodes)
+        t1 = time.perf_counter()
+        self._parts["test"] = (t1 - t_test) * 1e3
         out = Visibility(vis.scene, start, nodes, {
             **vis.stats, "pairs": len(nodes), "occluded": int(hidden),
             "occluder_units": len(d.units),
             "occluder_triangles": int(scene.cluster_faces[1][d.units].sum()),
-            "occlude_ms": (time.perf_counter() - t0) * 1e3})
+            "occlude_ms": (t1 - t0) * 1e3, "occlude_parts_ms": dict(self._parts)})
         return out
 
     def depth(self, vis: Visibility, frame: Frame) -> "Depth":
@@ -288,7 +296,10 @@ class Occluder:
             layout = _layout(self.wall, frame.eyes, self.options.texels)
             self._layout = (key, layout, _levels(layout[3]))
         views = Views.of(self.wall, frame, self.options.texels, self._layout[1])
-        return self.rasterize(self.choose(vis, views, box), views, box, self._layout[2])
+        t0 = time.perf_counter()
+        units = self.choose(vis, views, box)
+        self._parts["choose"] = (time.perf_counter() - t0) * 1e3
+        return self.rasterize(units, views, box, self._layout[2])
 
     def choose(self, vis: Visibility, views: Views, box: np.ndarray) -> np.ndarray:
         """The units (clusters, or leaves) to rasterize as occluders this frame, within the
@@ -325,12 +336,15 @@ class Occluder:
             self._scratch.append(_scratch(len(m.faces), len(m.vertices)))
         if len(self._canvas["work"]) != total:  # the cells gathered per texel (see _draw)
             self._canvas = _canvas(total)
-        _raster(units[order], owner[order], first, count, scene.mesh_of, state.world, box, m,
-                self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
-                offsets[:, 0], spans, self._scratch, self._canvas, threads)
+        self._parts["setup"], self._parts["draw"] = _raster(
+            units[order], owner[order], first, count, scene.mesh_of, state.world, box, m,
+            self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
+            offsets[:, 0], spans, self._scratch, self._canvas, threads)
+        t0 = time.perf_counter()
         for a, b in spans:
             izhi[a:b] = izlo[a:b]
         _pyramids(izlo, izhi, views.size, offsets)
+        self._parts["pyramids"] = (time.perf_counter() - t0) * 1e3
         return Depth(views, box, units, offsets, izlo, izhi)
 
 
@@ -596,7 +610,9 @@ def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, af
     ``threads`` threads: each sets up a run of whole leaves (of about equal triangles), and
     then draws every patch, in order, into its own run of rows (:func:`_bands`), so that the
     buffer is the one a single thread draws. ``outward``: see :func:`_outward`; ``scratch``:
-    per thread, see :func:`_scratch`; ``canvas``: see :func:`_canvas` (grown here)."""
+    per thread, see :func:`_scratch`; ``canvas``: see :func:`_canvas` (grown here). Returns
+    how long the set-up and the drawing took (ms)."""
+    t0 = time.perf_counter()
     cuts, before = _runs(units, owner, count, threads) if threads > 1 else \
         (np.array([0, len(units)]), np.array([0, count[units].sum()]))
     views = len(affine)
@@ -621,9 +637,10 @@ def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, af
     work, low = canvas["work"], canvas["low"]
     for a, b in spans:  # (only level 0 is drawn and read)
         work[a:b] = 0
+    t1 = time.perf_counter()
     if threads == 1:
         _draw(polys, info, patches, boxes, which, size, buf, at, work, low, 0, size[:, 1].sum())
-        return
+        return (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
     # each thread's share of the rows' work as estimated, corrected by how long the threads
     # took the frame before (the estimate cannot know which rows nearer patches leave)
     balance = canvas["balance"]
@@ -638,6 +655,7 @@ def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, af
 
     workers.run(draw, [(k, k + 1) for k in range(threads)])
     balance.took(took)
+    return (t1 - t0) * 1e3, (time.perf_counter() - t1) * 1e3
 
 
 @njit(cache=True)
