@@ -10,6 +10,7 @@ from hypothesis import given, settings, strategies as st
 
 from wallcull import occlude
 from wallcull.cull import RECORD, cull
+from wallcull.errors import InputError
 from wallcull.fit import FitOptions
 from wallcull.occlude import PARTS, Occluder, OcclusionOptions
 from wallcull.pipeline import Session
@@ -296,7 +297,7 @@ def test_cells_gather_over_patches(seed, count):
         np.testing.assert_array_equal(buf, drawn[0])
 
 
-def boxes_behind_a_wall() -> Scene:
+def boxes_behind_a_wall(settings: dict | None = None) -> Scene:
     """A wall in front of a row of small boxes, and one box beside the wall, in view."""
     s = trimesh.Scene()
     m = np.eye(4)
@@ -312,7 +313,7 @@ def boxes_behind_a_wall() -> Scene:
     m[:3, 3] = [12, 0, -20]  # past the wall's edge (its tangent 0.4, this one's 0.6)
     s.add_geometry(trimesh.creation.icosphere(2, radius=0.4), node_name="beside",
                    geom_name="b", transform=m)
-    return Scene.from_trimesh(s, hierarchy="file", clusters=32)
+    return Scene.from_trimesh(s, hierarchy="file", clusters=32, settings=settings)
 
 
 WALL = {"cols": 3, "rows": 2, "tile_size": [0.6, 0.4], "gap": [0.01, 0.01], "distance": 1.0,
@@ -337,6 +338,35 @@ def test_what_a_wall_hides_is_dropped():
     assert sum(parts.values()) <= out.stats["occlude_ms"]
     none = Occluder(state, wall, OcclusionOptions(budget=0)).occlude(vis, frame)  # no occluder
     assert none.stats["occluder_units"] == 0 and names(none) == names(vis)
+
+
+def test_the_settings_name_what_never_occludes_and_may_set_the_budget():
+    """``{"occlusion": {"exclude": [...], "budget": N}}`` in a scene's own settings or a
+    wall's: a glass wall hides nothing behind it, and a budget of 0 draws no occluder."""
+    wall = Wall.from_dict(WALL)
+    frame = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
+    hidden = {f"hidden{k}" for k in range(6)}
+
+    def shown(session):
+        vis = session.frame(frame).visibility
+        return {n for t in range(wall.tiles) for n in vis.names(t, leaves=True)}, vis.stats
+
+    scene = boxes_behind_a_wall()
+    names, _ = shown(Session(scene, wall, occlusion=OcclusionOptions()))
+    assert not names & hidden  # the wall hides them
+    glass = {"occlusion": {"exclude": ["wall"]}}
+    assert hidden <= shown(Session(scene, wall, settings=glass, occlusion=OcclusionOptions()))[0]
+    own = boxes_behind_a_wall(settings=glass)  # as the scene's own
+    assert hidden <= shown(Session(own, wall, occlusion=OcclusionOptions()))[0]
+    assert not shown(Session(own, wall, settings={}, occlusion=OcclusionOptions()))[0] & hidden
+    names, stats = shown(Session(scene, wall, settings={"occlusion": {"budget": 0}},
+                                 occlusion=OcclusionOptions()))
+    assert hidden <= names and stats["occluder_units"] == 0
+    with pytest.raises(InputError, match="names no node 'nothing'"):
+        Session(scene, wall, settings={"occlusion": {"exclude": ["nothing"]}},
+                occlusion=OcclusionOptions())
+    with pytest.raises(InputError, match="occlusion.budget must be at least 0"):
+        Session(scene, wall, settings={"occlusion": {"budget": -1}}, occlusion=OcclusionOptions())
 
 
 def test_an_occluder_keeps_nothing_of_a_frame_before():

@@ -1378,9 +1378,29 @@ def test_a_wall_can_declare_its_own_lights_and_mirrors(client):
     shaded = [p for p in packets[lit] if "shadows" in p]
     assert shaded and all(s["light"] == "roof_lamp" for p in shaded for s in p["shadows"])
     assert any("mirrors" in p for p in packets[lit])
-    for bad in ({"lights": [{"name": "x"}]}, {"mirrors": [{"normal": [0, 0, 0]}]}, {"sun": 1}):
+    for bad in ({"lights": [{"name": "x"}]}, {"mirrors": [{"normal": [0, 0, 0]}]}, {"sun": 1},
+                {"occlusion": {"budget": -1}}, {"occlusion": {"exclude": "roof"}}):
         r = client.post("/walls", json={"wall": WALL, "scene": "powerplant", "settings": bad},
                         headers=AUTH)
         assert r.status_code == 422, (bad, r.text)
     for wid in (plain, lit):
+        client.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_wall_can_say_what_never_occludes(client):
+    """``settings.occlusion`` on POST /walls: the nodes that never occlude and the occluder
+    budget, used by a wall with occlusion on; a name the scene lacks is refused."""
+    frame = {"position": [0.0, 5.0, 0.0], "orientation": [1.0, 0.0, 0.0, 0.0]}
+    wids = {}
+    for name, settings in (("plain", {}), ("none", {"occlusion": {"budget": 0}})):
+        wids[name] = new_wall(client, "powerplant", settings=settings, occlusion="on")
+    counts = {name: sum(len(p["visible"]) for p in post_frame(client, wid, frame,
+                                                             packets=True)["packets"])
+              for name, wid in wids.items()}
+    assert counts["none"] > counts["plain"]  # no occluder: nothing hidden
+    r = client.post("/walls", json={"wall": WALL, "scene": "powerplant", "occlusion": "on",
+                                    "settings": {"occlusion": {"exclude": ["no such node"]}}},
+                    headers=AUTH)
+    assert r.status_code == 422 and "no such node" in r.text, r.text
+    for wid in wids.values():
         client.delete(f"/walls/{wid}", headers=AUTH)

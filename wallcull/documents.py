@@ -25,8 +25,8 @@ from pydantic import (AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Discr
 from pydantic_core import PydanticCustomError
 
 from .errors import InputError
-from .validate import (MAX_COORDINATE, MAX_LENGTH, MAX_TILES, MIN_LENGTH,
-                       QUATERNION_TOLERANCE)
+from .validate import (MAX_COORDINATE, MAX_LENGTH, MAX_OCCLUDER_TRIANGLES, MAX_TEXELS,
+                       MAX_TILES, MIN_LENGTH, MIN_TEXELS, QUATERNION_TOLERANCE)
 
 
 def _whole(value):
@@ -246,13 +246,25 @@ class MirrorSpec(Document):
         return self
 
 
+class OcclusionSpec(Document):
+    """What occludes in a scene, and what its occlusion culling may spend, when a wall turns
+    it on: ``exclude``, nodes whose subtrees never occlude (transparent or alpha-tested
+    parts); ``budget``, occluder triangles a frame; ``texels``, the buffer's texels across a
+    tile (see docs/occlusion.md)."""
+
+    exclude: list[NodeName] = Field(default_factory=list, max_length=1 << 16)
+    budget: Optional[Int(ge=0, le=MAX_OCCLUDER_TRIANGLES)] = None
+    texels: Optional[Int(ge=MIN_TEXELS, le=MAX_TEXELS)] = None
+
+
 class SettingsSpec(Document):
-    """A scene's settings: ``up`` (for camera paths; default +y), lights that cast shadows
-    and planar mirrors (see docs/settings.md)."""
+    """A scene's settings: ``up`` (for camera paths; default +y), lights that cast shadows,
+    planar mirrors and what occludes (see docs/settings.md)."""
 
     up: Optional[Vec3] = None
     lights: list[LightSpec] = Field(default_factory=list, max_length=64)
     mirrors: list[MirrorSpec] = Field(default_factory=list, max_length=64)
+    occlusion: OcclusionSpec = Field(default_factory=OcclusionSpec)
 
     @model_validator(mode="after")
     def _up(self):

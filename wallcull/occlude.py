@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +57,7 @@ from . import workers
 from .cull import Visibility, packed
 from .errors import InputError
 from .scene import SceneState
+from .validate import MAX_OCCLUDER_TRIANGLES, MAX_TEXELS, MIN_TEXELS
 from .wall import Frame
 
 #: ``on``: every frame; ``auto``: the frames whose camera is inside the scene's box (grown by a
@@ -87,7 +89,8 @@ PARTS = ("choose", "setup", "draw", "pyramids", "test")
 class OcclusionOptions:
     """``mode``: every frame (``on``) or frames from inside the scene (``auto``); ``budget``:
     occluder triangles per frame; ``texels``: buffer texels across one tile's (one screen's)
-    width; ``choice``: how occluders are chosen (:data:`CHOICES`)."""
+    width (a scene's settings may set both: :class:`~wallcull.pipeline.Session`);
+    ``choice``: how occluders are chosen (:data:`CHOICES`)."""
 
     mode: str = "on"
     budget: int = 20_000
@@ -106,9 +109,10 @@ class OcclusionOptions:
             raise InputError(f"occlusion mode must be {' or '.join(MODES)}, got {self.mode!r}")
         if self.choice not in CHOICES:
             raise InputError(f"occluder choice must be {', '.join(CHOICES)}, got {self.choice!r}")
-        if not 0 <= self.budget <= 10_000_000 or not 2 <= self.texels <= 512:
-            raise InputError("occlusion budget must be 0 to 10 million triangles and texels "
-                             "2 to 512 per tile")
+        if not 0 <= self.budget <= MAX_OCCLUDER_TRIANGLES or \
+                not MIN_TEXELS <= self.texels <= MAX_TEXELS:
+            raise InputError(f"occlusion budget must be 0 to {MAX_OCCLUDER_TRIANGLES:,} "
+                             f"triangles and texels {MIN_TEXELS} to {MAX_TEXELS} per tile")
 
 
 @dataclass
@@ -214,14 +218,16 @@ def _layout(wall, eyes: np.ndarray, texels: int) -> Layout:
 
 class Occluder:
     """Occlusion-culls one scene state's frames on one wall (see the module docstring); keeps
-    its buffers and scratch from frame to frame."""
+    its buffers and scratch from frame to frame. ``exclude``: the names of nodes that never
+    occlude, their subtrees with them (the settings' ``occlusion.exclude``)."""
 
-    def __init__(self, state: SceneState, wall, options: OcclusionOptions = OcclusionOptions()):
+    def __init__(self, state: SceneState, wall, options: OcclusionOptions = OcclusionOptions(),
+                 exclude: Sequence[str] = ()):
         self.state, self.wall, self.options = state, wall, options
         scene = state.scene
         self._outward = _outward(scene.meshes)
         # per node: the share of its box its faces fill (see _solid); 0: it never occludes
-        self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene)
+        self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene, exclude)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
         self._frame = 0
         self._scratch: list = []  # per thread: _setup's (see _scratch)
@@ -380,11 +386,10 @@ def _scratch(faces: int, vertices: int) -> tuple:
     return np.zeros((2, faces), np.int64), np.zeros((2, vertices), np.int64), np.zeros(1, np.int64)
 
 
-def _occluding(scene) -> np.ndarray:
-    """``(n,)`` uint8: 1 where a node may occlude; 0 under the nodes the settings exclude."""
-    names = (scene.settings.get("occlusion") or {}).get("exclude", [])
+def _occluding(scene, exclude: Sequence[str]) -> np.ndarray:
+    """``(n,)`` uint8: 1 where a node may occlude; 0 under the nodes named in ``exclude``."""
     flag = np.ones(len(scene), np.uint8)
-    for name in names:
+    for name in exclude:
         node = scene.index.get(name)
         if node is None:
             raise InputError(f"occlusion exclude names no node {name!r}")

@@ -10,7 +10,7 @@ benchmark measures is the number the server delivers.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping
 
 import numpy as np
@@ -56,11 +56,14 @@ class Session:
         self.wall = wall
         self.state = SceneState(scene, bounds)
         self.culler = Culler(self.state, wall, method, pseudo_groups, fine)
-        self.occluder = None if occlusion is None else Occluder(self.state, wall, occlusion)
-        self.occlusion = "off" if occlusion is None else occlusion.mode  # the setting's word
-        # what the scene asks for (lights, mirrors): its own, or ``settings`` for this wall
+        # what the scene asks for (lights, mirrors, what occludes): its own, or ``settings``
+        # for this wall
         self.raw_settings = dict(scene.settings if settings is None else settings)
         self.settings = cfg.parse(self.raw_settings)
+        self.occluder = None if occlusion is None else Occluder(
+            self.state, wall, replace(occlusion, **self.settings.occlusion),
+            self.settings.exclude)
+        self.occlusion = "off" if occlusion is None else occlusion.mode  # the setting's word
         self.fit_options = fit
 
     @property

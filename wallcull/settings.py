@@ -15,12 +15,16 @@ none gets neither: no computation, no bytes. The format (JSON)::
       "mirrors": [
         {"name": "pool", "point": [50, -0.3, -55], "normal": [0, 1, 0],
          "polygon": [[35, -0.3, -71], [66, -0.3, -71], [66, -0.3, -40], [35, -0.3, -40]]}
-      ]
+      ],
+      "occlusion": {"exclude": ["glass_roof"], "budget": 20000, "texels": 32}
     }
 
 ``shadows`` defaults to true and ``resolution`` (the shadow map's pixels) to 2048 x 2048. A
 mirror reflects on the side its normal points to; ``polygon`` (optional, convex, in the plane)
-bounds it, and culls what it cannot show. Settings come from a file beside the scene
+bounds it, and culls what it cannot show. ``occlusion`` matters only on a wall that turns
+occlusion culling on: the nodes that never occlude (their subtrees with them), and the
+occluder triangles a frame and buffer texels across a tile, instead of the wall's (see
+:class:`wallcull.occlude.OcclusionOptions`). Settings come from a file beside the scene
 (``<scene file>.wallcull.json``), from ``--settings FILE``, or from the bundled scene. The
 document is :class:`wallcull.documents.SettingsSpec` (docs/settings.md describes it for users).
 """
@@ -29,7 +33,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Mapping
@@ -72,6 +76,9 @@ class Settings:
     up: np.ndarray
     lights: tuple[Light, ...] = ()
     mirrors: tuple[Mirror, ...] = ()
+    #: nodes that never occlude, and the occlusion's budget and texels when the scene sets them
+    exclude: tuple[str, ...] = ()
+    occlusion: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def empty(self) -> bool:
@@ -94,7 +101,10 @@ def parse(raw: Mapping[str, Any] | SettingsSpec | None) -> Settings:
         polygon = None if item.polygon is None else np.array(item.polygon)
         mirrors.append(Mirror(item.name or f"mirror{k}", np.append(normal, -normal @ point),
                               polygon))
-    return Settings(_unit(doc.up or (0.0, 1.0, 0.0)), lights, tuple(mirrors))
+    dials = {k: v for k in ("budget", "texels")
+             if (v := getattr(doc.occlusion, k)) is not None}
+    return Settings(_unit(doc.up or (0.0, 1.0, 0.0)), lights, tuple(mirrors),
+                    tuple(doc.occlusion.exclude), dials)
 
 
 def _unit(v) -> np.ndarray:

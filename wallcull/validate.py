@@ -17,6 +17,11 @@ QUATERNION_TOLERANCE = 1e-6
 MIN_LENGTH, MAX_LENGTH = 1e-9, 1e9
 MAX_COORDINATE = 1e15
 
+#: Occlusion culling's dials (docs/occlusion.md): occluder triangles a frame, at most; the
+#: buffer's texels across one tile (or screen), at least and at most.
+MAX_OCCLUDER_TRIANGLES = 10_000_000
+MIN_TEXELS, MAX_TEXELS = 2, 512
+
 
 def parse_tiles(spec: str, count: int | None = None) -> list[int]:
     """``"0-63"``, ``"0,2,5-7"`` or ``"all"`` (needs ``count``) to sorted tile ids, each below
