@@ -14,7 +14,7 @@ from wallcull.errors import InputError
 from wallcull.fit import FitOptions
 from wallcull.occlude import PARTS, Occluder, OcclusionOptions
 from wallcull.pipeline import Session
-from wallcull.scene import Scene, SceneState, load
+from wallcull.scene import Scene, SceneState, load, prepare
 from wallcull.wall import Frame, Frusta, Wall
 
 from .drawing import Draws
@@ -299,6 +299,12 @@ def test_cells_gather_over_patches(seed, count):
 
 def boxes_behind_a_wall(settings: dict | None = None) -> Scene:
     """A wall in front of a row of small boxes, and one box beside the wall, in view."""
+    return Scene.from_trimesh(boxes_behind_a_wall_file(), hierarchy="file", clusters=32,
+                              settings=settings)
+
+
+def boxes_behind_a_wall_file() -> trimesh.Scene:
+    """:func:`boxes_behind_a_wall` as trimesh has it (the wall's geometry ``w``)."""
     s = trimesh.Scene()
     m = np.eye(4)
     m[:3, 3] = [0, 0, -10]
@@ -313,7 +319,7 @@ def boxes_behind_a_wall(settings: dict | None = None) -> Scene:
     m[:3, 3] = [12, 0, -20]  # past the wall's edge (its tangent 0.4, this one's 0.6)
     s.add_geometry(trimesh.creation.icosphere(2, radius=0.4), node_name="beside",
                    geom_name="b", transform=m)
-    return Scene.from_trimesh(s, hierarchy="file", clusters=32, settings=settings)
+    return s
 
 
 WALL = {"cols": 3, "rows": 2, "tile_size": [0.6, 0.4], "gap": [0.01, 0.01], "distance": 1.0,
@@ -367,6 +373,48 @@ def test_the_settings_name_what_never_occludes_and_may_set_the_budget():
                 occlusion=OcclusionOptions())
     with pytest.raises(InputError, match="occlusion.budget must be at least 0"):
         Session(scene, wall, settings={"occlusion": {"budget": -1}}, occlusion=OcclusionOptions())
+
+
+@pytest.mark.parametrize("mode, hides", [("OPAQUE", True), ("BLEND", False), ("MASK", False)])
+def test_a_see_through_material_never_occludes(mode, hides, tmp_path, monkeypatch):
+    """A wall of glass (glTF ``alphaMode`` BLEND) or of alpha-tested leaves (MASK) hides
+    nothing behind it, loaded from its file and from the file's prepared copy; the same wall
+    opaque hides the boxes."""
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    source = boxes_behind_a_wall_file()
+    source.geometry["w"].visual = trimesh.visual.TextureVisuals(
+        material=trimesh.visual.material.PBRMaterial(baseColorFactor=[200, 220, 255, 90],
+                                                     alphaMode=mode))
+    path = tmp_path / "glass.glb"
+    path.write_bytes(source.export(file_type="glb"))
+    wall = Wall.from_dict(WALL)
+    frame = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
+    hidden = {f"hidden{k}" for k in range(6)}
+    fresh, (prepared_path, _) = load(str(path), cache="off"), prepare(str(path))
+    mapped = load(str(path))
+    assert mapped.prepared == prepared_path
+    for scene in (fresh, mapped):
+        assert list(scene.meshes.see_through) == [k == "w" and not hides for k in scene.meshes]
+        vis = Session(scene, wall, occlusion=OcclusionOptions()).frame(frame).visibility
+        names = {n for t in range(wall.tiles) for n in vis.names(t, leaves=True)}
+        assert not (names & hidden) if hides else hidden <= names
+
+
+def test_an_obj_material_is_see_through_by_its_mtl(tmp_path):
+    """An OBJ's materials (MTL): a dissolve below 1, a transparency, an alpha map, a
+    transmission filter below 1 or a transparent illumination model never occlude."""
+    materials = {"solid": "d 1\nillum 2", "clear": "d 0.5", "tr": "Tr 0.25",
+                 "glass": "illum 4", "filter": "Tf 0.4 0.4 0.4", "white": "Tf 1 1 1",
+                 "leaf": "map_d leaf.png"}
+    (tmp_path / "t.mtl").write_text("".join(f"newmtl {k}\nKd 0.5 0.5 0.5\n{v}\n"
+                                            for k, v in materials.items()))
+    lines = ["mtllib t.mtl", "v 0 0 0", "v 1 0 0", "v 0 1 0"]
+    for k in materials:
+        lines += [f"o {k}", f"usemtl {k}", "f 1 2 3"]
+    (tmp_path / "t.obj").write_text("\n".join(lines) + "\n")
+    meshes = load(str(tmp_path / "t.obj"), cache="off").meshes
+    assert dict(zip(meshes, meshes.see_through.tolist())) == {
+        k: k not in ("solid", "white") for k in materials}
 
 
 def test_an_occluder_keeps_nothing_of_a_frame_before():

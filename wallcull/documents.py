@@ -248,9 +248,9 @@ class MirrorSpec(Document):
 
 class OcclusionSpec(Document):
     """What occludes in a scene, and what its occlusion culling may spend, when a wall turns
-    it on: ``exclude``, nodes whose subtrees never occlude (transparent or alpha-tested
-    parts); ``budget``, occluder triangles a frame; ``texels``, the buffer's texels across a
-    tile (see docs/occlusion.md)."""
+    it on: ``exclude``, nodes whose subtrees never occlude (besides the meshes whose
+    materials are transparent or alpha-tested, which never do); ``budget``, occluder
+    triangles a frame; ``texels``, the buffer's texels across a tile (see docs/occlusion.md)."""
 
     exclude: list[NodeName] = Field(default_factory=list, max_length=1 << 16)
     budget: Optional[Int(ge=0, le=MAX_OCCLUDER_TRIANGLES)] = None

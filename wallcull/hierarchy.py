@@ -52,12 +52,13 @@ class NodeTable:
 def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     """The node tree and mesh templates of a ``trimesh.Scene``, in depth-first order from its
     base frame (children in the graph's order). Meshes without finite vertices count as none."""
-    meshes = {}
+    meshes, see_through = {}, []
     for key, geom in scene.geometry.items():
         vertices = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64)
         if len(vertices) and np.isfinite(vertices).all():
             meshes[key] = (vertices.reshape(-1, 3), faces.reshape(-1, 3))
+            see_through.append(_see_through(geom))
     index = {k: i for i, k in enumerate(meshes)}
     forest = scene.graph.transforms
     edge_data, node_data, parents = forest.edge_data, forest.node_data, forest.parents
@@ -84,7 +85,37 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     return (NodeTable(names, np.array(parent, dtype=np.int64),
                       np.array(local, dtype=np.float64).reshape(-1, 4, 4),
                       np.array(mesh, dtype=np.int64)),
-            MeshTable.from_meshes(meshes))
+            MeshTable.from_meshes(meshes, see_through))
+
+
+#: An MTL illumination model with transparency (glass, refraction).
+_CLEAR_MODELS = {4, 6, 7, 9}
+
+
+def _see_through(geom) -> bool:
+    """Whether a mesh's material may show what lies behind it, so that it must never occlude:
+    a glTF material whose ``alphaMode`` is ``BLEND`` or ``MASK``, or an OBJ material (MTL)
+    with a dissolve ``d`` below 1, a transparency ``Tr`` above 0, an alpha map ``map_d``, a
+    transmission filter ``Tf`` below 1 or an illumination model with transparency (4, 6, 7,
+    9). Any value that cannot be read counts as see-through."""
+    material = getattr(getattr(geom, "visual", None), "material", None)
+    if material is None:
+        return False
+    if str(getattr(material, "alphaMode", None) or "OPAQUE").upper() in ("BLEND", "MASK"):
+        return True
+    mtl = getattr(material, "kwargs", None) or {}
+
+    def numbers(key):
+        value = mtl.get(key)
+        values = value if isinstance(value, (list, tuple, np.ndarray)) else [value]
+        return [float(v) for v in values if v is not None]
+
+    try:
+        return (any(v < 1 for v in numbers("d")) or any(v > 0 for v in numbers("tr"))
+                or "map_d" in mtl or any(v < 1 for v in numbers("tf"))
+                or any(int(v) in _CLEAR_MODELS for v in numbers("illum")))
+    except (TypeError, ValueError):
+        return True
 
 
 def replicate(nodes: NodeTable, matrices: np.ndarray, roots: list[str]) -> NodeTable:

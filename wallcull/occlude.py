@@ -36,8 +36,9 @@ Conservative on both sides, so that dropping never removes a pixel:
 Occluders are the units (clusters, or whole leaves) under the frame's lists whose box covers
 the most image per triangle, weighted by the share of the box their faces fill (a wall before
 a pipe, a floor before a grating), within a budget of triangles (the default of
-:data:`CHOICES`), and never nodes the scene's settings mark transparent (``{"occlusion":
-{"exclude": [node names]}}``, their subtrees with them). They are rasterized nearest leaf
+:data:`CHOICES`), and never nodes whose material may show what lies behind them (glass,
+alpha-tested leaves: ``MeshTable.see_through``), nor those the scene's settings name
+(``{"occlusion": {"exclude": [node names]}}``, their subtrees with them). They are rasterized nearest leaf
 first, so that a patch that cannot bring any texel of its image nearer is skipped whole, and
 in threads, each drawing every patch into its own run of rows. What mirrors and lights see
 is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
@@ -387,8 +388,12 @@ def _scratch(faces: int, vertices: int) -> tuple:
 
 
 def _occluding(scene, exclude: Sequence[str]) -> np.ndarray:
-    """``(n,)`` uint8: 1 where a node may occlude; 0 under the nodes named in ``exclude``."""
+    """``(n,)`` uint8: 1 where a node may occlude; 0 under the nodes named in ``exclude``, and
+    where its mesh's material may show what lies behind it (``MeshTable.see_through``)."""
     flag = np.ones(len(scene), np.uint8)
+    leaf = np.where(scene.cluster_leaf >= 0, scene.cluster_leaf, np.arange(len(scene)))
+    template = scene.mesh_of[leaf]
+    flag[(template >= 0) & scene.meshes.see_through[np.maximum(template, 0)]] = 0
     for name in exclude:
         node = scene.index.get(name)
         if node is None:
