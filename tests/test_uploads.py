@@ -177,6 +177,34 @@ def test_the_child_gives_back_a_usable_scene_and_dies_on_a_deadline(tmp_path):
         parse_sandboxed(path, "three.glb", Limits(parse_seconds=1e-4))
 
 
+def test_an_upload_keeps_which_materials_are_see_through_and_decodes_no_image(tmp_path):
+    """A glass (BLEND) and an alpha-tested (MASK) mesh are known as see-through (they never
+    occlude), a textured opaque one is not; its texture, a PNG that is no picture, is never
+    decoded."""
+    from PIL import Image
+
+    s = trimesh.Scene()
+    for k, mode in enumerate(("OPAQUE", "BLEND", "MASK")):
+        box = trimesh.creation.box()
+        image = Image.new("RGBA", (4, 4), (255, 0, 0, 128))
+        box.visual = trimesh.visual.TextureVisuals(
+            uv=np.zeros((len(box.vertices), 2)),
+            material=trimesh.visual.material.PBRMaterial(baseColorTexture=image,
+                                                         alphaMode=mode))
+        m = np.eye(4)
+        m[:3, 3] = [3 * k, 0, -10]
+        s.add_geometry(box, node_name=mode.lower(), geom_name=mode.lower(), transform=m)
+    data = s.export(file_type="glb")
+    doc = json.loads(glb_chunks(data)[0])
+    assert doc["images"] and doc["textures"]
+    start = data.index(b"\x89PNG")  # the image's bytes, spoiled: decoding them would fail
+    path = tmp_path / "materials.glb"
+    path.write_bytes(data[:start] + b"\0" * 8 + data[start + 8:])
+    scene = parse_sandboxed(path, "materials.glb", Limits())
+    assert dict(zip(scene.meshes, scene.meshes.see_through.tolist())) == {
+        "opaque": False, "blend": True, "mask": True}
+
+
 def test_the_json_chunk_is_parsed_in_the_child_too():
     """A JSON chunk that is not an object, or nests too deep for the parser."""
     for text in (b"[1, 2]", b"[" * 100_000):

@@ -43,6 +43,29 @@ MAX_INT = 1 << 32
 # --------------------------------------------------------------------------- the checks
 
 
+def _without_images(doc: dict, binary: bytes) -> bytes:
+    """A GLB of the checked document ``doc`` and its binary chunk, with no image, texture or
+    sampler, nor any material's reference to a texture: its materials keep their factors and
+    ``alphaMode`` (a see-through one never occludes), and no image is ever decoded."""
+    doc = {k: v for k, v in doc.items() if k not in ("images", "textures", "samplers")}
+
+    def plain(value):
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()
+                    if not (k.endswith("Texture") and isinstance(v, dict))}
+        return [plain(v) for v in value] if isinstance(value, list) else value
+
+    if "materials" in doc:
+        doc["materials"] = plain(doc["materials"])
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<II", len(text), JSON_CHUNK) + text
+    if binary:
+        binary += b"\0" * (-len(binary) % 4)
+        chunks += struct.pack("<II", len(binary), BIN_CHUNK) + binary
+    return struct.pack("<4sII", GLB_MAGIC, 2, 12 + len(chunks)) + chunks
+
+
 def glb_chunks(data: bytes) -> tuple[bytes, bytes]:
     """The JSON and binary chunks of a GLB, after checking its header and chunk lengths."""
     if data[:4] != GLB_MAGIC:
@@ -267,11 +290,12 @@ def parse_glb(path: str, name: str, limits: Limits):
     from .scene import Scene
 
     data = Path(path).read_bytes()
-    check_glb(data, limits)
+    doc = check_glb(data, limits)
     import io
 
-    try:
-        loaded = trimesh.load(io.BytesIO(data), file_type="glb", skip_materials=True)
+    try:  # its materials without their images: what occludes needs their alphaMode alone
+        loaded = trimesh.load(io.BytesIO(_without_images(doc, glb_chunks(data)[1])),
+                              file_type="glb")
     except MemoryError:
         raise
     except Exception as exc:  # noqa: BLE001 - a parser failure is bad input
