@@ -38,10 +38,11 @@ the most image per triangle, weighted by the share of the box their faces fill (
 a pipe, a floor before a grating), within a budget of triangles (the default of
 :data:`CHOICES`), and never nodes whose material may show what lies behind them (glass,
 alpha-tested leaves: ``MeshTable.see_through``), nor those the scene's settings name
-(``{"occlusion": {"exclude": [node names]}}``, their subtrees with them). They are rasterized nearest leaf
-first, so that a patch that cannot bring any texel of its image nearer is skipped whole, and
-in threads, each drawing every patch into its own run of rows. What mirrors and lights see
-is culled apart (:mod:`wallcull.fit`) and never occlusion-culled.
+(``{"occlusion": {"exclude": [node names]}}``, their subtrees with them). They are
+rasterized nearest leaf first, so that a patch that cannot bring any texel of its image
+nearer is skipped whole, and in threads, each drawing every patch into its own run of rows.
+What mirrors and lights see is culled apart (:mod:`wallcull.fit`) and never
+occlusion-culled.
 """
 
 from __future__ import annotations

@@ -845,8 +845,8 @@ _LAYOUT = {
     "cluster_count": ("i", ("c",)), "mesh_key_bytes": ("u", (None,)),
     "mesh_key_offsets": ("i", ("m+1",)), "vertex_start": ("i", ("m+1",)),
     "face_start": ("i", ("m+1",)), "see_through": ("b", ("m",)), "vertices": ("f", (None, 3)),
-    "faces": ("i", (None, 3)), "obb_center": ("f", ("n", 3)), "obb_axes": ("f", ("n", 3, 3)), "obb_half": ("f", ("n", 3)),
-    "obb_radius": ("f", ("n",)), "box": ("f", (2, 3)),
+    "faces": ("i", (None, 3)), "obb_center": ("f", ("n", 3)), "obb_axes": ("f", ("n", 3, 3)),
+    "obb_half": ("f", ("n", 3)), "obb_radius": ("f", ("n",)), "box": ("f", (2, 3)),
 }
 
 
