@@ -388,12 +388,16 @@ def _scratch(faces: int, vertices: int) -> tuple:
     return np.zeros((2, faces), np.int64), np.zeros((2, vertices), np.int64), np.zeros(1, np.int64)
 
 
+def _leaf_of(scene) -> np.ndarray:
+    """Per node, the leaf whose mesh it draws: a cluster's leaf, else the node itself."""
+    return np.where(scene.cluster_leaf >= 0, scene.cluster_leaf, np.arange(len(scene)))
+
+
 def _occluding(scene, exclude: Sequence[str]) -> np.ndarray:
     """``(n,)`` uint8: 1 where a node may occlude; 0 under the nodes named in ``exclude``, and
     where its mesh's material may show what lies behind it (``MeshTable.see_through``)."""
     flag = np.ones(len(scene), np.uint8)
-    leaf = np.where(scene.cluster_leaf >= 0, scene.cluster_leaf, np.arange(len(scene)))
-    template = scene.mesh_of[leaf]
+    template = scene.mesh_of[_leaf_of(scene)]
     flag[(template >= 0) & scene.meshes.see_through[np.maximum(template, 0)]] = 0
     for name in exclude:
         node = scene.index.get(name)
@@ -415,7 +419,7 @@ def _solid(scene, box: np.ndarray, outward: np.ndarray) -> np.ndarray:
     area = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1) / 2
     cum = np.concatenate([[0.0], np.cumsum(area)])
     first, count = scene.cluster_faces
-    leaf = np.where(scene.cluster_leaf >= 0, scene.cluster_leaf, np.arange(len(scene)))
+    leaf = _leaf_of(scene)
     template = scene.mesh_of[leaf]
     out = np.zeros(len(scene))
     has = (template >= 0) & (count > 0)
