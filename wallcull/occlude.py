@@ -1030,7 +1030,7 @@ def _draw(polys, info, patches, boxes, which, size, buf, at, work, work_low, row
     edge = np.empty((SUB * rows, cols // _PER_WORD + 1), np.uint64)  # cells the outline touches
     low = np.empty((rows, cols))  # the patch's least 1 / depth per texel
     live = np.empty((rows, 2), np.int64)  # per row, the texels where it may claim
-    ed = np.empty((11, 4))
+    ed = np.empty((14, 4))
     for q in which:
         v = patches[q, 2]
         w, h = size[v, 0], size[v, 1]
@@ -1110,7 +1110,7 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
     r1]`` (``cover``'s and ``low``'s first, from column ``c0``), within each row's ``live``
     columns: every texel it touches (or nearly) takes the least 1 / depth of the polygon over
     the texel into ``low``, and the cells whose centres lie inside it are set in ``cover``.
-    ``ed (11, 4)``: scratch."""
+    ``ed (14, 4)``: scratch."""
     y_lo, y_hi = np.inf, -np.inf
     for c in range(ns):
         y_lo, y_hi = min(y_lo, p[c, 1]), max(y_hi, p[c, 1])
@@ -1135,8 +1135,9 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
     # left sides, ``ed[0:2, :nl]``) or x <= q y + o (the right ones, ``ed[2:4, :nr]``), or
     # on y alone (the level ones, where q y + o >= 0: ``ed[4:6, :nv]``); and each side from
     # its lower end up, for the rows' extent: x, y, the other end's y and x, dx / dy
-    # (``ed[6:11]``)
+    # (``ed[6:11]``); and per cell row of a texel row, its y and x bounds (``ed[11:14]``)
     nl = nr = nv = 0
+    ys, xls, xrs = ed[11], ed[12], ed[13]
     for e in range(ns):
         e1 = e + 1 if e + 1 < ns else 0
         ax, ay = p[e, 0], p[e, 1]
@@ -1185,16 +1186,23 @@ def _cover(p, ns, side, split, r0, r1, c0, live, cover, low, ed):
         _least(low[r], i0, i1, c0, lo, hi, least, ga, min(gb * y0, gb * y1) + gc)
         if split:
             _least(low[r], i0, i1, c0, lo, hi, least, ga2, min(gb2 * y0, gb2 * y1) + gc2)
-        for k in range(SUB):  # the cells whose centres on this cell row lie inside
-            y = J + (k + 0.5) / SUB
-            xl, xr = -1e9, 1e9
-            for e in range(nl):
-                xl = max(xl, ed[0, e] * y + ed[1, e])
-            for e in range(nr):
-                xr = min(xr, ed[2, e] * y + ed[3, e])
-            for e in range(nv):
-                if ed[4, e] * y + ed[5, e] < 0:
-                    xr = -2e9
+        # the cells whose centres on each of the texel row's cell rows lie inside (the
+        # SUB cell rows side by side: the same sums, row by row)
+        for k in range(SUB):
+            ys[k] = J + (k + 0.5) / SUB
+            xls[k], xrs[k] = -1e9, 1e9
+        for e in range(nl):
+            for k in range(SUB):
+                xls[k] = max(xls[k], ed[0, e] * ys[k] + ed[1, e])
+        for e in range(nr):
+            for k in range(SUB):
+                xrs[k] = min(xrs[k], ed[2, e] * ys[k] + ed[3, e])
+        for e in range(nv):
+            for k in range(SUB):
+                if ed[4, e] * ys[k] + ed[5, e] < 0:
+                    xrs[k] = -2e9
+        for k in range(SUB):
+            xl, xr = xls[k], xrs[k]
             if xl <= xr:
                 a = max(int(math.ceil(xl * SUB - 0.5)), SUB * i0)
                 b = min(int(math.floor(xr * SUB - 0.5)), SUB * i1 + SUB - 1)
@@ -1276,18 +1284,20 @@ def _claim(cover, edge, low, r0, nr, c0, live, at, w, buf, work, work_low):
                 continue
             for n in range(max(0, g0 - first), min(_PER_WORD, g1 + 1 - first)):
                 shift = np.uint64(SUB * n)
+                if any_ >> shift & _ROW == 0:
+                    continue  # nothing
+                i = first + n
+                t = row + i
+                z = low[r, i]
+                if not z > buf[t]:
+                    continue  # nothing nearer
+                if every >> shift & _ROW == _ROW:  # every cell
+                    buf[t] = z
+                    continue
                 claimed = np.uint64(0)
                 for k in range(SUB):
                     claimed |= ((cover[SUB * r + k, word] & ~edge[SUB * r + k, word]) >> shift
                                 & _ROW) << np.uint64(SUB * k)
-                i = first + n
-                t = row + i
-                z = low[r, i]
-                if claimed == 0 or not z > buf[t]:
-                    continue  # nothing, or nothing nearer
-                if claimed == _FULL:
-                    buf[t] = z
-                    continue
                 work_low[t] = min(work_low[t], z) if work[t] else z
                 work[t] |= claimed
                 if work[t] == _FULL:
