@@ -12,6 +12,7 @@ import re
 from pathlib import Path
 
 import jsonschema
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from openapi_spec_validator import OpenAPIV31SpecValidator
@@ -79,6 +80,14 @@ BAD_SETTINGS = [
     (("lights", 1, "angle"), 90, "angle"),
     (("mirrors", 0, "normal"), [0, 0, 0], "normal"),
     (("mirrors", 1, "polygon", 0), [0, 99, 0], "polygon"),
+    (("mirrors", 1, "polygon", 3), [0.0, 5.0, -44.0], "convex"),  # a corner turned in
+    (("mirrors", 1, "polygon", 2), [30.0, 0.0, -44.0], "convex"),  # a corner twice
+    (("mirrors", 1, "polygon"), [[-30.0, 0.0, -44.0], [30.0, 0.0, -44.0], [-30.0, 25.0, -44.0],
+                                 [30.0, 25.0, -44.0]], "convex"),  # crossing itself
+    (("mirrors", 1, "polygon"), [[-30.0, 0.0, -44.0], [30.0, 0.0, -44.0], [0.0, 0.0, -44.0]],
+     "convex"),  # no area: back along its first edge
+    (("mirrors", 1, "name"), "floor", "two mirrors named 'floor'"),
+    (("lights", 0, "name"), "flood", "two lights named 'flood'"),
     (("up",), [0, 0, 0], "up"),
     (("shadows",), True, "shadows"),
 ]
@@ -237,3 +246,21 @@ def test_descriptions_are_markdown(client):
     assert not re.findall(r":[a-z]+:`", text), "reStructuredText roles"
     assert "``" not in text, "reStructuredText literals"
     assert "`wallcull.uploads`" in text and "`ids=true`" in text
+
+
+def test_a_tiny_vector_is_a_direction_not_a_nan():
+    """A spot light's direction, a mirror's normal and ``up`` are directions: one whose
+    length underflows (1e-300 squared is 0) points the same way as any other."""
+    from wallcull import settings
+
+    def parsed(scale):
+        return settings.parse({
+            "up": [0, scale, 0],
+            "lights": [{"type": "spot", "position": [0, 8, 0], "direction": [0, -scale, scale]}],
+            "mirrors": [{"point": [0, 0, 0.2], "normal": [0, 0, scale]}]})
+
+    tiny, plain = parsed(1e-300), parsed(1.0)
+    np.testing.assert_allclose(tiny.lights[0].direction, plain.lights[0].direction, rtol=1e-15)
+    np.testing.assert_allclose(tiny.mirrors[0].plane, plain.mirrors[0].plane, rtol=1e-15)
+    np.testing.assert_allclose(tiny.up, plain.up, rtol=1e-15)
+    assert np.isfinite(tiny.lights[0].direction).all()

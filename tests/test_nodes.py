@@ -177,16 +177,17 @@ def test_two_nodes_on_the_same_tiles_each_get_deltas_against_what_they_hold(clie
                 as ws_b:
             first = take(b, ws_b)
             assert first["frame"] == 9 and first["base"] is None
-            for k in range(10, 15):  # B acknowledges nothing: the window stops its stream
-                post(k)
+            for k in range(10, 18):  # B acknowledges nothing: after 8 packets the window
+                post(k)              # stops its stream (frame 17 is not sent to it)
                 assert take(a, ws_a)["frame"] == k
-                if k < 14:
+                if k < 17:
                     ws_a.send_bytes(msgpack.packb({"ack": k}))
+            assert [take(b, ws_b)["frame"] for _ in range(7)] == list(range(10, 17))
             ws_b.send_bytes(msgpack.packb({"ack": 9}))
-            late = take(b, ws_b)  # the newest frame, against frame 9 (A acknowledged 13)
-            assert late["base"] == 9 and late["frame"] > 9
-            ws_a.send_bytes(msgpack.packb({"ack": 14}))
-            for k in range(15, 30):
+            late = take(b, ws_b)  # the newest frame, against frame 9 (A acknowledged 16)
+            assert late["base"] == 9 and late["frame"] == 17
+            ws_a.send_bytes(msgpack.packb({"ack": 17}))
+            for k in range(18, 30):
                 post(k)
                 assert take(a, ws_a)["frame"] == k
                 ws_a.send_bytes(msgpack.packb({"ack": k}))

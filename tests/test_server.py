@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 import pathlib
 import math
 import os
@@ -36,7 +37,7 @@ from wallcull_clients.hostile import glb as glb_build
 from wallcull.paths import camera_path
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
-from wallcull.server import create_app
+from wallcull.server import create_app, uvicorn_options
 from wallcull.server.messages import ConsoleStatus
 from wallcull.wall import Wall
 
@@ -387,6 +388,18 @@ BAD = [  # (id, method, path, request kwargs, status, detail pattern)
      _json({"frame": FRAME, "updates": {"{node}": {"position": [0, 0, 0],
                                                    "orientation": [0.5, 0.5, 0.5, 0.6]}}}),
      422, "not a unit quaternion"),
+    ("update-matrix-and-pose", "POST", "/walls/{wid}/frames",
+     _json({"frame": FRAME, "updates": {"{node}": {"matrix": [[1, 0, 0, 0], [0, 1, 0, 0],
+                                                              [0, 0, 1, 0], [0, 0, 0, 1]],
+                                                   "position": [5, 0, 0]}}}),
+     422, "send one or the other"),
+    ("update-half-named", "POST", "/walls/{wid}/frames",
+     _json({"frame": FRAME, "updates": {"x": {"orientation": [1, 0, 0, 0]}}}), 422,
+     "update of 'x' needs a matrix"),
+    ("update-huge-scale", "POST", "/walls/{wid}/frames",
+     _json({"frame": FRAME, "updates": {"{node}": {"matrix": [[1e200, 0, 0, 0], [0, 1e200, 0, 0],
+                                                              [0, 0, 1e200, 0], [0, 0, 0, 1]]}}}),
+     422, "out of range"),
     ("update-singular", "POST", "/walls/{wid}/frames",
      _json({"frame": FRAME, "updates": {"{node}": {"matrix": [[0] * 4] * 3 + [[0, 0, 0, 1]]}}}),
      422, "singular"),
@@ -411,6 +424,8 @@ BAD = [  # (id, method, path, request kwargs, status, detail pattern)
     ("frame-not-ready", "GET", "/walls/{wid}/tiles/0/packets/12345?wait=0", {}, 404,
      "not ready"),
     ("frame-not-a-number", "GET", "/walls/{wid}/tiles/0/packets/1e3", {}, 422, "frame"),
+    ("frame-past-the-last", "GET", "/walls/{wid}/tiles/0/packets/9999999999999999", {}, 422,
+     "frame numbers end at 9007199254740992"),
     ("wait-too-long", "GET", "/walls/{wid}/tiles/0/packets/latest?wait=11", {}, 422, "wait"),
     ("wait-nan", "GET", "/walls/{wid}/tiles/0/packets/latest?wait=nan", {}, 422, "wait"),
     ("ack-negative", "POST", "/walls/{wid}/tiles/0/ack", _json({"frame": -1}), 422, "frame"),
@@ -491,6 +506,16 @@ def test_frames_in_order_with_numbers(client, wid):
     assert r.status_code == 404 and "skipped" in r.json()["detail"]
     assert client.get(f"/walls/{wid}/tiles/0/packets/6", headers=AUTH).status_code == 200
     assert client.get(f"/walls/{wid}").json()["latest"] == 2**40
+    # the last frame number every route takes; after it, a wall takes no frame
+    last = 2**53
+    assert post_frame(client, wid, number=last)["frame"] == last
+    assert client.get(f"/walls/{wid}/tiles/0/packets/{last}", headers=AUTH).status_code == 200
+    r = client.post(f"/walls/{wid}/tiles/0/ack", json={"frame": last}, headers=AUTH)
+    assert r.status_code == 204, r.text
+    assert client.get(f"/walls/{wid}/barrier/{last}?timeout=0").status_code == 200
+    r = client.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH)
+    assert r.status_code == 409 and "used every frame number" in r.json()["detail"], r.text
+    assert client.get(f"/walls/{wid}").json()["latest"] == last
 
 
 def test_console_status_columns(client, wid, fatehpur):
@@ -786,6 +811,17 @@ def test_websocket_streams_need_a_node_credential(client, wid):
         for bad in ({"ack": "zero"}, {"ack": 99}, [1, 2], {"ack": True}):
             node.send(bad)
             assert "error" in node.message()
+        # ...and so do messages the AsyncAPI document's Control does not describe
+        for bad, why in (({}, "an object of"), ({"bogus": 1}, "unknown key 'bogus'"),
+                         ({"ack": 0, "bogus": 1}, "unknown key 'bogus'"),
+                         ({"ack": -1}, "ack must be a frame number"),
+                         ({"ack": None}, "ack must be a frame number"),
+                         ({"ack": 2**53 + 1}, "ack must be a frame number"),
+                         ({"full": "yes"}, "full must be true or false")):
+            node.send(bad)
+            node.ws.send_bytes(b"\xc1")  # then one every version refuses, so none waits
+            assert why in node.message()["error"], bad
+            assert "malformed msgpack" in node.message()["error"]
         node.ws.send_text("[" * 200_000)  # deeper than any parser's recursion: too long too
         assert "at most 65536 bytes" in node.message()["error"]
         node.ws.send_text("[" * 20_000)  # within the size, beyond any parser's recursion
@@ -1020,6 +1056,9 @@ def test_meshes_by_etag(client):
     assert r.status_code == 304 and r.content == b"" and r.headers["etag"] == etag
     r = client.get(f"/scenes/two.glb/meshes/{body['mesh']}", headers={"If-None-Match": '"x"'})
     assert r.status_code == 200
+    for held in (f"W/{etag}", f'"x", {etag}', "*"):  # weakly, in a list, any (RFC 9110)
+        r = client.get(f"/scenes/two.glb/meshes/{body['mesh']}", headers={"If-None-Match": held})
+        assert r.status_code == 304, held
     assert client.get("/scenes/two.glb/nodes/0/mesh").status_code == 404  # the root has none
     assert client.get("/scenes/two.glb/nodes/99/mesh").status_code == 404
     assert client.get("/scenes/two.glb/meshes/nope").status_code == 404
@@ -1149,8 +1188,8 @@ def live():
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", ws_max_size=1 << 20,
-                                           lifespan="on"))
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on",
+                                           **uvicorn_options(app)))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 60
@@ -1284,6 +1323,85 @@ def test_live_delete_wakes_every_waiter(live):
             ws.recv(timeout=30)
         assert closed.value.rcvd.code == 4404
     assert live.http.get("/health").json()["walls"] == 0
+
+
+def test_live_delete_closes_the_driver_stream_at_once(live):
+    """The driver's frame stream closes with 4404 when its wall is deleted, as the others do,
+    without another frame to cull on a wall that is gone."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    wid = _live_wall(live)
+    with connect(f"{live.ws}/walls/{wid}/frames/stream?token={TOKEN}", proxy=None,
+                 open_timeout=30, close_timeout=5, compression=None) as ws:
+        ws.send(msgpack.packb({"frame": FRAME}))
+        assert msgpack.unpackb(ws.recv(timeout=30))["frame"] == 0
+        assert live.http.delete(f"/walls/{wid}", headers=AUTH).status_code == 204
+        with pytest.raises(ConnectionClosed) as closed:
+            ws.recv(timeout=30)
+        assert closed.value.rcvd.code == 4404
+
+
+def test_live_the_window_counts_packets_not_frame_numbers(live):
+    """A stream opened on a wall far into its frames is sent 8 packets before it must
+    acknowledge one; then it is sent the newest frame, not the ones it missed."""
+    wid = _live_wall(live, wall={**WALL, "cols": 1, "rows": 1})
+    try:
+        for n in range(40):
+            live.http.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH)
+        with _connect(live, wid, 0) as ws:
+            got = [msgpack.unpackb(ws.recv(timeout=30))["frame"]]
+            for n in range(40, 49):
+                live.http.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH)
+            got += [msgpack.unpackb(ws.recv(timeout=30))["frame"] for _ in range(7)]
+            assert got == list(range(39, 47))  # 8 packets, none acknowledged
+            ws.send(msgpack.packb({"ack": 39}))
+            # frames 47 and 48 were posted while the window was full: the newest comes next
+            assert msgpack.unpackb(ws.recv(timeout=30))["frame"] == 48
+    finally:
+        live.http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_live_refused_handshakes_are_answers_not_errors(live):
+    """A refused stream gets its status and reason, and the server logs no error for it
+    (uvicorn's own WebSocket protocol logged each as a failed application)."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    wid = _live_wall(live)
+    errors = []
+    handler = logging.Handler(logging.ERROR)
+    handler.emit = errors.append
+    logger = logging.getLogger("uvicorn.error")
+    logger.addHandler(handler)
+    try:
+        for path, status, why in (
+                ("/walls/000000000000/tiles/0/stream", 404, "no wall"),
+                (f"/walls/{wid}/tiles/0/stream?format=xml", 422, "format must be"),
+                (f"/walls/{wid}/nodes/stream?format=xml", 422, "format must be"),
+                (f"/walls/{wid}/frames/stream?format=xml", 422, "format must be"),
+                (f"/walls/{wid}/nodes/stream", 422, "say which tiles")):
+            sep = "&" if "?" in path else "?"
+            with pytest.raises(InvalidStatus) as refused:
+                connect(f"{live.ws}{path}{sep}token={TOKEN}", proxy=None, open_timeout=30)
+            assert refused.value.response.status_code == status, path
+            assert why in json.loads(refused.value.response.body)["detail"], path
+        assert live.http.get("/health").json()["status"] == "ok"
+    finally:
+        logger.removeHandler(handler)
+        live.http.delete(f"/walls/{wid}", headers=AUTH)
+    assert not errors, [r.getMessage() for r in errors]
+
+
+def test_a_node_stream_naming_no_tiles_is_told_to_on_a_server_without_token():
+    with TestClient(create_app(None)) as c:
+        wid = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}).json()["id"]
+        for query in ("", "?format=json", "?token="):
+            with pytest.raises(WebSocketDenialResponse) as refused:
+                with c.websocket_connect(f"/walls/{wid}/nodes/stream{query}"):
+                    pass
+            assert refused.value.status_code == 422
+            assert "say which tiles" in refused.value.json()["detail"]
 
 
 def test_history_times_tiles_is_capped(client):

@@ -203,6 +203,32 @@ def _nonzero(value, what: str):
         raise _refuse("zero", f"{what} must not be zero")
 
 
+def unit(v) -> np.ndarray:
+    """A vector that is not zero, scaled to length 1 (first by its largest component, so that
+    a tiny vector's length cannot underflow to zero)."""
+    v = np.array(v, dtype=np.float64)
+    v = v / np.abs(v).max()
+    return v / np.linalg.norm(v)
+
+
+def _convex(polygon: np.ndarray, normal: np.ndarray) -> bool:
+    """Whether ``polygon`` (in the plane of ``normal``, a unit vector) is a convex outline:
+    every corner turns the same way, or goes straight on (never back), and the turns make one
+    round."""
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    lengths = np.linalg.norm(edges, axis=1)
+    if (lengths == 0).any():
+        return False
+    edges = edges / lengths[:, None]
+    after = np.roll(edges, -1, axis=0)
+    turns = np.cross(edges, after) @ normal  # the sine of each corner's turn
+    cosines = np.einsum("ij,ij->i", edges, after)
+    if (turns < -1e-9).any() and (turns > 1e-9).any() or \
+            ((np.abs(turns) <= 1e-9) & (cosines < 0)).any():
+        return False
+    return bool(abs(abs(np.arctan2(turns, cosines).sum()) - 2 * math.pi) < 1e-6)
+
+
 class LightSpec(Document):
     """A light casting shadows: a point light, or a spot light with a ``direction`` and a
     half-angle ``angle`` (degrees). ``resolution``: its shadow map's pixels. A light whose
@@ -238,11 +264,14 @@ class MirrorSpec(Document):
     def _planar(self):
         _nonzero(self.normal, "normal")
         if self.polygon is not None:
-            normal = np.array(self.normal) / np.linalg.norm(self.normal)
+            normal = unit(self.normal)
             polygon = np.array(self.polygon)
             size = np.ptp(polygon, axis=0).max()
             if np.abs((polygon - self.point) @ normal).max() > 1e-6 * max(size, 1.0):
                 raise _refuse("polygon", "polygon must lie in the mirror's plane")
+            if not _convex(polygon, normal):
+                raise _refuse("polygon", "polygon must be a convex outline, its corners in "
+                                         "order around it")
         return self
 
 
@@ -267,9 +296,14 @@ class SettingsSpec(Document):
     occlusion: OcclusionSpec = Field(default_factory=OcclusionSpec)
 
     @model_validator(mode="after")
-    def _up(self):
+    def _up_and_names(self):
         if self.up is not None:
             _nonzero(self.up, "up")
+        for kind, items in (("light", self.lights), ("mirror", self.mirrors)):
+            names = [item.name or f"{kind}{k}" for k, item in enumerate(items)]
+            twice = next((n for k, n in enumerate(names) if n in names[:k]), None)
+            if twice is not None:
+                raise _refuse(f"{kind}s", f"has two {kind}s named {twice!r}: name them apart")
         return self
 
 
@@ -353,11 +387,18 @@ def _short(value: Any) -> str:
 def read_json(text: str, what: str):
     """A JSON document given inline (starting with ``{`` or ``[``) or as a file path."""
     text = text.strip()
+    if not text:
+        raise InputError(f"{what} is empty: give a file or inline JSON")
     if not text.startswith(("{", "[")):
         path = Path(text)
-        if not path.is_file():
+        if not path.exists():
             raise InputError(f"{what} file not found: {text}")
-        text = path.read_text()
+        try:
+            text = path.read_text()
+        except UnicodeDecodeError:
+            raise InputError(f"malformed JSON in {what}: {text} is not text") from None
+        except OSError as exc:  # a folder, no permission
+            raise InputError(f"cannot read {what} file {text}: {exc.strerror}") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

@@ -28,6 +28,7 @@ import functools
 import hashlib
 import logging
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -530,10 +531,9 @@ def node_matrix(value: Any, name: str = "node") -> np.ndarray:
         if not np.isfinite(m).all() or not np.array_equal(m[3], [0, 0, 0, 1]):
             raise InputError(f"update of {name!r} is not a finite affine 4x4 matrix "
                              "(last row 0, 0, 0, 1)")
-    r = m[:3, :3]
-    if abs(np.linalg.det(r)) <= 1e-12 * max(np.abs(r).max(), 1e-300) ** 3:
+    scales = np.linalg.svd(m[:3, :3], compute_uv=False)  # (a determinant would overflow)
+    if scales.min() < 1e-12 * max(scales.max(), 1e-300) and scales.max() <= 1e9:
         raise InputError(f"update of {name!r} is singular (a zero scale)")
-    scales = np.linalg.svd(r, compute_uv=False)
     if scales.min() < 1e-9 or scales.max() > 1e9 or np.abs(m[:3, 3]).max() > 1e15:
         raise InputError(f"update of {name!r} is out of range: scales must lie between 1e-9 "
                          "and 1e9 and positions within 1e15")
@@ -554,8 +554,11 @@ def load_trimesh(path: str | os.PathLike):
     try:
         loaded = trimesh.load(str(path), **kwargs)
     except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
-        raise InputError(f"cannot read scene {path.name}: trimesh's reader needs {exc.name}, "
-                         "which this install lacks: pip install 'wallcull[formats]'") from None
+        # (trimesh re-raises a reader's import error from its message alone: no name)
+        needs = exc.name or next(iter(re.findall(r"named '([\w.]+)'", str(exc))), None)
+        raise InputError(f"cannot read scene {path.name}: trimesh's reader needs "
+                         f"{needs or 'a module'}, which this install lacks: "
+                         "pip install 'wallcull[formats]'") from None
     except Exception as exc:  # noqa: BLE001 - any parser failure is bad input
         raise InputError(f"cannot read scene {path.name}: {exc}") from None
     if not isinstance(loaded, trimesh.Scene):
@@ -680,8 +683,8 @@ def load(spec: str, hierarchy: str = "auto", branching: int = BRANCHING,
             scene = source.build(hierarchy, branching, clusters)
             if problem or cache == "write":
                 _write_prepared(scene, path, key)
+    cfg.parse(raw)  # refuse bad settings when the scene loads, not mid-frame
     scene.settings = dict(raw or {})
-    cfg.parse(scene.settings)  # refuse bad settings when the scene loads, not mid-frame
     return scene
 
 
@@ -695,8 +698,9 @@ def load_sizes(spec: str, sizes: Sequence, hierarchy: str = "auto",
     _check_hierarchy(hierarchy, branching)
     for size in sizes:
         _check_clusters(size)
-    raw = dict(source.settings() or {})
+    raw = source.settings()
     cfg.parse(raw)
+    raw = dict(raw or {})
     read = source.read()
     out = {}
     for size in sizes:

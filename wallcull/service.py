@@ -38,6 +38,7 @@ from .persist import StateFolder, StateWriteFailed, WallRow
 from .pipeline import Session
 from .scene import Scene, bounds_of, load, prepare_path
 from .uploads import parse_sandboxed, usable
+from .validate import MAX_FRAME
 from .wall import Frame, Wall
 from .workers import background
 
@@ -462,6 +463,9 @@ class WallSession:
         posted, t0 = time.time(), time.perf_counter()
         if number is None:
             number = self.newest + 1
+            if number > MAX_FRAME:
+                raise Conflict(f"wall {self.id} has used every frame number (the last is "
+                               f"{MAX_FRAME}): create it again")
         elif number <= self.newest:
             raise Conflict(f"frame {number} is out of order: frame {self.newest} is already in")
         # Validate the whole request before anything moves: a refused frame changes nothing.
@@ -513,6 +517,8 @@ class WallSession:
         serving packets while a frame is culled and fitted; frames of one wall go one at a
         time, in order."""
         async with self._frame_lock:
+            if self.closed:  # deleted while this frame waited its turn
+                raise NotFound(f"wall {self.id} was deleted")
             record, timings = await asyncio.to_thread(self.compute_frame, frame, updates, number,
                                                       refit)
             return self.publish(record), timings

@@ -91,25 +91,20 @@ def parse(raw: Mapping[str, Any] | SettingsSpec | None) -> Settings:
     doc = documents.parse(SettingsSpec, raw or {}, "settings")
     lights = tuple(
         Light(item.name or f"light{k}", np.array(item.position), item.type,
-              None if item.type != "spot" else _unit(item.direction),
+              None if item.type != "spot" else documents.unit(item.direction),
               item.angle if item.type == "spot" else 180.0, item.resolution)
         for k, item in enumerate(doc.lights)
         if item.shadows)  # a light that casts no shadows needs no frustum
     mirrors = []
     for k, item in enumerate(doc.mirrors):
-        normal, point = _unit(item.normal), np.array(item.point)
+        normal, point = documents.unit(item.normal), np.array(item.point)
         polygon = None if item.polygon is None else np.array(item.polygon)
         mirrors.append(Mirror(item.name or f"mirror{k}", np.append(normal, -normal @ point),
                               polygon))
     dials = {k: v for k in ("budget", "texels")
              if (v := getattr(doc.occlusion, k)) is not None}
-    return Settings(_unit(doc.up or (0.0, 1.0, 0.0)), lights, tuple(mirrors),
+    return Settings(documents.unit(doc.up or (0.0, 1.0, 0.0)), lights, tuple(mirrors),
                     tuple(doc.occlusion.exclude), dials)
-
-
-def _unit(v) -> np.ndarray:
-    v = np.array(v, dtype=np.float64)
-    return v / np.linalg.norm(v)  # not zero: the document's validators see to it
 
 
 def read(path: str | Path) -> dict:
@@ -119,8 +114,10 @@ def read(path: str | Path) -> dict:
         return json.loads(path.read_text())
     except FileNotFoundError:
         raise InputError(f"settings file not found: {path}") from None
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"malformed JSON in {path.name}: {exc}") from None
+    except OSError as exc:  # a folder, no permission
+        raise InputError(f"cannot read settings file {path}: {exc.strerror}") from None
 
 
 def sidecar(scene_path: str | Path) -> dict:

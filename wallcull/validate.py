@@ -9,6 +9,9 @@ from .errors import InputError
 #: the limit leaves room above it while refusing requests that could only exhaust memory.
 MAX_TILES = 1 << 16
 
+#: The largest frame number (2**53: the last integer every JSON client reads exactly).
+MAX_FRAME = 1 << 53
+
 #: Relative tolerance on the norm of a frame's quaternion (SPEC section 3).
 QUATERNION_TOLERANCE = 1e-6
 

@@ -266,15 +266,23 @@ def make_app_from_env() -> FastAPI:
     return create_app(**settings_from_env())
 
 
-def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info", **settings) -> None:
-    """Run the server (``settings``: :func:`create_app` keywords), with connections capped
-    and header deadlines (:mod:`.guard`)."""
-    import uvicorn
+def uvicorn_options(app: FastAPI) -> dict:
+    """What :func:`serve` runs uvicorn with besides the address and the logs: the protocols
+    of :mod:`.guard` (connections capped, header deadlines, refusals that are no errors) and
+    the largest WebSocket message."""
+    from .guard import Refusals, protocol
 
-    from .guard import protocol
+    limits = app.state.server.limits
+    return {"http": protocol(limits), "ws": Refusals,
+            "ws_max_size": max(limits.body, limits.message_bytes)}
+
+
+def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info", **settings) -> None:
+    """Run the server (``settings``: :func:`create_app` keywords) with
+    :func:`uvicorn_options`."""
+    import uvicorn
 
     heap.tune()
     app = create_app(**settings)
-    limits = app.state.server.limits
     uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False,
-                ws_max_size=max(limits.body, limits.message_bytes), http=protocol(limits))
+                **uvicorn_options(app))

@@ -17,6 +17,10 @@ protocol (uvicorn's httptools protocol, with two additions) bounds both:
 
 Behind a reverse proxy (nginx, HAProxy, Caddy), the proxy's own header timeouts and connection
 limits do this job as well; docs/hardening.md says how.
+
+The WebSocket protocol (:class:`Refusals`, uvicorn's own) counts a refused handshake, an HTTP
+response in place of the upgrade (404, 422, 429, ...), as done: uvicorn logged every refusal
+at ERROR level as an application that never completed its handshake.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import resource
 from collections import OrderedDict
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from ..limits import Limits
 
@@ -95,3 +100,13 @@ def protocol(limits: Limits) -> type:
                 self.transport.abort()
 
     return Guarded
+
+
+class Refusals(WebSocketsSansIOProtocol):
+    """uvicorn's WebSocket protocol, with the handshake complete once a refusal's response is
+    sent (see the module docstring)."""
+
+    async def send(self, message) -> None:
+        await super().send(message)
+        if message["type"] == "websocket.http.response.body" and not message.get("more_body"):
+            self.handshake_complete = True

@@ -12,6 +12,9 @@ from typing import Annotated, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic.json_schema import GenerateJsonSchema
 
+from ..errors import InputError
+from ..validate import MAX_FRAME
+
 Id = Annotated[int, Field(ge=0)]
 Ids = Annotated[list[Id], Field(description="leaf ids (scene.leaves), sorted")]
 Ranges = Annotated[
@@ -195,9 +198,32 @@ class Control(Message):
     subject."""
 
     model_config = ConfigDict(json_schema_extra={"minProperties": 1})
-    ack: Id = None
+    ack: Annotated[int, Field(ge=0, le=MAX_FRAME)] = None
     full: bool = None
     node: Annotated[str, Field(max_length=64)] = None
+
+
+def control(value) -> tuple[int | None, bool, str | None]:
+    """A node's control message held to :class:`Control` (by hand: a model's check costs more
+    than the rest of an acknowledgement): its ``ack`` (None: none), whether it asks for full
+    lists, its ``node`` name (None: none). :class:`InputError` names what is wrong."""
+    if not isinstance(value, dict) or not value:
+        raise InputError('a message must be an object of "ack", "full" or "node"')
+    unknown = value.keys() - Control.model_fields.keys()
+    if unknown:
+        raise InputError(f"unknown key {sorted(map(str, unknown))[0]!r} in a message: "
+                         '"ack", "full" and "node" are known')
+    ack = value.get("ack")
+    if "ack" in value and (not isinstance(ack, int) or isinstance(ack, bool) or
+                           not 0 <= ack <= MAX_FRAME):
+        raise InputError(f"ack must be a frame number, 0 to {MAX_FRAME}")
+    full = value.get("full", False)
+    if not isinstance(full, bool):
+        raise InputError("full must be true or false")
+    node = value.get("node")
+    if "node" in value and not (isinstance(node, str) and len(node) <= 64):
+        raise InputError("node must be a name of at most 64 characters")
+    return ack, full, node
 
 
 class StreamError(Message):

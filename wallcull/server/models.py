@@ -23,10 +23,10 @@ from ..documents import (Bool, Document, FrameSpec, Int, Length, NodeName, Num, 
                          Quaternion, Vec3, Wall)
 from ..errors import InputError
 from ..lowilie import EFFORTS
-from ..validate import MAX_TILES
+from ..validate import MAX_FRAME, MAX_TILES
 
 Tile = Int(ge=0, lt=MAX_TILES)
-FrameNumber = Int(ge=0, le=2**53)
+FrameNumber = Int(ge=0, le=MAX_FRAME)
 #: Scene names: plain file names, ASCII (what the scene folder can hold).
 SCENE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
 SceneName = Annotated[str, Strict(), StringConstraints(pattern=SCENE_NAME)]
@@ -49,11 +49,16 @@ class NodeUpdate(Body):
     orientation: Optional[Quaternion] = None
     scale: Optional[tuple[Length, Length, Length]] = None
 
-    def value(self) -> Any:
+    def value(self, name: str) -> Any:
+        """The update of node ``name`` as :func:`wallcull.scene.node_matrix` takes it."""
         if self.matrix is not None:
+            if (self.position, self.orientation, self.scale) != (None, None, None):
+                raise InputError(f"update of {name!r} has a matrix and a position, orientation "
+                                 "or scale: send one or the other")
             return self.matrix
         if self.position is None or self.orientation is None:
-            raise InputError("a node update needs a matrix, or a position and an orientation")
+            raise InputError(f"update of {name!r} needs a matrix, or a position and an "
+                             "orientation")
         out = {"position": self.position, "orientation": self.orientation}
         if self.scale is not None:
             out["scale"] = self.scale

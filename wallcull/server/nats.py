@@ -44,6 +44,7 @@ import numpy as np
 
 from ..errors import InputError, optional
 from ..service import Gone, NotFound, WallSession, Walls
+from .messages import control
 from .metrics import Metrics
 
 log = logging.getLogger("wallcull")
@@ -123,6 +124,40 @@ class _Node:
             found.acked = ack
 
 
+async def _connect(url: str, timeout: float, reconnect: bool):
+    """A connection to the broker at ``url``, or :class:`InputError` after ``timeout``
+    seconds (a broker named but unreachable is a configuration error). ``reconnect``: once
+    connected, reconnect for as long as it takes when the broker goes away."""
+    nats = optional("nats", "nats", "--nats")
+    failed: list = []
+
+    async def quiet(exc):  # nats-py prints each failed attempt's traceback otherwise
+        failed.append(exc)
+        log.debug("NATS %s: %r", url, exc)
+
+    try:
+        return await asyncio.wait_for(nats.connect(
+            url, name="wallcull", connect_timeout=timeout, allow_reconnect=reconnect,
+            max_reconnect_attempts=-1 if reconnect else 0, reconnect_time_wait=0.5,
+            error_cb=quiet), timeout)
+    except Exception as exc:  # nats raises its own errors, and OSError, for an absent broker
+        if isinstance(exc, asyncio.TimeoutError):
+            exc = failed[-1] if failed else "no answer"
+        why = exc if isinstance(exc, str) else str(exc) or type(exc).__name__
+        raise InputError(f"cannot reach the NATS broker at {url} within {timeout:g} s: "
+                         f"{why}") from None
+
+
+def check_broker(url: str, timeout: float = 10.0) -> None:
+    """Connect to the broker at ``url`` and leave: :class:`InputError` if it cannot be
+    reached (``wallcull serve --nats`` asks before it starts)."""
+    async def probe():
+        nc = await _connect(url, timeout, reconnect=False)
+        await nc.close()
+
+    asyncio.run(probe())
+
+
 class NatsBridge:
     """The server's NATS connection: one publisher task per wall, two subscriptions."""
 
@@ -135,13 +170,7 @@ class NatsBridge:
     async def start(self, timeout: float = 10.0) -> None:
         """Connect (failing after ``timeout`` seconds: a broker named but unreachable is a
         configuration error), subscribe, and publish every wall already held."""
-        nats = optional("nats", "nats", "--nats")
-        try:
-            self.nc = await nats.connect(self.url, name="wallcull", connect_timeout=timeout,
-                                         max_reconnect_attempts=-1, reconnect_time_wait=0.5,
-                                         allow_reconnect=True)
-        except Exception as exc:  # nats raises its own errors, and OSError, for an absent broker
-            raise RuntimeError(f"cannot reach the NATS broker at {self.url}: {exc!r}") from None
+        self.nc = await _connect(self.url, timeout, reconnect=True)
         await self.nc.subscribe(f"{self.prefix}.*.ack.*", cb=self._ack)
         await self.nc.subscribe(f"{self.prefix}.*.full.*", cb=self._full)
         for session in list(self.walls.sessions.values()):
@@ -203,22 +232,14 @@ class NatsBridge:
             raise NotFound(f"wall {wid} has no node of first tile {first}")
         return session, node
 
-    @staticmethod
-    def _name(body: dict):
-        name = body.get("node")
-        if name is not None and not (isinstance(name, str) and len(name) <= 64):
-            raise InputError("node must be a name of at most 64 characters")
-        return name
-
     async def _ack(self, msg) -> None:
         try:
             session, node = self._node(msg.subject)
-            body = msgpack.unpackb(msg.data)
-            number = body.get("ack")
-            if not isinstance(number, int) or isinstance(number, bool):
-                raise InputError("ack must be a frame number")
+            number, _, name = control(msgpack.unpackb(msg.data))
+            if number is None:
+                raise InputError("an acknowledgement needs ack")
             session.ack(node.tiles, number)
-            node.take(self._name(body), ack=number)
+            node.take(name, ack=number)
         except Exception as exc:  # noqa: BLE001 - counted; it must not stop the subscription
             self.metrics.errors.labels("nats").inc()
             log.debug("NATS ack on %s refused: %r", msg.subject, exc)
@@ -228,12 +249,11 @@ class NatsBridge:
             session, node = self._node(msg.subject)
             if session.latest < 0:
                 raise NotFound("no frame yet")
-            body = msgpack.unpackb(msg.data) if msg.data else {}
-            if not isinstance(body, dict):
-                raise InputError("a full request is empty or {\"node\": name}")
+            # empty, or {"node": name}
+            name = control(msgpack.unpackb(msg.data))[2] if msg.data else None
             number = session.latest
             data, _ = session.node_message(node.tiles, number, full=True)
-            node.take(self._name(body), since=number)
+            node.take(name, since=number)
             self.metrics.packet(False, len(data), "nats")
         except (NotFound, Gone, InputError, ValueError, msgpack.UnpackException) as exc:
             data = msgpack.packb({"error": str(exc)})

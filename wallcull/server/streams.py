@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import time
+from collections import deque
 
 import numpy as np
 from fastapi import APIRouter, WebSocket
@@ -21,6 +22,7 @@ from ..validate import parse_tiles
 from .access import bearer, needs
 from .deps import ServerState
 from .http import Budget, Refused, decode_body, decode_message, refusal_detail
+from .messages import control
 from .models import FramePost
 from .walls import take_frame
 
@@ -28,6 +30,8 @@ from .walls import take_frame
 STREAM_WINDOW = 8
 #: Close codes: the wall was deleted; the stream waited too long for an acknowledgement.
 GONE, IDLE = 4404, 4408
+#: A stream's ``?format=``: msgpack (binary messages) or JSON (text).
+FORMATS = ("msgpack", "json")
 
 router = APIRouter(tags=["streams"])
 
@@ -50,7 +54,7 @@ async def stream(ws: WebSocket, wid: str, tile: int, format: str = "msgpack"):
         session.check_tile(tile)
         return np.array([tile])
 
-    await _open(ws, wid, tiles_of, node=False, binary=format != "json")
+    await _open(ws, wid, tiles_of, node=False, format=format)
 
 
 @router.websocket("/walls/{wid}/nodes/stream")
@@ -67,13 +71,14 @@ async def node_stream(ws: WebSocket, wid: str, tiles: str | None = None,
                 return session.check_tiles(parse_tiles(tiles, session.wall.tiles))
             except InputError as exc:
                 raise Refused(422, str(exc)) from None
-        grant = ws.app.state.server.walls.grant(_token(ws))
-        if grant is None:
+        token = _token(ws)
+        grant = ws.app.state.server.walls.grant(token) if token else None
+        if grant is None or not grant.tiles:  # none, or the driver's
             raise Refused(422, "say which tiles: ?tiles=0-3 (only a node's own credential "
                                "implies them)")
         return session.check_tiles(sorted(grant.tiles))
 
-    await _open(ws, wid, tiles_of, node=True, binary=format != "json")
+    await _open(ws, wid, tiles_of, node=True, format=format)
 
 
 @router.websocket("/walls/{wid}/frames/stream")
@@ -85,14 +90,16 @@ async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
     and the stream goes on. Needs the wall's driver credential (or the operator's token)."""
     state: ServerState = ws.app.state.server
     try:
+        binary = _binary(format)
         session = state.walls.get(wid)
-    except (NotFound, Unavailable) as exc:
+    except (NotFound, Unavailable, Refused) as exc:
         return await deny(ws, state, exc)
-    binary = format != "json"
     await ws.accept()
     try:
-        while not session.closed:  # one message at a time: each is answered before the next
-            message = await ws.receive()
+        while True:  # one message at a time: each is answered before the next
+            message = await _unless_deleted(session, ws.receive())
+            if message is None:
+                break
             if message["type"] == "websocket.disconnect":
                 return
             raw = message.get("bytes")
@@ -116,6 +123,26 @@ async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
         return
     if ws.application_state == WebSocketState.CONNECTED:
         await ws.close(code=GONE, reason="the wall was deleted")
+
+
+def _binary(format: str) -> bool:
+    """Whether a stream's ``?format=`` sends binary (msgpack) messages; 422 for neither."""
+    if format not in FORMATS:
+        raise Refused(422, f"format must be {' or '.join(FORMATS)}, got {format!r}")
+    return format == "msgpack"
+
+
+async def _unless_deleted(session: WallSession, aw):
+    """What ``aw`` gives, or None once the wall is deleted (``aw`` is then cancelled)."""
+    task = asyncio.ensure_future(aw)
+    gone = asyncio.ensure_future(session.gone.wait())
+    try:
+        await asyncio.wait((task, gone), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for waiting in (task, gone):
+            if not waiting.done():
+                waiting.cancel()
+    return None if session.closed or task.cancelled() else task.result()
 
 
 async def deny(ws: WebSocket, state: ServerState, exc: Exception) -> None:
@@ -146,10 +173,12 @@ def _token(ws: WebSocket) -> str | None:
     return ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
 
 
-async def _open(ws: WebSocket, wid: str, tiles_of, node: bool, binary: bool) -> None:
-    """Admit a stream (its wall, its tiles, room for it), run it, close it with its reason."""
+async def _open(ws: WebSocket, wid: str, tiles_of, node: bool, format: str) -> None:
+    """Admit a stream (its format, its wall, its tiles, room for it), run it, close it with
+    its reason."""
     state: ServerState = ws.app.state.server
     try:
+        binary = _binary(format)
         session = state.walls.get(wid)
         tiles = tiles_of(session)
         room(state, session, tiles)
@@ -206,6 +235,7 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
     metrics, idle = state.metrics, state.limits.stream_idle
     wants = {"full": True}
     acked = [-1]  # the newest frame acknowledged on this stream
+    sent: deque = deque(maxlen=STREAM_WINDOW)  # the numbers of its last packets
     ack_came = asyncio.Event()
 
     async def acknowledged(number: int) -> bool:
@@ -216,10 +246,12 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
             ack_came.clear()
             waits = [asyncio.ensure_future(ack_came.wait()),
                      asyncio.ensure_future(session.gone.wait())]
-            done, pending = await asyncio.wait(waits, timeout=idle,
-                                               return_when=asyncio.FIRST_COMPLETED)
-            for w in pending:
-                w.cancel()
+            try:
+                done, _ = await asyncio.wait(waits, timeout=idle,
+                                             return_when=asyncio.FIRST_COMPLETED)
+            finally:  # also when the stream ends meanwhile
+                for w in waits:
+                    w.cancel()
             if not done:
                 return False
         return True
@@ -230,11 +262,11 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
         last = since = -1
         while True:
             number = await session.next_frame(last)
-            if last >= 0 and acked[0] < last - STREAM_WINDOW + 1:
+            if len(sent) == STREAM_WINDOW and acked[0] < sent[0]:
                 # At most STREAM_WINDOW packets unacknowledged; a node that falls behind then
                 # gets the newest frame (conflation) instead of a queue of stale ones in
                 # socket buffers (uvicorn's send only blocks past 64 KiB).
-                if not await acknowledged(last - STREAM_WINDOW + 1):
+                if not await acknowledged(sent[0]):
                     return "idle"
                 number = session.latest
             full = wants.pop("full", False)
@@ -249,6 +281,7 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
                 pkt = session.packet(tile, number, full, since, held=acked[0])
                 data, delta = protocol.encode(pkt, False), pkt["base"] is not None
             await write(data)
+            sent.append(number)
             since = number if since < 0 else since
             metrics.packet(delta, len(data), "ws")
             last = number
@@ -262,19 +295,15 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
             if message["type"] == "websocket.disconnect":
                 return "left"
             try:
-                msg = decode_message(message.get("bytes"), message.get("text"),
-                                     state.limits.message_bytes)
-                if not isinstance(msg, dict):
-                    raise InputError("a message must be an object")
-                if msg.get("full"):
+                number, full, _ = control(decode_message(
+                    message.get("bytes"), message.get("text"), state.limits.message_bytes))
+                if full:
                     wants["full"] = True
                     ack_came.set()
-                if "ack" in msg:
-                    if not isinstance(msg["ack"], int) or isinstance(msg["ack"], bool):
-                        raise InputError("ack must be a frame number")
-                    session.ack(acks, msg["ack"])
-                    if msg["ack"] > acked[0]:
-                        acked[0] = msg["ack"]
+                if number is not None:
+                    session.ack(acks, number)
+                    if number > acked[0]:
+                        acked[0] = number
                         ack_came.set()
             except (InputError, Conflict, NotFound) as exc:
                 metrics.errors.labels("ws").inc()

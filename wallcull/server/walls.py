@@ -13,6 +13,7 @@ from ..credentials import DRIVER, NODE, OPERATOR
 from ..errors import InputError
 from ..fit import FitOptions
 from ..service import NotFound, warm_meshes
+from ..validate import MAX_FRAME
 from ..wall import Wall
 from ..workers import background
 from .access import needs
@@ -126,7 +127,7 @@ async def take_frame(state, session, body: FramePost) -> dict[str, Any]:
     """A posted frame, culled, fitted and published: its answer (the HTTP route's and the
     frame stream's)."""
     def moves():
-        return {name: u.value() for name, u in body.updates.items()}
+        return {name: u.value(name) for name, u in body.updates.items()}
 
     check_packets(session, body)
     updates = moves() if len(body.updates) <= INLINE_UPDATES else await asyncio.to_thread(moves)
@@ -155,7 +156,7 @@ def check_packets(session, body: FramePost) -> None:
             response_model=Packet, responses=refusals(401, 403, 404, 410))
 @needs(NODE)
 async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
-                     frame: Annotated[str, Path(pattern=r"^(latest|\d{1,15})$")],
+                     frame: Annotated[str, Path(pattern=r"^(latest|\d{1,16})$")],
                      full: bool = False,
                      wait: Annotated[float, Query(ge=0, le=MAX_WAIT)] = 1.0):
     """Tile ``tile``'s packet of frame ``frame`` (a number or ``latest``): a delta against
@@ -171,6 +172,8 @@ async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
         number = session.latest
     else:
         number = int(frame)
+        if number > MAX_FRAME:
+            raise InputError(f"frame numbers end at {MAX_FRAME}, got {number}")
         if not await session.wait_frame(number, wait):
             raise NotFound(f"frame {number} is not ready (latest {session.newest})")
     pkt = session.packet(tile, number, full)
@@ -192,7 +195,7 @@ async def ack(state: State, wid: WallId, tile: TileId, body: Annotated[Ack, body
 @router.get("/walls/{wid}/barrier/{frame}", operation_id="barrier", response_model=Barrier,
             responses=refusals(404))
 async def barrier(request: Request, state: State, wid: WallId,
-                  frame: Annotated[int, Path(ge=0, le=2**53)],
+                  frame: Annotated[int, Path(ge=0, le=MAX_FRAME)],
                   timeout: Annotated[float, Query(ge=0, le=MAX_WAIT)] = 1.0):
     """Wait until every tile has acknowledged ``frame``, or ``timeout`` seconds."""
     return reply(request, await state.walls.get(wid).barrier(frame, timeout))
