@@ -82,11 +82,54 @@ def test_cull_files_and_text_output(capsys, glb, tmp_path):
     (["cull", "no_such_bundled_scene", "--wall", WALL, "--frame", FRAME], "unknown scene"),
     (["bench", "powerplant", "--wall", WALL, "--methods", "oh,magic"], "unknown method"),
     (["frobnicate"], "invalid choice"),
+    (["cull", "powerplant", "--wall", "", "--frame", FRAME], "--wall is empty"),
+    (["cull", "powerplant", "--wall", "scenes/TestScene.bin", "--frame", FRAME], "not text"),
+    (["cull", "powerplant", "--wall", "examples", "--frame", FRAME], "cannot read --wall file"),
+    (["cull", "powerplant", "--wall", WALL, "--frame", FRAME, "--settings", "examples"],
+     "cannot read settings file"),
+    (["cull", "powerplant", "--wall", WALL, "--frame", FRAME, "--settings",
+      "scenes/TestScene.bin"], "malformed JSON"),
+    (["bench", "powerplant", "--wall", WALL, "--methods", ","], "at least one method"),
+    (["bench", "powerplant", "--wall", WALL, "--bounds", ","], "at least one bound type"),
+    (["bench", "powerplant", "--wall", WALL, "--fit", "--shadow-fit", ","], "needs an effort"),
+    (["bench", "powerplant", "--wall", WALL, "--stereo", "50"], "interpupillary distance"),
+    (["bench", "powerplant", "--wall", WALL, "--stereo", "0"], "interpupillary distance"),
+    (["bench", "powerplant", "--wall", WALL, "--frames", "3", "--accuracy", "5"],
+     "0 to 3 frames"),
+    (["bench", "powerplant", "--wall", WALL, "--accuracy", "-3"], "not -3"),
+    (["walk", "scenes/TestScene.gltf", "--frames", "99999999999999999999"],
+     "frames must be 1 to 10,000,000"),
+    (["overdraw", "scenes/TestScene.gltf", "--visible-resolution", "10000000x10000000"],
+     "each 1 to 16384"),
+    (["serve", "--port", "99999"], "--port must be 0 to 65535"),
+    (["serve", "--token", ""], "--token must not be empty"),
+    (["serve", "--log-level", "bogus"], "invalid choice"),
 ])
 def test_bad_input_exits_2_with_one_line(capsys, argv, message):
     code, out, err = run(capsys, *argv)
     assert code == 2
     assert err.count("\n") == 1 and err.startswith("wallcull: error:") and message in err
+
+
+def test_settings_that_are_no_object_or_say_null_are_handled(capsys, tmp_path):
+    (tmp_path / "list.json").write_text("[1, 2]")
+    code, _, err = run(capsys, "cull", "scenes/TestScene.gltf", "--wall", WALL, "--frame", FRAME,
+                       "--settings", str(tmp_path / "list.json"))
+    assert code == 2 and "settings must be an object" in err
+    (tmp_path / "null.json").write_text('{"up": null}')  # the default: +y
+    code, out, err = run(capsys, "walk", "scenes/TestScene.gltf", "--frames", "2", "--settings",
+                         str(tmp_path / "null.json"))
+    assert code == 0, err
+
+
+def test_an_unreachable_broker_is_a_one_line_error_in_bounded_time():
+    """``serve --nats`` asks the broker before it starts: an absent one is refused with the
+    reason, after at most the timeout (the server never starts, and never hangs)."""
+    from wallcull.errors import InputError
+    from wallcull.server.nats import check_broker
+
+    with pytest.raises(InputError, match="cannot reach the NATS broker at nats://127.0.0.1:1"):
+        check_broker("nats://127.0.0.1:1", timeout=1.0)
 
 
 def test_real_process_exit_status_and_no_traceback(glb):

@@ -73,6 +73,7 @@ def test_what_needs_an_extra_says_which(argv, extra):
     run = base(*argv)
     assert run.returncode == 2, (run.stdout[-500:], run.stderr[-2000:])
     assert run.stderr.count("\n") == 1 and f"pip install 'wallcull[{extra}]'" in run.stderr
+    assert "needs None" not in run.stderr  # the module it lacks is named
 
 
 def test_the_server_needs_no_extra(tmp_path):

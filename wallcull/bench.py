@@ -237,9 +237,17 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     it."""
     from . import scene as scene_mod
 
+    if not methods or not bounds:
+        raise InputError(f"name at least one {'method' if not methods else 'bound type'}")
     for m in methods:
         if m not in METHODS:
             raise InputError(f"unknown method {m!r}; choose from {', '.join(METHODS)}")
+    if not 0 <= accuracy_frames <= frames:
+        raise InputError(f"the oracle can check 0 to {frames} frames (the frames timed), "
+                         f"not {accuracy_frames}")
+    if stereo is not None and not 0 < stereo <= 1:
+        raise InputError(f"stereo needs an interpupillary distance over 0 and at most 1 m, "
+                         f"got {stereo:g}")
     if accuracy_frames:
         oracle.rotations()  # refused before any work when this install has no oracle
     t0 = time.perf_counter()

@@ -36,7 +36,7 @@ class _Parser(argparse.ArgumentParser):
 def _wall(arg):
     from .wall import Wall
 
-    return Wall.from_dict(read_json(arg, "--wall") if arg else DEFAULT_WALL)
+    return Wall.from_dict(read_json(arg, "--wall") if arg is not None else DEFAULT_WALL)
 
 
 def _load(args):
@@ -113,6 +113,8 @@ def cmd_bench(args) -> int:
     from .settings import read
 
     efforts = [e.strip() for e in args.shadow_fit.split(",") if e.strip()]
+    if not efforts:
+        raise InputError("--shadow-fit needs an effort: sphere, greedy or refined")
     for effort in efforts:
         if effort not in EFFORTS:
             raise InputError(f"unknown shadow fit {effort!r}; choose from {', '.join(EFFORTS)}")
@@ -257,6 +259,11 @@ def cmd_serve(args) -> int:
     from .server import seconds_setting, serve, settings_from_env
 
     settings = settings_from_env()
+    if not 0 <= args.port <= 65535:
+        raise InputError(f"--port must be 0 to 65535, got {args.port}")
+    if args.token is not None and not args.token.strip():
+        raise InputError("--token must not be empty (leave it out for a server anyone may "
+                         "use)")
     if args.scenes:
         settings["scene_folder"] = args.scenes
     if args.token:
@@ -273,6 +280,10 @@ def cmd_serve(args) -> int:
         settings["wall_ttl"] = seconds_setting(args.wall_ttl, "--wall-ttl")
     for text in args.limit:
         settings["limits"] = settings["limits"].with_text(text)
+    if settings.get("nats"):
+        from .server.nats import check_broker
+
+        check_broker(settings["nats"])
     serve(args.host, args.port, args.log_level, **settings)
     return 0
 
@@ -360,11 +371,14 @@ def cmd_overdraw(args) -> int:
 
 
 def _pixels(text: str, option: str) -> tuple[int, int]:
-    """``WxH`` (e.g. ``240x135``) as two positive integers, or a one-line error."""
+    """``WxH`` (e.g. ``240x135``) as two integers from 1 to 16,384 (what GPUs render to), or
+    a one-line error."""
     w, x, h = text.lower().partition("x")
-    if x and w.strip().isdigit() and h.strip().isdigit() and int(w) > 0 and int(h) > 0:
+    if x and w.strip().isdigit() and h.strip().isdigit() and 0 < int(w) <= 1 << 14 and \
+            0 < int(h) <= 1 << 14:
         return int(w), int(h)
-    raise InputError(f"{option} must be WIDTHxHEIGHT in pixels, e.g. 240x135, got {text!r}")
+    raise InputError(f"{option} must be WIDTHxHEIGHT in pixels, each 1 to 16384, e.g. 240x135, "
+                     f"got {text!r}")
 
 
 def cmd_scenes(args) -> int:
@@ -525,7 +539,8 @@ def parser() -> argparse.ArgumentParser:
                    help="delete a wall once it has had no frame, acknowledgement or stream for "
                         "this long (default: $WALLCULL_WALL_TTL, else never; see "
                         "docs/hardening.md)")
-    q.add_argument("--log-level", default="info")
+    q.add_argument("--log-level", default="info",
+                   choices=("critical", "error", "warning", "info", "debug", "trace"))
     q.set_defaults(func=cmd_serve)
 
     q = sub.add_parser("scenes", help="list the bundled scenes")

@@ -17,10 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from .documents import unit
 from .errors import InputError
 from .wall import Frame, Wall, display_planes, matrix_quaternion
 
 PATHS = ("orbit", "fly")
+#: The most frames a camera path has (a day at 120 Hz is ten million).
+MAX_FRAMES = 10_000_000
 
 
 def look_rotation(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -41,10 +44,9 @@ def _frame(position, forward, up, wall: Wall) -> Frame:
 def camera_path(kind: str, lo: np.ndarray, hi: np.ndarray, wall: Wall, frames: int,
                 up=(0.0, 1.0, 0.0)) -> list[Frame]:
     """``frames`` frames of path ``kind`` around the box ``[lo, hi]`` (world space)."""
-    if frames < 1:
-        raise InputError(f"frames must be at least 1, got {frames}")
-    up = np.asarray(up, dtype=np.float64)
-    up /= np.linalg.norm(up)
+    if not 1 <= frames <= MAX_FRAMES:
+        raise InputError(f"frames must be 1 to {MAX_FRAMES:,}, got {frames}")
+    up = unit(up)
     center = (lo + hi) / 2
     # an orthonormal basis (a, b, up) of the world around the up axis
     a = np.cross(up, [1.0, 0, 0] if abs(up[0]) < 0.9 else [0, 0, 1.0])
@@ -98,4 +100,4 @@ def scene_path(scene, wall: Wall, kind: str, frames: int) -> list[Frame]:
     """``frames`` frames of path ``kind`` around a scene at rest: the box of its leaves' points,
     turned about the scene's up axis (its settings' ``up``, +y by default)."""
     return camera_path(kind, scene.box[0], scene.box[1], wall, frames,
-                       up=scene.settings.get("up", (0, 1, 0)))
+                       up=scene.settings.get("up") or (0, 1, 0))

@@ -407,6 +407,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     import psutil
 
     from wallcull_clients.driver import PATH_FRAMES, Driver
+    from wallcull_clients.rawhttp import HTTPError
     from wallcull.wall import Wall
 
     host = machine()  # before we load it
@@ -429,8 +430,15 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
             count = Wall.from_dict(wall).tiles
             groups = [list(range(k, min(k + tiles_per_node, count)))
                       for k in range(0, count, tiles_per_node)]
-            info = await d.create_wall(scene, wall, method, "obb", history, settings,
-                                       shadow_fit, groups if tiles_per_node > 1 else None)
+            try:
+                info = await d.create_wall(scene, wall, method, "obb", history, settings,
+                                           shadow_fit, groups if tiles_per_node > 1 else None)
+            except HTTPError as exc:
+                if exc.status not in (404, 409, 422):
+                    raise
+                from wallcull.errors import InputError
+
+                raise InputError(f"the server refused the wall: {exc.detail}") from None
         wid, tiles = info["id"], info["tiles"]
         # least privilege, as a lab would run it: each node its own credential, the driver
         # the wall's driver credential; the operator's token only created the wall
@@ -957,7 +965,16 @@ def cmd_loadtest(args) -> int:
         raise InputError("--duration must be positive and --rate at least 0")
     if args.requests is not None and (args.requests < 1 or args.concurrency < 1):
         raise InputError("--requests and --concurrency must be at least 1")
+    if not 0 < args.barrier_timeout <= 10:
+        raise InputError(f"--barrier-timeout must be over 0 and at most 10 s, got "
+                         f"{args.barrier_timeout:g}")
     wall = _wall_spec(args.wall)
+    settings = None
+    if args.settings:  # refused here, before a server starts, as the server would
+        from wallcull.settings import parse as parse_settings
+
+        settings = read_settings(args.settings)
+        parse_settings(settings)
     progress = sys.stderr.isatty()
     if args.requests:
         report = asyncio.run(requests_test(args.requests, args.concurrency, args.scene, wall,
@@ -968,8 +985,7 @@ def cmd_loadtest(args) -> int:
             args.barrier, args.path, args.path_frames, args.warmup, args.cache_bytes,
             args.history, server=args.server, token=args.token, progress=progress,
             render=args.render, draw_time=args.draw_time,
-            settings=read_settings(args.settings) if args.settings else None,
-            shadow_fit=args.shadow_fit, tiles_per_node=args.tiles_per_node,
+            settings=settings, shadow_fit=args.shadow_fit, tiles_per_node=args.tiles_per_node,
             transport=args.transport, nats=args.nats, prefetch=args.prefetch,
             barrier_timeout=args.barrier_timeout))
     write(report, args.out)
