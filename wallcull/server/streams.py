@@ -323,5 +323,6 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
         for task in tasks:
             try:
                 await task
-            except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError, NotFound):
-                pass  # the node went away, or the wall was deleted
+            except (asyncio.CancelledError, WebSocketDisconnect, RuntimeError, OSError,
+                    NotFound):
+                pass  # the node went away (uvicorn: ClientDisconnected), or the wall went
