@@ -26,7 +26,6 @@ import argparse
 import asyncio
 import json
 import os
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -43,7 +42,7 @@ from wallcull.paths import PATHS, camera_path
 from wallcull.wall import Wall
 
 from .rawhttp import Connection, HTTPError, run
-from .retry import Backoff, ClientFailure, retrying
+from .retry import Backoff, ClientFailure, retrying, stop_on_signals
 
 PATH_FRAMES = 600  # one loop of the walkthrough: 10 s at 60 frames/s
 
@@ -301,33 +300,44 @@ async def _wait_server(server: str, timeout: float = 60.0) -> None:
 
 
 async def _main(args) -> int:
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+    stop, driving = asyncio.Event(), [False]
+    stop_on_signals(stop, lambda: driving[0])
+    wall = None if args.wall_id else read_wall(args.wall)  # bad input before any wall is made
+    for path in (args.credentials_out, args.out):
+        if path and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+            raise InputError(f"no folder for {path}")
     await _wait_server(args.server, args.wait_timeout)
     async with Driver(args.server, args.token, retry_for=args.retry_for) as driver:
         if args.wall_id:
             info = await driver.wall_info(args.wall_id)
         else:
-            info = await driver.create_wall(args.scene, read_wall(args.wall), args.method,
-                                            args.bounds, args.history)
-            if args.credentials_out:
-                write_private(args.credentials_out, {"wall": info["id"],
-                                                     "credentials": info["credentials"]})
+            info = await driver.create_wall(args.scene, wall, args.method, args.bounds,
+                                            args.history)
         wid = info["id"]
-        print(json.dumps({"wall": wid, "tiles": info["tiles"], "scene": info["scene"]}),
-              flush=True)
-        frames = await driver.frames(info["scene"], info["wall"], args.path, args.frames,
-                                     args.path_frames)
-        if args.wait_clients:
-            want = info["tiles"] if args.wait_clients == "all" else args.wait_clients
-            n = await driver.wait_clients(wid, want, args.wait_timeout)
-            print(json.dumps({"subscribers": n}), flush=True)
-        if args.post == "stream":
-            await driver.stream_frames(wid)
-        log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
-                               stop=stop)
+        try:
+            if args.credentials_out and not args.wall_id:
+                write_private(args.credentials_out, {"wall": wid,
+                                                     "credentials": info["credentials"]})
+            print(json.dumps({"wall": wid, "tiles": info["tiles"], "scene": info["scene"]}),
+                  flush=True)
+            frames = await driver.frames(info["scene"], info["wall"], args.path, args.frames,
+                                         args.path_frames)
+            if args.wait_clients:
+                want = info["tiles"] if args.wait_clients == "all" else args.wait_clients
+                n = await driver.wait_clients(wid, want, args.wait_timeout)
+                print(json.dumps({"subscribers": n}), flush=True)
+                if n < want:
+                    print(f"clients.driver: only {n} of {want} nodes stream from wall {wid} "
+                          f"after {args.wait_timeout:g} s: driving anyway", file=sys.stderr)
+            if args.post == "stream":
+                await driver.stream_frames(wid)
+            driving[0] = True  # from now on a signal ends the run, with its summary
+            log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
+                                   stop=stop)
+        except BaseException:
+            if args.delete:  # the wall this run made or drove goes, whatever stopped it
+                await asyncio.shield(driver.call("DELETE", f"/walls/{wid}", auth=True))
+            raise
         result = {"wall": wid, "summary": {**summary(log), "retries": driver.retries}}
         if args.out:
             tmp = f"{args.out}.tmp"
@@ -341,21 +351,30 @@ async def _main(args) -> int:
 
 
 def write_private(path: str, data: dict) -> None:
-    """JSON readable by this user only (credentials)."""
+    """JSON readable by this user only (credentials), whatever the file was before."""
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.fchmod(fd, 0o600)  # (an existing file keeps its mode through open)
     with os.fdopen(fd, "w") as f:
         json.dump(data, f)
 
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
+    if not 0 < args.barrier_timeout <= 10:
+        parser().error("--barrier-timeout must be over 0 and at most 10 seconds")
+    if args.frames < 1 or args.path_frames < 2 or args.history < 2:
+        parser().error("--frames must be at least 1, --path-frames and --history at least 2")
+    for name in ("rate", "wait_timeout", "retry_for"):
+        if not 0 <= getattr(args, name) < float("inf") or name != "rate" and not \
+                getattr(args, name):
+            parser().error(f"--{name.replace('_', '-')} must be a positive number")
     try:
         return run(_main(args))
     except (ConnectionError, OSError, asyncio.TimeoutError, HTTPError, ValueError,
             InputError, ClientFailure) as exc:
         print(f"clients.driver: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError):  # a signal before the frames went
         return 130
 
 

@@ -7,7 +7,8 @@ real OpenGL renderer, laid out with the wall's bezels. The README's picture come
 from __future__ import annotations
 
 import argparse
-import json
+import os
+import sys
 
 import numpy as np
 
@@ -24,7 +25,7 @@ def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str =
                  pixels: int = 240) -> np.ndarray:
     """``(H, W, 3)`` uint8: the wall's tiles, each ``pixels`` wide, bezels in dark grey."""
     scene = load(scene_spec)
-    frame = scene_path(scene, wall, path, 120)[frame_index]
+    frame = scene_path(scene, wall, path, PATH_FRAMES)[frame_index]
     result = Session(scene, wall, fit=FitOptions()).frame(frame)
     w_px = pixels
     h_px = int(round(pixels * wall.tile_size[1] / wall.tile_size[0]))
@@ -52,18 +53,41 @@ def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str =
     return out
 
 
+#: Frames of the orbit path a picture is taken from.
+PATH_FRAMES = 120
+
+
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="python -m wallcull_clients.picture",
+        description="A picture of a wall: every tile drawn by the OpenGL tile renderer from its "
+                    "own culled list and fitted frusta, laid out with the wall's bezels.")
     p.add_argument("scene", nargs="?", default="powerplant")
-    p.add_argument("--wall", default="examples/wall-4x4.json")
-    p.add_argument("--frame", type=int, default=30, help="frame of the orbit path (of 120)")
+    p.add_argument("--wall", default="examples/wall-4x4.json",
+                   help="WALL.json, or the JSON inline: a grid of tiles")
+    p.add_argument("--frame", type=int, default=30,
+                   help=f"frame of the orbit path (0 to {PATH_FRAMES - 1})")
     p.add_argument("--pixels", type=int, default=240, help="width of one tile, pixels")
     p.add_argument("--out", default="wall.png")
     args = p.parse_args(argv)
+    if not 0 <= args.frame < PATH_FRAMES or not 1 <= args.pixels <= 4096:
+        p.error(f"--frame must be 0 to {PATH_FRAMES - 1} and --pixels 1 to 4096")
     from PIL import Image
 
-    wall = Wall.from_dict(json.load(open(args.wall)))
-    Image.fromarray(wall_picture(args.scene, wall, args.frame, pixels=args.pixels)).save(args.out)
+    from wallcull.documents import read_json
+    from wallcull.errors import InputError
+
+    try:
+        wall = Wall.from_dict(read_json(args.wall, "--wall"))
+        if wall.kind != "grid":
+            raise InputError("a picture lays out a grid of tiles; this wall is screens")
+        if not os.path.isdir(os.path.dirname(os.path.abspath(args.out))):
+            raise InputError(f"no folder for {args.out}")
+        picture = wall_picture(args.scene, wall, args.frame, pixels=args.pixels)
+        Image.fromarray(picture).save(args.out)
+    except (InputError, OSError) as exc:
+        print(f"picture: error: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {args.out}")
     return 0
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import random
+import signal
 import time
 from typing import Awaitable, Callable, TypeVar
 
@@ -28,6 +29,22 @@ RETRY_STATUS = (429, 502, 503, 504)
 
 class ClientFailure(RuntimeError):
     """A node or driver cannot go on; the message says why."""
+
+
+def stop_on_signals(stop: asyncio.Event, graceful: Callable[[], bool]) -> None:
+    """SIGTERM and SIGINT set ``stop`` (the tool winds down and writes what it has). While
+    ``graceful()`` is False, where the tool still waits (for its server, its wall, its nodes)
+    and has nothing to write, they also cancel the task that called this: it ends at once,
+    with :class:`asyncio.CancelledError` (``docker compose stop`` does not wait its 10 s)."""
+    loop, task = asyncio.get_running_loop(), asyncio.current_task()
+
+    def on_signal() -> None:
+        stop.set()
+        if not graceful():
+            task.cancel()
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, on_signal)
 
 
 class Backoff:

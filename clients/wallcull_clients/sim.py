@@ -52,7 +52,6 @@ import json
 import math
 import os
 import secrets
-import signal
 import sys
 import time
 from collections import OrderedDict
@@ -69,7 +68,7 @@ from wallcull.validate import parse_tiles, tiles_text
 
 from .node import NodeState, full_size, sorted_ints_len
 from .rawhttp import MSGPACK, Connection, HTTPError, run
-from .retry import Backoff, ClientFailure, retrying
+from .retry import Backoff, ClientFailure, retrying, stop_on_signals
 
 try:
     from asyncio import timeout as _timeout  # Python 3.11+
@@ -97,6 +96,9 @@ DEFAULT_CACHE = 256 << 20
 #: others record NaN there): worked out on every message, it was a seventh of the simulated
 #: nodes' CPU, which on a 16 x 16 wall shares the server's two cores.
 FULL_SIZE_EVERY = 8
+#: ``--wall auto``: how long to wait for a wall with no frame yet (the one a driver has just
+#: created and drives once its nodes stream) before taking the newest wall.
+AUTO_GRACE = 30.0
 
 
 # --------------------------------------------------------------------------- the scene
@@ -834,9 +836,20 @@ class NodeClient(TileClient):
         async def arrived(msg) -> None:  # in order, from the subscription's own task
             inbox.put_nowait(msg)
 
-        self._nc = await nats.connect(self.nats, name=f"wallcull-node-{self.wall_id}-"
-                                      f"{self.tiles[0]}", max_reconnect_attempts=-1,
-                                      reconnect_time_wait=0.5)
+        failed: list = []
+
+        async def quiet(exc) -> None:  # nats-py prints every failed try's traceback otherwise
+            failed.append(exc)
+
+        try:  # the first connection within --reconnect-for; later, for as long as it takes
+            self._nc = await asyncio.wait_for(nats.connect(
+                self.nats, name=f"wallcull-node-{self.wall_id}-{self.tiles[0]}",
+                max_reconnect_attempts=-1, reconnect_time_wait=0.5, error_cb=quiet),
+                self.backoff.give_up)
+        except asyncio.TimeoutError:
+            why = failed[-1] if failed else "no answer"
+            raise ClientFailure(f"cannot reach the NATS broker at {self.nats} within "
+                                f"{self.backoff.give_up:g} s: {why}") from None
         try:
             await self._nc.subscribe(self.subject("node"), cb=arrived)
             self.stats.connects += 1
@@ -877,33 +890,51 @@ class NodeClient(TileClient):
 
 
 async def find_wall(server: str, wall: str, timeout: float = 60.0) -> dict:
-    """The info of wall ``wall``; ``"auto"`` waits for a wall to exist and takes the newest."""
-    deadline = time.monotonic() + timeout
-    async with Connection(server) as conn:
-        while True:
-            try:
-                if wall == "auto":
-                    walls = (await conn.call("GET", "/walls"))["walls"]
-                    if walls:
-                        return walls[-1]
-                else:
+    """The info of wall ``wall``, waiting up to ``timeout`` seconds for the server. ``"auto"``
+    waits for a wall, and takes the newest with no frame yet (the one a driver has just made
+    and drives once its nodes stream: a wall left from an earlier run has frames), or after
+    :data:`AUTO_GRACE` seconds the newest."""
+    t0 = time.monotonic()
+    reached, problem = False, None
+    while True:
+        try:
+            async with Connection(server) as conn:
+                if wall != "auto":
                     return await conn.call("GET", f"/walls/{wall}")
-            except (ConnectionError, OSError):
-                pass  # the server is not up yet
-            except HTTPError as exc:
-                if exc.status != 404:
-                    raise
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no wall {wall!r} on {server} after {timeout:g} s")
-            await asyncio.sleep(0.2)
+                walls = (await conn.call("GET", "/walls"))["walls"]
+                reached = True
+                fresh = [w for w in walls if w.get("latest", -1) < 0]
+                if fresh or walls and time.monotonic() - t0 > AUTO_GRACE:
+                    return (fresh or walls)[-1]
+        except (ConnectionError, OSError) as exc:
+            problem = exc  # the server is not up yet
+        except HTTPError as exc:
+            if exc.status == 404:
+                raise ClientFailure(f"no wall {wall!r} on {server}") from None
+            if exc.status not in (502, 503, 504):
+                raise
+            reached, problem = True, exc
+        if time.monotonic() - t0 > timeout:
+            if not reached:
+                raise ClientFailure(f"cannot reach {server} within {timeout:g} s: {problem}")
+            raise ClientFailure(f"no wall on {server} after {timeout:g} s")
+        await asyncio.sleep(0.2)
 
 
 def node_tokens(path: str) -> dict[int, str]:
     """Tile -> node credential, from a file holding a wall's credentials (see ``--credentials``)."""
     with open(path) as f:
-        data = json.load(f)
-    data = data.get("credentials", data)
-    return {t: node["token"] for node in data["nodes"] for t in node["tiles"]}
+        try:
+            data = json.load(f)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueError(f"--credentials {path} is not JSON: {exc}") from None
+    data = data.get("credentials", data) if isinstance(data, dict) else data
+    try:
+        return {int(t): str(node["token"]) for node in data["nodes"] for t in node["tiles"]}
+    except (TypeError, KeyError, ValueError):
+        raise ValueError(f"--credentials {path} holds no wall's credentials (POST /walls "
+                         "answers them: {\"nodes\": [{\"tiles\": [...], \"token\": ...}]})"
+                         ) from None
 
 
 def make_renderers(tiles, wall: dict, size: tuple[int, int] | None):
@@ -933,7 +964,7 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
     wall's own (its ``nodes``) among ``tiles`` and take their messages from the broker. Each
     node sends ``tokens[tile]`` (its node credential, of its first tile) when given, else
     ``token``."""
-    info = await find_wall(server, wall)
+    info = await find_wall(server, wall, reconnect_for)
     ids = parse_tiles(tiles, info["tiles"]) if isinstance(tiles, str) else list(tiles)
     bad = [t for t in ids if not 0 <= t < info["tiles"]]
     if bad:
@@ -958,8 +989,8 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
                               renderer=renderers.get(t), **common) for t in ids]
     tasks = [asyncio.create_task(c.run(until, idle_timeout, start)) for c in clients]
     waits = [asyncio.ensure_future(c.connected.wait()) for c in clients]
-    done, _ = await asyncio.wait([asyncio.gather(*waits), *tasks],
-                                 return_when=asyncio.FIRST_COMPLETED)
+    connected = asyncio.gather(*waits)
+    done, _ = await asyncio.wait([connected, *tasks], return_when=asyncio.FIRST_COMPLETED)
     if ready is not None and all(c.connected.is_set() for c in clients):
         ready(clients)
     stopper = asyncio.ensure_future(stop.wait()) if stop is not None else None
@@ -975,9 +1006,9 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
                 if task.exception() is not None:
                     raise task.exception()
     finally:
-        for task in [*tasks, *waits, *([stopper] if stopper else [])]:
+        for task in [*tasks, *waits, connected, *([stopper] if stopper else [])]:
             task.cancel()
-        await asyncio.gather(*tasks, *waits, return_exceptions=True)
+        await asyncio.gather(*tasks, *waits, connected, return_exceptions=True)
         for r in renderers.values():
             r.release()
     return clients
@@ -1014,8 +1045,8 @@ def size_bytes(text: str) -> int:
         value = float(text[:-1] if scale > 1 else text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"bad size {text!r}: use e.g. 65536, 64M, 1G") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError("a size must be >= 0")
+    if not 0 <= value < 1 << 62:
+        raise argparse.ArgumentTypeError(f"a size must be >= 0 and finite, got {text!r}")
     return int(value * scale)
 
 
@@ -1031,7 +1062,8 @@ def parser() -> argparse.ArgumentParser:
                                 description="Simulated render clients of a wallcull wall.")
     p.add_argument("--server", default=os.environ.get("WALLCULL_SERVER", "http://127.0.0.1:8000"))
     p.add_argument("--wall", default="auto",
-                   help="wall id, or 'auto': wait for a wall to exist and take the newest")
+                   help="wall id, or 'auto': wait for a wall, and take the newest with no frame "
+                        f"yet (a driver's new wall), or after {AUTO_GRACE:g} s the newest")
     p.add_argument("--tiles", default="all", help="tile ids: 'all', N-M, or a comma list")
     p.add_argument("--mode", choices=("ws", "pull"), default="ws",
                    help="ws: subscribe to the stream; pull: long-poll every frame number")
@@ -1072,14 +1104,13 @@ def parser() -> argparse.ArgumentParser:
 
 
 async def _main(args) -> int:
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
+    stop, streaming = asyncio.Event(), [False]
+    stop_on_signals(stop, lambda: streaming[0])
     if args.duration:
-        loop.call_later(args.duration, stop.set)
+        asyncio.get_running_loop().call_later(args.duration, stop.set)
 
     def ready(clients):
+        streaming[0] = True  # from now on a signal winds the nodes down, with their report
         print(json.dumps({"ready": True, "tiles": [t for c in clients
                                                   for t in getattr(c, "tiles", [c.tile])]}),
               flush=True)
@@ -1124,13 +1155,19 @@ def main(argv=None) -> int:
             parse_tiles(args.tiles)
     except ValueError as exc:
         parser().error(str(exc))
+    for name in ("reconnect_for", "duration", "idle_timeout", "draw_time"):
+        value = getattr(args, name)
+        if value is not None and not 0 <= value < math.inf or name != "draw_time" and value == 0:
+            parser().error(f"--{name.replace('_', '-')} must be a positive number of seconds")
+    if args.tiles_per_node < 1 or args.until_frame is not None and args.until_frame < 0:
+        parser().error("--tiles-per-node must be at least 1 and --until-frame at least 0")
     try:
         return run(_main(args))
     except (ConnectionError, OSError, TimeoutError, HTTPError, ValueError,
             ClientFailure) as exc:
         print(f"clients.sim: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, asyncio.CancelledError):  # a signal before the nodes streamed
         return 130
 
 

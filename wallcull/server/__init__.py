@@ -236,10 +236,18 @@ def settings_from_env(environ=os.environ) -> dict:
     ``WALLCULL_CORS_ORIGINS`` (comma-separated), ``WALLCULL_NATS``,
     ``WALLCULL_NATS_PREFIX`` and ``WALLCULL_WALL_TTL`` (seconds)."""
     state = environ.get("WALLCULL_STATE") or str(default_folder())
+    token = environ.get("WALLCULL_TOKEN")
+    if token is not None and not token.strip():
+        raise InputError("WALLCULL_TOKEN is set but empty: unset it for a server anyone may "
+                         "use")
+    try:
+        limits = Limits().with_text(environ.get("WALLCULL_LIMITS", ""))
+    except InputError as exc:
+        raise InputError(f"WALLCULL_LIMITS: {exc}") from None
     return {"scene_folder": environ.get("WALLCULL_SCENES") or None,
-            "token": environ.get("WALLCULL_TOKEN") or None,
+            "token": token,
             "state": None if state.lower() == "none" else state,
-            "limits": Limits().with_text(environ.get("WALLCULL_LIMITS", "")),
+            "limits": limits,
             "origins": tuple(o.strip() for o in environ.get("WALLCULL_CORS_ORIGINS", "").split(",")
                              if o.strip()),
             "nats": environ.get("WALLCULL_NATS") or None,

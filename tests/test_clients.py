@@ -1,0 +1,200 @@
+"""The client tools' command lines (simulated nodes, the driver, the picture): they stop when
+told, say why they cannot go on in one line, and leave no wall behind when asked not to."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import secrets
+import signal
+import stat
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from wallcull.errors import InputError
+from wallcull.server import settings_from_env
+from wallcull_clients import broker, picture
+from wallcull_clients.driver import write_private
+from wallcull_clients.loadtest import free_port, running_server
+from wallcull_clients.sim import find_wall
+
+ROOT = Path(__file__).resolve().parents[1]
+TOKEN = secrets.token_hex(8)
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+WALL = {"cols": 2, "rows": 1, "tile_size": [0.6, 0.34], "gap": [0.01, 0.01], "distance": 2.0}
+FRAME = {"position": [0.0, 20.0, 300.0], "orientation": [1.0, 0.0, 0.0, 0.0]}
+
+
+@pytest.fixture(scope="module")
+def server():
+    with running_server(TOKEN) as url:
+        yield url
+
+
+def tool(*argv, env=None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", *argv], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "WALLCULL_TOKEN": TOKEN, **(env or {})})
+
+
+def catches_sigterm(proc: subprocess.Popen) -> bool:
+    """Whether the process has its own SIGTERM handler installed (its event loop's)."""
+    status = Path(f"/proc/{proc.pid}/status").read_text()
+    caught = int(next(line for line in status.splitlines() if line.startswith("SigCgt:"))
+                 .split()[1], 16)
+    return bool(caught >> (signal.SIGTERM - 1) & 1)
+
+
+def wait_for(predicate, what: str, proc: subprocess.Popen | None = None):
+    deadline = time.monotonic() + 120
+    while not predicate():
+        assert proc is None or proc.poll() is None, f"exited before {what}: {proc.stderr.read()}"
+        assert time.monotonic() < deadline, f"never {what}"
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("argv", [
+    ("wallcull_clients.sim", "--reconnect-for", "600"),
+    ("wallcull_clients.driver", "--wait-timeout", "600", "--retry-for", "600"),
+], ids=["sim", "driver"])
+def test_a_client_waiting_for_its_server_stops_at_once_on_sigterm(argv):
+    """Before it drives or draws, a signal ends a client (it used to be ignored until the
+    client's own wait, a minute or ten, ran out: `docker compose stop` then killed it)."""
+    proc = tool(*argv, "--server", f"http://127.0.0.1:{free_port()}")
+    try:
+        wait_for(lambda: catches_sigterm(proc), "a SIGTERM handler", proc)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=120) == 130, proc.stderr.read()
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_a_node_names_what_it_cannot_reach(server):
+    nowhere = f"http://127.0.0.1:{free_port()}"
+    proc = tool("wallcull_clients.sim", "--server", nowhere, "--reconnect-for", "0.5")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and f"cannot reach {nowhere} within 0.5 s" in err, err
+    # a wall id the server does not hold: at once, not after a minute of asking
+    proc = tool("wallcull_clients.sim", "--server", server, "--wall", "0123456789ab")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, err
+    assert err.strip().endswith(f"no wall '0123456789ab' on {server}"), err
+
+
+def test_a_node_over_nats_names_an_unreachable_broker(server):
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    wid = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                     headers=AUTH, timeout=60).json()["id"]
+    try:
+        proc = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--nats",
+                    "nats://127.0.0.1:1", "--reconnect-for", "1")
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, err
+        assert "cannot reach the NATS broker at nats://127.0.0.1:1 within 1 s" in err, err
+        assert "Traceback" not in err
+    finally:
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+
+
+def test_auto_takes_the_newest_wall_with_no_frame_yet(server):
+    """A wall an earlier run drove (it has frames) is passed over for the newest one with
+    none: the one a driver has just made and waits on its nodes to drive."""
+    def make() -> str:
+        r = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                       headers=AUTH, timeout=60)
+        assert r.status_code == 201, r.text
+        return r.json()["id"]
+
+    fresh, driven = make(), make()
+    try:
+        r = httpx.post(f"{server}/walls/{driven}/frames", json={"frame": FRAME}, headers=AUTH,
+                       timeout=60)
+        assert r.status_code == 200, r.text
+        assert asyncio.run(find_wall(server, "auto", 30))["id"] == fresh
+    finally:
+        for wid in (fresh, driven):
+            httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+
+
+def test_a_driver_checks_its_options_before_it_makes_a_wall(server, tmp_path):
+    def walls() -> int:
+        return len(httpx.get(f"{server}/walls", timeout=60).json()["walls"])
+
+    before = walls()
+    for argv, why in ((["--credentials-out", str(tmp_path / "no" / "c.json")], "no folder"),
+                      (["--barrier", "--barrier-timeout", "50"], "--barrier-timeout"),
+                      (["--frames", "-5"], "--frames")):
+        proc = tool("wallcull_clients.driver", "--server", server, "--scene", "fatehpur",
+                    "--wall", json.dumps(WALL), "--frames", "3", "--delete", *argv)
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2 and why in err, err
+    assert walls() == before
+
+
+def test_credentials_are_written_for_their_owner_only(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text("{}")
+    path.chmod(0o644)  # a file that was there: open() keeps its mode
+    write_private(str(path), {"credentials": {"nodes": []}})
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert json.loads(path.read_text()) == {"credentials": {"nodes": []}}
+
+
+@pytest.mark.parametrize("content, why", [
+    ("[1, 2]", "holds no wall's credentials"),
+    ('{"x": 1}', "holds no wall's credentials"),
+    ("not json", "is not JSON"),
+])
+def test_a_node_refuses_a_credentials_file_that_holds_none_in_one_line(tmp_path, content, why):
+    (tmp_path / "c.json").write_text(content)
+    proc = tool("wallcull_clients.sim", "--server", f"http://127.0.0.1:{free_port()}",
+                "--credentials", str(tmp_path / "c.json"))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and why in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("argv, why", [
+    (["--cache-bytes", "inf"], "finite"),
+    (["--idle-timeout", "-5"], "--idle-timeout"),
+    (["--tiles-per-node", "0"], "--tiles-per-node"),
+])
+def test_a_node_refuses_numbers_out_of_range(argv, why):
+    proc = tool("wallcull_clients.sim", *argv)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and why in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("argv, why", [
+    (["--wall", "/nonexistent.json"], "--wall file not found"),
+    (["--wall", str(ROOT / "examples" / "wall-cave.json")], "grid of tiles"),
+    (["--out", "/nonexistent/p.png"], "no folder"),
+    (["no_such_scene"], "unknown scene"),
+])
+def test_the_picture_refuses_in_one_line(capsys, argv, why):
+    assert picture.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("picture: error:") and why in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("argv", [["--frame", "500"], ["--frame", "-1"], ["--pixels", "0"]])
+def test_the_picture_refuses_frames_and_sizes_it_has_not(argv):
+    with pytest.raises(SystemExit) as refused:
+        picture.main(argv)
+    assert refused.value.code == 2
+
+
+def test_an_empty_token_in_the_environment_is_refused():
+    """``--token ''`` is refused; so is ``WALLCULL_TOKEN=`` (it left the server open)."""
+    with pytest.raises(InputError, match="WALLCULL_TOKEN is set but empty"):
+        settings_from_env({"WALLCULL_TOKEN": " ", "WALLCULL_STATE": "none"})
+    with pytest.raises(InputError, match="WALLCULL_LIMITS: unknown limit"):
+        settings_from_env({"WALLCULL_LIMITS": "garbage", "WALLCULL_STATE": "none"})
+    assert settings_from_env({"WALLCULL_STATE": "none"})["token"] is None
