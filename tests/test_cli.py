@@ -104,6 +104,7 @@ def test_cull_files_and_text_output(capsys, glb, tmp_path):
     (["serve", "--port", "99999"], "--port must be 0 to 65535"),
     (["serve", "--token", ""], "--token must not be empty"),
     (["serve", "--log-level", "bogus"], "invalid choice"),
+    (["serve", "--scenes", "/nonexistent", "--state", "none"], "does not exist"),
 ])
 def test_bad_input_exits_2_with_one_line(capsys, argv, message):
     code, out, err = run(capsys, *argv)

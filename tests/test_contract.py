@@ -264,3 +264,21 @@ def test_a_tiny_vector_is_a_direction_not_a_nan():
     np.testing.assert_allclose(tiny.mirrors[0].plane, plain.mirrors[0].plane, rtol=1e-15)
     np.testing.assert_allclose(tiny.up, plain.up, rtol=1e-15)
     assert np.isfinite(tiny.lights[0].direction).all()
+
+
+def test_one_problem_is_told_once(client):
+    """An array whose element is refused is not also "too short" (pydantic adds that)."""
+    with pytest.raises(documents.InputError) as exc:
+        documents.parse(documents.FrameSpec, {"position": [1e300, 0, 10],
+                                              "orientation": [1, 0, 0, 0]}, "frame")
+    assert "more problem" not in str(exc.value), exc.value
+    r = client.post("/walls", json={"wall": WALL, "scene": "powerplant"}, headers=AUTH)
+    wid = r.json()["id"]
+    try:
+        r = client.post(f"/walls/{wid}/frames", headers={**AUTH, "Content-Type":
+                                                         "application/json"},
+                        content=b'{"frame": {"position": [NaN, 0, 0], "orientation": [1, 0, 0, 0]}}')
+        assert r.status_code == 422 and r.json()["detail"] == \
+            "body.frame.position.0: Input should be a finite number", r.text
+    finally:
+        client.delete(f"/walls/{wid}", headers=AUTH)

@@ -327,7 +327,7 @@ def parse(kind: Any, value: Any, what: str):
 def one_line(exc: ValidationError, what: str, tagged: bool = False) -> str:
     """A validation error as one line: the first problem, where it is (``tagged``: the first
     step is a union's tag, left out), and how many more."""
-    errors = exc.errors(include_url=False)
+    errors = problems(exc.errors(include_url=False))
     # an unknown key first: a misspelt key explains the missing one
     e = min(errors, key=lambda e: e["type"] != "extra_forbidden")
     loc = list(e["loc"][1:] if tagged else e["loc"])
@@ -341,6 +341,19 @@ def one_line(exc: ValidationError, what: str, tagged: bool = False) -> str:
         text = f"{_where(what, loc)} {_message(kind, ctx, e['msg'], given)}"
     more = len(errors) - 1
     return text + (f" (and {more} more problem{'s' * (more > 1)})" if more else "")
+
+
+def problems(errors: list) -> list:
+    """Validation errors without the follow-ons pydantic adds: an array whose element was
+    refused is then also "too short" (``[1e300, 0, 0]`` is one problem, not two)."""
+    locs = [tuple(e["loc"]) for e in errors]
+
+    def follow_on(e) -> bool:
+        at = tuple(e["loc"])
+        return e["type"] == "too_short" and any(len(loc) > len(at) and loc[:len(at)] == at
+                                                 for loc in locs)
+
+    return [e for e in errors if not follow_on(e)]
 
 
 def _where(what: str, loc) -> str:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+from pathlib import Path
 from contextlib import asynccontextmanager
 from dataclasses import replace
 
@@ -77,6 +78,10 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     limits = limits or Limits()
     overrides = {"body": max_body, "upload": max_upload, "walls": max_walls}
     limits = replace(limits, **{k: v for k, v in overrides.items() if v is not None})
+    if scene_folder is not None and not Path(scene_folder).is_dir():
+        raise InputError(f"the scene folder {scene_folder} is not a folder"
+                         if Path(scene_folder).exists() else
+                         f"the scene folder {scene_folder} does not exist")
     folder = StateFolder(state) if state is not None else None
     if scene_folder is None and folder is not None:
         scene_folder = folder.scenes

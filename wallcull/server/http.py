@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 
 from .. import protocol
+from ..documents import problems
 from ..workers import background
 from ..errors import InputError
 from .metrics import Metrics
@@ -220,7 +221,8 @@ class Refused(Exception):
 
 def refusal_detail(exc: RequestValidationError) -> str:
     """A validation error's one-line detail: where, and what."""
-    detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+    detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                       for e in problems(exc.errors()))
     return detail[:2000]
 
 
