@@ -425,13 +425,26 @@ def test_stereo_eyes_side_by_side(server, http, browser, references, blocks):
         http.delete(f"/walls/{wid}", headers=AUTH)
 
 
-def test_a_page_without_credential_is_refused_its_stream(server, http, browser):
-    wid = create_wall(http, GRID)["id"]
+@pytest.mark.parametrize("query, status, why", [
+    ("tiles=5", 401, "token"),  # no credential
+    ("tiles=5&token=wrong", 401, "token"),
+    ("tiles=5&token={other}", 403, "not tiles 5"),  # a node credential of other tiles
+    ("token={driver}", 422, "no tiles"),  # the driver's: it implies no tiles
+])
+def test_a_page_refused_its_stream_says_why_and_stops(server, http, browser, query, status,
+                                                      why):
+    """A browser is not shown a refused handshake's answer; the page finds out why, says
+    so, and does not try again (it said "stream closed (1006)" and retried forever)."""
+    info = create_wall(http, GRID)
+    wid, creds = info["id"], info["credentials"]
     post(http, wid, GRID_FRAMES[0])
-    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=5")
+    query = query.format(other=creds["nodes"][0]["token"], driver=creds["driver"])
+    page = open_page(browser, f"{server}/walls/{wid}/view?{query}")
     try:
-        page.wait_for_function("window.wallcull && window.wallcull.errors.length > 0",
-                               timeout=30_000)
+        page.wait_for_function("window.wallcull && window.wallcull.refused", timeout=60_000)
+        assert page.evaluate("window.wallcull.refused") == status
+        note = page.locator("#status").text_content()
+        assert note.startswith(f"refused ({status}):") and why in note, note
         assert page.evaluate("window.wallcull.acked") == -1
         assert barrier(http, wid, 0)["acked"] == 0
     finally:
@@ -444,6 +457,19 @@ def test_a_page_without_credential_is_refused_its_stream(server, http, browser):
 
 def status_of(page) -> dict:
     return page.evaluate("window.wallcull.status")
+
+
+def test_the_consoles_token_goes_with_its_links_to_view_pages(server, http, browser):
+    wid = create_wall(http, GRID)["id"]
+    console = open_page(browser, f"{server}/walls/{wid}/console?token={TOKEN}")
+    try:
+        console.wait_for_function("window.wallcull && window.wallcull.updates > 0",
+                                  timeout=30_000)
+        href = console.locator("#row-5 a").get_attribute("href")
+        assert href.endswith(f"/walls/{wid}/view?tiles=5&token={TOKEN}"), href
+    finally:
+        console.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
 
 
 def test_console_follows_frames_and_acks(server, http, browser):

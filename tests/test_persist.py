@@ -126,6 +126,12 @@ def test_uploads_and_the_walls_on_them_survive(tmp_path):
         assert "wallcull_walls_unavailable 1.0" in c.get("/metrics").text
         assert c.post(f"/walls/{wid}/frames", json={"frame": FRAME},
                       headers=driver).status_code == 503  # its credentials still hold
+        for page in ("view", "console"):  # its pages are pages that say so
+            r = c.get(f"/walls/{wid}/{page}")
+            assert r.status_code == 503 and r.headers["content-type"].startswith("text/html")
+            assert "two.glb" in r.text and "Service Unavailable" in r.text
+        row = c.get("/").text.split(f'id="wall-{wid}"')[1].split("</tr>")[0]
+        assert "unavailable" in row and "two.glb" in row  # the index lists it, and why
         # the scene comes back (uploaded again): so does the wall, with its credentials
         assert c.post("/scenes?name=two", content=boxes_glb(),
                       headers=OPERATOR).status_code == 201

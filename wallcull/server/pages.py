@@ -112,7 +112,8 @@ def error_page(request: Request, status: int, detail: str) -> HTMLResponse:
                  status=status, kind="index error")
 
 
-_REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests"}
+_REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests",
+            503: "Service Unavailable"}
 
 
 def _root(request: Request) -> str:
@@ -125,7 +126,8 @@ def _root(request: Request) -> str:
 @page
 async def index_page(request: Request, state: State):
     """The walls this server holds, each with links to its console and to its view pages (all
-    tiles, and each node credential's tiles), and links to the API's documents."""
+    tiles, and each node credential's tiles), the walls waiting for their scene with the
+    reason, and links to the API's documents."""
     root = _root(request)
     rows = []
     for wid, session in state.walls.sessions.items():
@@ -139,6 +141,9 @@ async def index_page(request: Request, state: State):
                     f'<td><a class="console" href="{root}/walls/{wid}/console">console</a></td>'
                     f'<td><a class="view" href="{root}/walls/{wid}/view">all tiles</a> '
                     f"{views}</td></tr>")
+    for wid, (_, reason) in list(state.walls.unavailable.items()):
+        rows.append(f'<tr id="wall-{wid}" class="unavailable"><td><code>{wid}</code></td>'
+                    f'<td colspan="6">unavailable: {html.escape(reason)}</td></tr>')
     walls = ('<table id="walls"><thead><tr><th>wall</th><th>scene</th><th>tiles</th>'
              "<th>method</th><th>frame</th><th>console</th><th>view (a render node's page)"
              f"</th></tr></thead><tbody>{''.join(rows)}</tbody></table>" if rows else
@@ -179,6 +184,8 @@ async def view_page(request: Request, state: State, wid: WallId,
         chosen = None if tiles is None else parse_tiles(tiles, count)
     except (NotFound, InputError) as exc:
         return error_page(request, 404, str(exc))
+    except Unavailable as exc:  # its scene is away: it comes back with it
+        return error_page(request, 503, str(exc))
     if chosen is None:
         grant = state.walls.grant(token) if token else None
         chosen = sorted(grant.tiles) if grant is not None and grant.wall == wid else \
@@ -187,7 +194,7 @@ async def view_page(request: Request, state: State, wid: WallId,
     config = {"root": root, "wall": wid, "tiles": chosen, "spec": tiles_text(chosen),
               "token": token, "ids": ids,
               "size": [int(v) for v in size.split("x")] if size else None}
-    return _page(f"wallcull {wid}: tiles {tiles or 'all'}",
+    return _page(f"wallcull {wid}: tiles {tiles_text(chosen)}",
                  '<canvas id="wall"></canvas><div id="status">connecting</div>', root,
                  "view.js", config)
 
@@ -195,14 +202,18 @@ async def view_page(request: Request, state: State, wid: WallId,
 @router.get("/walls/{wid}/console", response_class=HTMLResponse, operation_id="consolePage",
             responses=_html_or_refusals(404))
 @page
-async def console_page(request: Request, state: State, wid: WallId):
+async def console_page(request: Request, state: State, wid: WallId,
+                       token: Annotated[str | None, Query(max_length=512)] = None):
     """The operator's console: the wall to scale as it stands in the room, each tile's list
     size, frame latency and state (a legend says which colour is which), updated a few times
-    a second (``WS /walls/{wid}/console/stream``); each tile links to its view page."""
+    a second (``WS /walls/{wid}/console/stream``); each tile links to its view page, which
+    gets ``token`` (the operator's, or a credential of the wall) with the link."""
     try:
         state.walls.get(wid)
     except NotFound as exc:
         return error_page(request, 404, str(exc))
+    except Unavailable as exc:
+        return error_page(request, 503, str(exc))
     root = _root(request)
     legend = "".join(f'<li class="{name}"><span class="swatch"></span>{name}: {text}</li>'
                      for name, text in LEGEND)
@@ -214,7 +225,7 @@ async def console_page(request: Request, state: State, wid: WallId):
                  '<table id="tiles"><thead><tr><th>tile</th><th>list</th><th>acked</th>'
                  '<th>latency</th><th>streams</th><th>state</th></tr></thead>'
                  '<tbody></tbody></table></div></main>', root, "console.js",
-                 {"root": root, "wall": wid})
+                 {"root": root, "wall": wid, "token": token})
 
 
 #: The console's tile states (``WallSession.status``), and what each means.

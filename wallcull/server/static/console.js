@@ -89,8 +89,9 @@ function drawPlan(wall) {
 }
 
 // A tile's view page: the tile client drawing that tile alone (with a server token, it needs
-// the tile's node credential: ?token=...).
-const viewOf = (t) => `${cfg.root}/walls/${cfg.wall}/view?tiles=${t}`;
+// the tile's node credential or the operator's: the console's own ?token= is passed on).
+const viewOf = (t) => `${cfg.root}/walls/${cfg.wall}/view?tiles=${t}` +
+  (cfg.token ? `&token=${encodeURIComponent(cfg.token)}` : "");
 
 function fillTable(n) {
   body.replaceChildren();
@@ -135,11 +136,20 @@ async function start() {
   const connect = () => {
     const url = new URL(`${cfg.root}/walls/${cfg.wall}/console/stream`, location.href);
     url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
+    if (cfg.token) url.searchParams.set("token", cfg.token);
     const ws = new WebSocket(url);
     ws.onmessage = (event) => show(groups, rows, JSON.parse(event.data));
-    ws.onclose = (event) => {
-      summary.textContent = event.code === 4404 ? "the wall was deleted" : "disconnected; reconnecting";
-      if (event.code !== 4404) setTimeout(connect, 2000);
+    ws.onclose = async (event) => {
+      if (event.code !== 4404) {  // gone meanwhile (a restart without it, an expiry)?
+        const again = await fetch(`${cfg.root}/walls/${cfg.wall}`).catch(() => null);
+        if (!again || again.status !== 404) {
+          summary.textContent = "disconnected; reconnecting";
+          setTimeout(connect, 2000);
+          return;
+        }
+      }
+      summary.textContent = "the wall was deleted";
+      api.gone = true;
     };
   };
   connect();

@@ -403,6 +403,20 @@ function schedule() {
   if (document.hidden) setTimeout(run, 0); else requestAnimationFrame(run);
 }
 
+// Why the server refused this page's stream: a browser is not shown a refused handshake's
+// answer, so the page asks the wall, then the packets route of its first tile, which takes the
+// same credential. A refusal retrying cannot mend (401, 403, 404, 422) is said, and the page
+// stops; else (429, 503, a restart) it tries again.
+async function refusal() {
+  const wallAnswer = await fetch(`${cfg.root}/walls/${cfg.wall}`);
+  if (!wallAnswer.ok) return { status: wallAnswer.status, detail: (await wallAnswer.json()).detail };
+  if (!cfg.tiles.length) return { status: 422, detail: "this page has no tiles: ?tiles=0-3, or a node's ?token=" };
+  const headers = cfg.token ? { Authorization: `Bearer ${cfg.token}` } : {};
+  const r = await fetch(`${cfg.root}/walls/${cfg.wall}/tiles/${cfg.tiles[0]}/packets/latest?wait=0`, { headers });
+  if (r.status === 401 || r.status === 403) return { status: r.status, detail: (await r.json()).detail };
+  return null;
+}
+
 function connect() {
   const url = new URL(`${cfg.root}/walls/${cfg.wall}/nodes/stream`, location.href);
   url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
@@ -410,7 +424,12 @@ function connect() {
   url.searchParams.set("tiles", cfg.spec);
   if (cfg.token) url.searchParams.set("token", cfg.token);
   node.reset();
+  let opened = false;
   socket = new WebSocket(url);
+  socket.onopen = () => {
+    opened = true;
+    if (!last) say("connected: waiting for frames");
+  };
   socket.onmessage = (event) => {
     const msg = JSON.parse(event.data);
     if (msg.error) { say(`server: ${msg.error}`, true); return; }
@@ -426,9 +445,18 @@ function connect() {
       socket.send(JSON.stringify({ full: true }));
     }
   };
-  socket.onclose = (event) => {
+  socket.onclose = async (event) => {
     say(`stream closed (${event.code}${event.reason ? ": " + event.reason : ""})`, event.code !== 4404);
-    if (event.code !== 4404) setTimeout(connect, 2000);  // 4404: the wall was deleted
+    if (event.code === 4404) return;  // the wall was deleted
+    if (!opened) {  // refused at the handshake: why, and whether to try again
+      const why = await refusal().catch(() => null);
+      if (why) {
+        api.refused = why.status;
+        say(`refused (${why.status}): ${why.detail}`, true);
+        return;
+      }
+    }
+    setTimeout(connect, 2000);
   };
 }
 
