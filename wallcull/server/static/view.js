@@ -406,7 +406,9 @@ function schedule() {
 // Why the server refused this page's stream: a browser is not shown a refused handshake's
 // answer, so the page asks the wall, then the packets route of its first tile, which takes the
 // same credential. A refusal retrying cannot mend (401, 403, 404, 422) is said, and the page
-// stops; else (429, 503, a restart) it tries again.
+// stops; else (429, a wall waiting for its scene: 503, a restart) it tries again.
+const FINAL = new Set([401, 403, 404, 422]);
+
 async function refusal() {
   const wallAnswer = await fetch(`${cfg.root}/walls/${cfg.wall}`);
   if (!wallAnswer.ok) return { status: wallAnswer.status, detail: (await wallAnswer.json()).detail };
@@ -451,9 +453,8 @@ function connect() {
     if (!opened) {  // refused at the handshake: why, and whether to try again
       const why = await refusal().catch(() => null);
       if (why) {
-        api.refused = why.status;
         say(`refused (${why.status}): ${why.detail}`, true);
-        return;
+        if (FINAL.has(why.status)) { api.refused = why.status; return; }
       }
     }
     setTimeout(connect, 2000);
