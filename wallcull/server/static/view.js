@@ -428,9 +428,9 @@ function connect() {
   node.reset();
   let opened = false;
   socket = new WebSocket(url);
-  socket.onopen = () => {
+  socket.onopen = () => {  // a note left by a lost stream goes; the first frame's is said
     opened = true;
-    if (!last) say("connected: waiting for frames");
+    if (last) status.hidden = true; else say("connected: waiting for frames");
   };
   socket.onmessage = (event) => {
     const msg = JSON.parse(event.data);
