@@ -483,11 +483,13 @@ def test_console_follows_frames_and_acks(server, http, browser):
         assert console.locator("#plan .tile").count() == 16
         assert console.locator("#tiles tbody tr").count() == 16
         assert status_of(console)["frame"] == -1
+        assert console.locator("#summary").text_content() == "no frame yet"
         first = post(http, wid, GRID_FRAMES[0])
         console.wait_for_function(f"window.wallcull.status.frame === {first}", timeout=30_000)
         counts = status_of(console)["count"]
         assert counts[5] > 0
-        assert console.locator("#tile-5 .count").text_content() == f"{counts[5]} leaves"
+        assert console.locator("#tile-5 .count").text_content() == \
+            f"{counts[5]} {'leaf' if counts[5] == 1 else 'leaves'}"
         view = open_page(browser, f"{server}/walls/{wid}/view?tiles=5-6&token={TOKEN}"
                                   "&size=160x90")
         second = post(http, wid, GRID_FRAMES[1])
@@ -537,6 +539,7 @@ def test_the_index_leads_to_every_wall(server, http, browser):
     try:
         row = page.locator(f"#wall-{wid}")
         assert row.count() == 1 and "powerplant" in row.text_content()
+        assert "none yet" in row.text_content()  # its frame: none posted
         views = [a.get_attribute("href") for a in row.locator("a.view, a:has-text('tiles')")
                  .all()]
         assert f"/walls/{wid}/view" in views and f"/walls/{wid}/view?tiles=0-1,4-5" in views
@@ -559,6 +562,7 @@ def test_the_index_leads_to_every_wall(server, http, browser):
     ("/walls/0123456789ab/view", 404, "no wall '0123456789ab'"),
     ("/walls/not-a-wall/console", 422, "wid"),
     ("/walls/{wid}/view?tiles=0-99", 404, "not tiles of this wall"),
+    ("/walls/{wid}/view?tiles=3-1", 404, "runs backwards: write it 1-3"),
     ("/walls/{wid}/view?size=huge", 422, "size"),
 ])
 def test_a_page_refused_is_a_page(server, http, browser, path, status, text):

@@ -221,6 +221,8 @@ def test_tiles_and_splits():
             parse_tiles(bad)
     with pytest.raises(ValueError, match="0-63"):
         parse_tiles("60-64", 64)
+    with pytest.raises(ValueError, match="'5-3' runs backwards: write it 3-5"):
+        parse_tiles("5-3", 64)
     assert split(64, 3) == [(0, 20), (21, 42), (43, 63)]
     assert split(2, 5) == [(0, 0), (1, 1)]
 

@@ -41,7 +41,9 @@ def parse_tiles(spec: str, count: int | None = None) -> list[int]:
         if not lo.isdigit() or (dash and not hi.isdigit()) or len(lo) > 6 or len(hi) > 6:
             raise InputError(f"bad tile range {part!r}: use N, N-M, or a comma list of them")
         first, last = int(lo), int(hi or lo)
-        if last >= limit or first > last:
+        if first > last:
+            raise InputError(f"tile range {part.strip()!r} runs backwards: write it {last}-{first}")
+        if last >= limit:
             raise InputError(f"tiles {part.strip()!r} are not tiles of this wall "
                              f"(0-{limit - 1})")
         out.update(range(first, last + 1))

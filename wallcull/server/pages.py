@@ -137,7 +137,8 @@ async def index_page(request: Request, state: State):
                          f"tiles {tiles_text(tiles)}</a>" for tiles in session.nodes)
         rows.append(f'<tr id="wall-{wid}"><td><code>{wid}</code></td>'
                     f"<td>{html.escape(session.scene.name)}</td><td>{shape}</td>"
-                    f"<td>{session.session.method}</td><td>{session.newest}</td>"
+                    f"<td>{session.session.method}</td>"
+                    f"<td>{session.newest if session.newest >= 0 else 'none yet'}</td>"
                     f'<td><a class="console" href="{root}/walls/{wid}/console">console</a></td>'
                     f'<td><a class="view" href="{root}/walls/{wid}/view">all tiles</a> '
                     f"{views}</td></tr>")

@@ -115,7 +115,7 @@ function show(groups, rows, s) {
   s.count.forEach((count, t) => {
     const state = s.state[t];
     groups[t].g.setAttribute("class", `tile ${state}`);
-    groups[t].count.textContent = `${count} leaves`;
+    groups[t].count.textContent = `${count} ${count === 1 ? "leaf" : "leaves"}`;
     groups[t].latency.textContent = s.ack[t] >= 0 ? `#${s.ack[t]} ${ms(s.latency_ms[t])}` : state;
     const cells = rows[t].cells;
     rows[t].className = state;
@@ -123,7 +123,8 @@ function show(groups, rows, s) {
   });
   const acked = s.state.filter((x) => x === "acked").length;
   const age = s.posted === null ? "" : `, posted ${(s.time - s.posted).toFixed(1)} s ago`;
-  summary.textContent = `frame ${s.frame}${age}; ${acked} of ${s.count.length} tiles have drawn it`;
+  summary.textContent = s.frame < 0 ? "no frame yet" :
+    `frame ${s.frame}${age}; ${acked} of ${s.count.length} tiles have drawn it`;
   api.status = s;
   api.updates += 1;
 }
