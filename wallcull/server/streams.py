@@ -244,15 +244,9 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
         long."""
         while acked[0] < number and not wants.get("full") and not session.closed:
             ack_came.clear()
-            waits = [asyncio.ensure_future(ack_came.wait()),
-                     asyncio.ensure_future(session.gone.wait())]
             try:
-                done, _ = await asyncio.wait(waits, timeout=idle,
-                                             return_when=asyncio.FIRST_COMPLETED)
-            finally:  # also when the stream ends meanwhile
-                for w in waits:
-                    w.cancel()
-            if not done:
+                await _unless_deleted(session, asyncio.wait_for(ack_came.wait(), idle))
+            except asyncio.TimeoutError:
                 return False
         return True
 
