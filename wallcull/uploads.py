@@ -121,8 +121,9 @@ def _span(view: dict, offset: int, count: int, element: int, stride: int, what: 
                          f"{view['byteLength']}")
 
 
-def check_glb(data: bytes, limits: Limits) -> dict:
-    """Check an uploaded GLB (see the module docstring); returns its JSON document."""
+def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
+    """Check an uploaded GLB (see the module docstring); returns its JSON document and its
+    binary chunk."""
     text, binary = glb_chunks(data)
     try:
         doc = json.loads(text)
@@ -219,7 +220,7 @@ def check_glb(data: bytes, limits: Limits) -> dict:
         raise InputError(f"the uploaded GLB draws {vertices:,} vertices and {faces:,} triangles "
                          f"(once per node); a scene may draw at most {limits.vertices:,} and "
                          f"{limits.faces:,}")
-    return doc
+    return doc, binary
 
 
 def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int]:
@@ -290,12 +291,11 @@ def parse_glb(path: str, name: str, limits: Limits):
     from .scene import Scene
 
     data = Path(path).read_bytes()
-    doc = check_glb(data, limits)
+    doc, binary = check_glb(data, limits)
     import io
 
     try:  # its materials without their images: what occludes needs their alphaMode alone
-        loaded = trimesh.load(io.BytesIO(_without_images(doc, glb_chunks(data)[1])),
-                              file_type="glb")
+        loaded = trimesh.load(io.BytesIO(_without_images(doc, binary)), file_type="glb")
     except MemoryError:
         raise
     except Exception as exc:  # noqa: BLE001 - a parser failure is bad input
