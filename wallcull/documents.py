@@ -397,21 +397,25 @@ def _short(value: Any) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
+def read_text(path: str | Path, what: str) -> str:
+    """The text of the JSON file ``path`` (``what`` names it), or a one-line error."""
+    try:
+        return Path(path).read_text()
+    except FileNotFoundError:
+        raise InputError(f"{what} file not found: {path}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"malformed JSON in {what}: {path} is not text") from None
+    except OSError as exc:  # a folder, no permission
+        raise InputError(f"cannot read {what} file {path}: {exc.strerror}") from None
+
+
 def read_json(text: str, what: str):
     """A JSON document given inline (starting with ``{`` or ``[``) or as a file path."""
     text = text.strip()
     if not text:
         raise InputError(f"{what} is empty: give a file or inline JSON")
     if not text.startswith(("{", "[")):
-        path = Path(text)
-        if not path.exists():
-            raise InputError(f"{what} file not found: {text}")
-        try:
-            text = path.read_text()
-        except UnicodeDecodeError:
-            raise InputError(f"malformed JSON in {what}: {text} is not text") from None
-        except OSError as exc:  # a folder, no permission
-            raise InputError(f"cannot read {what} file {text}: {exc.strerror}") from None
+        text = read_text(text, what)
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

@@ -110,14 +110,11 @@ def parse(raw: Mapping[str, Any] | SettingsSpec | None) -> Settings:
 def read(path: str | Path) -> dict:
     """A settings document from a JSON file."""
     path = Path(path)
+    text = documents.read_text(path, "settings")
     try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"settings file not found: {path}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
         raise InputError(f"malformed JSON in {path.name}: {exc}") from None
-    except OSError as exc:  # a folder, no permission
-        raise InputError(f"cannot read settings file {path}: {exc.strerror}") from None
 
 
 def sidecar(scene_path: str | Path) -> dict:
