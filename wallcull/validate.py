@@ -42,7 +42,8 @@ def parse_tiles(spec: str, count: int | None = None) -> list[int]:
             raise InputError(f"bad tile range {part!r}: use N, N-M, or a comma list of them")
         first, last = int(lo), int(hi or lo)
         if first > last:
-            raise InputError(f"tile range {part.strip()!r} runs backwards: write it {last}-{first}")
+            raise InputError(f"tile range {part.strip()!r} runs backwards: write it "
+                             f"{last}-{first}")
         if last >= limit:
             raise InputError(f"tiles {part.strip()!r} are not tiles of this wall "
                              f"(0-{limit - 1})")

@@ -112,6 +112,9 @@ def error_page(request: Request, status: int, detail: str) -> HTMLResponse:
                  status=status, kind="index error")
 
 
+#: A page's ``?token=``: a credential it passes on to its streams and links.
+Token = Annotated[str | None, Query(max_length=512)]
+
 _REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests",
             503: "Service Unavailable"}
 
@@ -169,7 +172,7 @@ async def index_page(request: Request, state: State):
 @page
 async def view_page(request: Request, state: State, wid: WallId,
                     tiles: Annotated[str | None, Query(pattern=TILES, max_length=4000)] = None,
-                    token: Annotated[str | None, Query(max_length=512)] = None,
+                    token: Token = None,
                     ids: bool = False,
                     size: Annotated[str | None, Query(pattern=r"^[1-9]\d{0,3}x[1-9]\d{0,3}$")
                                     ] = None):
@@ -204,7 +207,7 @@ async def view_page(request: Request, state: State, wid: WallId,
             responses=_html_or_refusals(404))
 @page
 async def console_page(request: Request, state: State, wid: WallId,
-                       token: Annotated[str | None, Query(max_length=512)] = None):
+                       token: Token = None):
     """The operator's console: the wall to scale as it stands in the room, each tile's list
     size, frame latency and state (a legend says which colour is which), updated a few times
     a second (``WS /walls/{wid}/console/stream``); each tile links to its view page, which

@@ -26,6 +26,8 @@ from .openapi import FRAME_LINKS, WALL_LINKS
 
 #: Seconds a request may wait for a frame or the barrier.
 MAX_WAIT = 10.0
+#: A request's ``wait`` or ``timeout``: seconds, finite.
+Wait = Annotated[float, Query(ge=0, le=MAX_WAIT, allow_inf_nan=False)]
 #: Updates converted on the event loop at most; more go to a worker thread.
 INLINE_UPDATES = 2000
 #: Tiles of a wall whose answers are encoded off the event loop; and the most tiles a frame's
@@ -158,7 +160,7 @@ def check_packets(session, body: FramePost) -> None:
 async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
                      frame: Annotated[str, Path(pattern=r"^(latest|\d{1,16})$")],
                      full: bool = False,
-                     wait: Annotated[float, Query(ge=0, le=MAX_WAIT, allow_inf_nan=False)] = 1.0):
+                     wait: Wait = 1.0):
     """Tile ``tile``'s packet of frame ``frame`` (a number or ``latest``): a delta against
     the frame the tile last acknowledged, or a full list. Waits up to ``wait`` seconds for a
     frame that is not ready yet. A node that lost its lists asks with ``full=true`` and
@@ -196,6 +198,6 @@ async def ack(state: State, wid: WallId, tile: TileId, body: Annotated[Ack, body
             responses=refusals(404))
 async def barrier(request: Request, state: State, wid: WallId,
                   frame: Annotated[int, Path(ge=0, le=MAX_FRAME)],
-                  timeout: Annotated[float, Query(ge=0, le=MAX_WAIT, allow_inf_nan=False)] = 1.0):
+                  timeout: Wait = 1.0):
     """Wait until every tile has acknowledged ``frame``, or ``timeout`` seconds."""
     return reply(request, await state.walls.get(wid).barrier(frame, timeout))
