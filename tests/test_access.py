@@ -143,12 +143,26 @@ def test_a_server_without_a_token_lets_everyone_through():
 
 def test_options_and_methods_a_path_does_not_take(client, wall):
     r = client.options(f"/walls/{wall['id']}")
-    assert r.status_code == 204 and r.headers["allow"] == "DELETE, GET, OPTIONS"
+    assert r.status_code == 204 and r.headers["allow"] == "DELETE, GET, HEAD, OPTIONS"
     r = client.options("/walls")
-    assert r.headers["allow"] == "GET, OPTIONS, POST"
+    assert r.headers["allow"] == "GET, HEAD, OPTIONS, POST"
     assert client.options("/nowhere").status_code == 404
     r = client.patch(f"/walls/{wall['id']}", headers=OPERATOR)
-    assert r.status_code == 405 and r.headers["allow"] == "DELETE, GET"
+    assert r.status_code == 405 and r.headers["allow"] == "DELETE, GET, HEAD, OPTIONS"
+    r = client.head(f"/walls/{wall['id']}/frames")
+    assert r.status_code == 405 and r.headers["allow"] == "OPTIONS, POST"
+
+
+def test_head_is_a_get_without_its_body(client, wall):
+    for path in (f"/walls/{wall['id']}", "/walls", "/openapi.json", "/", f"/walls/{wall['id']}/view", "/docs"):
+        got, head = client.get(path, headers=OPERATOR), client.head(path, headers=OPERATOR)
+        assert head.status_code == got.status_code == 200, path
+        assert head.content == b"" and got.content, path
+        assert head.headers["content-length"] == str(len(got.content)), path
+        assert head.headers["content-type"] == got.headers["content-type"], path
+    for path in ("/walls/0123456789ab", "/walls/nowhere", "/nowhere"):  # refusals too
+        got, head = client.get(path, headers=OPERATOR), client.head(path, headers=OPERATOR)
+        assert head.status_code == got.status_code >= 400 and head.content == b"", path
 
 
 def test_cors_answers_allowed_origins_only(client):

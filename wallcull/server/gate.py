@@ -4,7 +4,7 @@ In this order, each step refusing with a status and a ``detail``, the way an att
 request costs least:
 
 1. ``OPTIONS`` is answered here (204, ``Allow``), and a method the path does not take gets 405
-   with ``Allow``;
+   with ``Allow``; ``HEAD`` is the ``GET`` of the same path without its body (RFC 9110);
 2. a WebSocket whose ``Origin`` is not allowed (``--cors-origin``; same-origin always is) is
    denied 403 before the handshake completes;
 3. the caller's token is checked against the route's role (:mod:`.access`): 401 or 403,
@@ -42,6 +42,8 @@ class Gate:
     async def __call__(self, scope, receive, send):
         if scope["type"] not in ("http", "websocket"):
             return await self.app(scope, receive, send)
+        if scope["type"] == "http" and scope["method"] == "HEAD":
+            scope, send = {**scope, "method": "GET"}, _without_body(send)
         try:
             admitted = self._admit(scope, receive)
         except Refused as exc:
@@ -55,7 +57,7 @@ class Gate:
             return await refuse(scope, receive, send, exc)
         if isinstance(admitted, set):  # OPTIONS, answered here with the path's methods
             await send({"type": "http.response.start", "status": 204,
-                        "headers": [(b"allow", _allow(admitted | {"OPTIONS"}).encode())]})
+                        "headers": [(b"allow", _allow(admitted).encode())]})
             return await send({"type": "http.response.body", "body": b""})
         try:
             await self.app(scope, admitted, send)
@@ -147,7 +149,20 @@ def _headers(scope) -> dict[str, str]:
 
 
 def _allow(methods) -> str:
-    return ", ".join(sorted(methods))
+    """An ``Allow`` header: the path's methods, with ``HEAD`` where it takes ``GET`` and the
+    ``OPTIONS`` the gate answers."""
+    return ", ".join(sorted({*methods, "OPTIONS", *(("HEAD",) if "GET" in methods else ())}))
+
+
+def _without_body(send):
+    """``send`` for a ``HEAD``: the ``GET``'s status and headers (its ``Content-Length``
+    included), no body."""
+    async def headless(message):
+        if message["type"] == "http.response.body":
+            message = {**message, "body": b""}
+        await send(message)
+
+    return headless
 
 
 def origin_allowed(origin: str, host: str | None, allowed) -> bool:
