@@ -17,6 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from wallcull import cli
 from wallcull.errors import InputError
 from wallcull.server import settings_from_env
 from wallcull_clients import broker, picture
@@ -198,3 +199,15 @@ def test_an_empty_token_in_the_environment_is_refused():
     with pytest.raises(InputError, match="WALLCULL_LIMITS: unknown limit"):
         settings_from_env({"WALLCULL_LIMITS": "garbage", "WALLCULL_STATE": "none"})
     assert settings_from_env({"WALLCULL_STATE": "none"})["token"] is None
+
+
+@pytest.mark.parametrize("threads", ["two", "0", "-1", "1.5", " "])
+def test_a_thread_count_that_is_no_count_is_refused_as_the_server_or_a_command_starts(
+        threads, monkeypatch, capsys):
+    with pytest.raises(InputError, match="WALLCULL_THREADS must be a whole number"):
+        settings_from_env({"WALLCULL_THREADS": threads, "WALLCULL_STATE": "none"})
+    monkeypatch.setenv("WALLCULL_THREADS", threads)
+    assert cli.main(["scenes"]) == 2
+    assert "WALLCULL_THREADS" in capsys.readouterr().err
+    monkeypatch.setenv("WALLCULL_THREADS", "3")
+    assert settings_from_env({"WALLCULL_THREADS": "3", "WALLCULL_STATE": "none"})

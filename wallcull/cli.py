@@ -22,6 +22,7 @@ import numpy as np
 
 from .errors import InputError
 from .documents import read_json
+from .workers import count as kernel_threads
 
 #: The wall of SPEC section 2, used where no ``--wall`` is given.
 DEFAULT_WALL = {"cols": 4, "rows": 4, "tile_size": [0.60, 0.34], "gap": [0.012, 0.012],
@@ -565,6 +566,7 @@ def _register_plugins(sub) -> None:
 def main(argv=None) -> int:
     try:
         args = parser().parse_args(argv)
+        kernel_threads()  # WALLCULL_THREADS, checked before any work
         return args.func(args)
     except InputError as exc:
         print(f"wallcull: error: {exc}", file=sys.stderr)

@@ -17,6 +17,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .errors import InputError
+
 #: Items (tiles or regions) a thread is given at least.
 MIN_CHUNK = 8
 #: Parts a thread's share of the shadow fits and caster culls is cut into: with a mirror's
@@ -29,15 +31,17 @@ SPLIT = 3
 _CORES = max(1, min(8, os.cpu_count() or 1))
 
 
-def count() -> int:
-    """Threads the kernels may use: ``WALLCULL_THREADS``, else the cores (at most 8)."""
-    value = os.environ.get("WALLCULL_THREADS")
-    if value:
-        try:
-            return max(1, int(value))
-        except ValueError:
-            pass
-    return _CORES
+def count(environ=os.environ) -> int:
+    """Threads the kernels may use: ``WALLCULL_THREADS``, else the cores (at most 8).
+    :class:`~wallcull.errors.InputError` if it is set to anything but a whole number from 1
+    (the command line and the server ask once as they start, so a typo is named there)."""
+    value = environ.get("WALLCULL_THREADS")
+    if not value:
+        return _CORES
+    if not (value.strip().isascii() and value.strip().isdigit() and int(value) >= 1):
+        raise InputError(f"WALLCULL_THREADS must be a whole number of threads from 1, got "
+                         f"{value!r}")
+    return int(value)
 
 
 _pool: ThreadPoolExecutor | None = None

@@ -38,7 +38,7 @@ from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from .. import warm
 from . import heap
-from ..workers import background
+from ..workers import background, count as kernel_threads
 from ..persist import StateWriteFailed
 from ..service import Conflict, Gone, NotFound, SceneStore, Unavailable, Walls, settled
 from . import asyncapi, openapi, pages, scenes, streams, walls
@@ -239,8 +239,10 @@ def settings_from_env(environ=os.environ) -> dict:
     ``WALLCULL_STATE`` (a folder; ``none`` keeps walls in memory only; default
     :func:`wallcull.persist.default_folder`), ``WALLCULL_LIMITS`` (``NAME=VALUE,...``),
     ``WALLCULL_CORS_ORIGINS`` (comma-separated), ``WALLCULL_NATS``,
-    ``WALLCULL_NATS_PREFIX`` and ``WALLCULL_WALL_TTL`` (seconds)."""
+    ``WALLCULL_NATS_PREFIX`` and ``WALLCULL_WALL_TTL`` (seconds); ``WALLCULL_THREADS`` is
+    checked (:func:`wallcull.workers.count`)."""
     state = environ.get("WALLCULL_STATE") or str(default_folder())
+    kernel_threads(environ)  # WALLCULL_THREADS, named at start rather than in every frame
     token = environ.get("WALLCULL_TOKEN")
     if token is not None and not token.strip():
         raise InputError("WALLCULL_TOKEN is set but empty: unset it for a server anyone may "
