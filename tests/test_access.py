@@ -4,6 +4,10 @@ through; browsers only from allowed origins; OPTIONS, 405 and strict types at th
 
 from __future__ import annotations
 
+import html
+import json
+import re
+
 import msgpack
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -241,6 +245,32 @@ def test_the_schema_declares_security_links_and_bodies(client):
     spec = doc["components"]["schemas"]["WallSpec"]["properties"]
     assert spec["tile_size"]["items"]["minimum"] > 0 and spec["tile_size"]["minItems"] == 2
     assert doc["components"]["schemas"]["WallCreate"]["properties"]["scene"]["pattern"]
+
+
+def test_every_pattern_is_refused_in_words(client, wall):
+    """A string that does not match its pattern is refused saying what it must be, and what
+    was given, never the regular expression itself."""
+    from wallcull.server.models import PATTERN_WORDS
+
+    doc = json.dumps(client.get("/openapi.json").json())
+    declared = set(re.findall(r'"pattern": "((?:[^"\\]|\\.)*)"', doc))
+    assert {json.loads(f'"{p}"') for p in declared} <= set(PATTERN_WORDS)
+    wid = wall["id"]
+    for method, path, words in [
+            ("get", "/walls/nowhere", "a wall id is 12 hexadecimal digits"),
+            ("get", "/walls/nowhere/view", "a wall id is 12 hexadecimal digits"),
+            ("get", f"/walls/{wid}/tiles/0/packets/next", "a frame is 'latest' or a frame number"),
+            ("get", f"/walls/{wid}/view?tiles=zz", "tiles are 'all' or tile numbers"),
+            ("get", f"/walls/{wid}/view?size=1x", "a size is WIDTHxHEIGHT"),
+            ("get", "/scenes/.hidden", "a scene name is a plain file name"),
+            ("post", "/scenes?name=.hidden", "an upload's name is a plain file name")]:
+        r = getattr(client, method)(path, headers=OPERATOR)
+        assert r.status_code == 422 and words in html.unescape(r.text), (path, r.text)
+        assert "should match" not in r.text and "^" not in html.unescape(r.text), path
+    r = client.post("/walls", json={"wall": WALL, "scene": "../x"}, headers=OPERATOR)
+    assert r.json()["detail"] == ("body.scene: a scene name is a plain file name of at most 128 "
+                                  "letters, digits, '_', '.' and '-', starting with a letter or "
+                                  "digit, got '../x'")
 
 
 @pytest.mark.parametrize("tile", ["%C2%B2", "%D9%A3", "%EF%BC%91", "1%C2%B2", "-1", "0x1"])

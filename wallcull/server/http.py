@@ -22,6 +22,7 @@ from ..documents import problems
 from ..workers import background
 from ..errors import InputError
 from .metrics import Metrics
+from .models import PATTERN_WORDS
 
 #: Bodies up to this size are decoded on the event loop; larger ones in a worker thread.
 INLINE_BODY = 16 << 10
@@ -221,9 +222,17 @@ class Refused(Exception):
 
 def refusal_detail(exc: RequestValidationError) -> str:
     """A validation error's one-line detail: where, and what."""
-    detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+    detail = "; ".join(f"{'.'.join(map(str, e['loc']))}: {_said(e)}"
                        for e in problems(exc.errors()))
     return detail[:2000]
+
+
+def _said(error: dict) -> str:
+    words = PATTERN_WORDS.get((error.get("ctx") or {}).get("pattern"))
+    if error["type"] != "string_pattern_mismatch" or words is None:
+        return error["msg"]
+    given = repr(error["input"])
+    return f"{words}, got {given if len(given) <= 80 else given[:77] + '...'}"
 
 
 def status_handler(status: int, metrics: Metrics):

@@ -17,6 +17,8 @@ from typing import Annotated, Any, Literal, Optional, Union
 from pydantic import (BaseModel, ConfigDict, Field, Strict, StringConstraints, TypeAdapter,
                       ValidationError)
 
+from fastapi import Path
+
 from ..bounds import KINDS
 from ..cull import METHODS
 from ..documents import (Bool, Document, FrameSpec, Int, Length, NodeName, Num, SettingsSpec,
@@ -27,11 +29,26 @@ from ..validate import MAX_FRAME, MAX_TILES
 
 Tile = Int(ge=0, lt=MAX_TILES)
 FrameNumber = Int(ge=0, le=MAX_FRAME)
+
+#: What each pattern of a path, query or body string asks for, in words: a refusal names
+#: that, and what was given, rather than the pattern (:func:`worded`).
+PATTERN_WORDS: dict[str, str] = {}
+
+
+def worded(pattern: str, words: str) -> str:
+    """``pattern``, its refusals worded ``words``."""
+    PATTERN_WORDS[pattern] = words
+    return pattern
+
+
 #: Scene names: plain file names, ASCII (what the scene folder can hold).
-SCENE_NAME = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$"
+SCENE_NAME = worded(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$",
+                    "a scene name is a plain file name of at most 128 letters, digits, '_', "
+                    "'.' and '-', starting with a letter or digit")
 SceneName = Annotated[str, Strict(), StringConstraints(pattern=SCENE_NAME)]
 #: Wall ids, as the server makes them.
-WALL_ID = r"^[0-9a-f]{12}$"
+WALL_ID = worded(r"^[0-9a-f]{12}$", "a wall id is 12 hexadecimal digits (0-9, a-f)")
+WallId = Annotated[str, Path(pattern=WALL_ID)]
 
 Row = tuple[Num, Num, Num, Num]
 Zero, One = Annotated[Num, Field(ge=0, le=0)], Annotated[Num, Field(ge=1, le=1)]

@@ -42,7 +42,7 @@ from ..workers import background
 from .access import bearer
 from .deps import ServerState, State
 from .http import Budget, Refused, encode_in_pieces
-from .models import WALL_ID, refusals
+from .models import WallId, refusals, worded
 from .streams import GONE, count, deny, room
 
 router = APIRouter(tags=["pages"])
@@ -56,9 +56,12 @@ CONSOLE_PERIOD, CONSOLE_QUIET = 0.25, 2.0
 #: Console streams open at once, on the whole server.
 MAX_CONSOLES = 32
 #: A tile list's form (``0-3``, ``0,1,8,9``, ``all``); tiles out of the wall are a 404.
-TILES = r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$"
-
-WallId = Annotated[str, Path(pattern=WALL_ID)]
+TILES = worded(r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$",
+               "tiles are 'all' or tile numbers and ranges, such as '0-3,8'")
+ASSET = worded(r"^[a-z][a-z.-]{0,40}\.(js|css)$", "the docs' assets are .js and .css files")
+STATIC_NAME = worded(r"^[a-z][a-z0-9_-]{0,40}\.(js|css)$",
+                     "the pages' files are .js and .css files")
+SIZE = worded(r"^[1-9]\d{0,3}x[1-9]\d{0,3}$", "a size is WIDTHxHEIGHT in pixels, such as 1920x1080")
 
 
 def _html_or_refusals(*codes: int) -> dict:
@@ -174,8 +177,7 @@ async def view_page(request: Request, state: State, wid: WallId,
                     tiles: Annotated[str | None, Query(pattern=TILES, max_length=4000)] = None,
                     token: Token = None,
                     ids: bool = False,
-                    size: Annotated[str | None, Query(pattern=r"^[1-9]\d{0,3}x[1-9]\d{0,3}$")
-                                    ] = None):
+                    size: Annotated[str | None, Query(pattern=SIZE)] = None):
     """A render node's page: open it full-screen on each render PC, one window per output.
     It draws ``tiles`` (default: those of the node credential ``token``, else every tile)
     side by side, each at ``size`` pixels (``WxH``; default: as large as the window holds),
@@ -250,12 +252,12 @@ async def swagger_ui(request: Request):
 
 
 @router.get("/docs/assets/{name}", include_in_schema=False)
-async def docs_asset(name: Annotated[str, Path(pattern=r"^[a-z][a-z.-]{0,40}\.(js|css)$")]):
+async def docs_asset(name: Annotated[str, Path(pattern=ASSET)]):
     return _file(DOCS_ASSETS / name, "public, max-age=86400")  # a release's, unchanging
 
 
 @router.get("/static/{name}", include_in_schema=False)
-async def static(name: Annotated[str, Path(pattern=r"^[a-z][a-z0-9_-]{0,40}\.(js|css)$")]):
+async def static(name: Annotated[str, Path(pattern=STATIC_NAME)]):
     return _file(STATIC / name, "no-cache")
 
 

@@ -16,13 +16,15 @@ from ..service import NotFound, describe, mesh_blob
 from .access import needs
 from .deps import State
 from .http import Refused, mesh_reply, reply, reply_large
-from .models import SCENE_NAME, refusals
+from .models import SCENE_NAME, refusals, worded
 
 router = APIRouter(tags=["scenes"])
 
 SceneName = Annotated[str, Path(pattern=SCENE_NAME)]
 #: An upload's name; ``.glb`` is added when it does not end so.
-UploadName = Annotated[str, Query(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,123}$")]
+UploadName = Annotated[str, Query(pattern=worded(
+    r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,123}$", "an upload's name is a plain file name of at most "
+    "124 letters, digits, '_', '.' and '-', starting with a letter or digit"))]
 
 
 def upload(endpoint):

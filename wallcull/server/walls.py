@@ -20,8 +20,8 @@ from .access import needs
 from .deps import State
 from .http import body_of, reply, reply_large
 from .messages import FrameAnswer, Packet
-from .models import (WALL_ID, Ack, Barrier, FramePost, WallCreate, WallCreated, WallInfo,
-                     WallList, refusals)
+from .models import (Ack, Barrier, FramePost, WallCreate, WallCreated, WallId, WallInfo,
+                     WallList, refusals, worded)
 from .openapi import FRAME_LINKS, WALL_LINKS
 
 #: Seconds a request may wait for a frame or the barrier.
@@ -36,8 +36,9 @@ LARGE_WALL = MAX_PACKETS = 1024
 
 router = APIRouter(tags=["walls"])
 
-WallId = Annotated[str, Path(pattern=WALL_ID)]
 TileId = Annotated[int, Path(ge=0, lt=1 << 16)]
+#: A packet's frame: a number, or the newest.
+FRAME = worded(r"^(latest|\d{1,16})$", "a frame is 'latest' or a frame number")
 
 
 @router.post("/walls", status_code=201, operation_id="createWall", response_model=WallCreated,
@@ -158,7 +159,7 @@ def check_packets(session, body: FramePost) -> None:
             response_model=Packet, responses=refusals(401, 403, 404, 410))
 @needs(NODE)
 async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
-                     frame: Annotated[str, Path(pattern=r"^(latest|\d{1,16})$")],
+                     frame: Annotated[str, Path(pattern=FRAME)],
                      full: bool = False,
                      wait: Wait = 1.0):
     """Tile ``tile``'s packet of frame ``frame`` (a number or ``latest``): a delta against
