@@ -14,10 +14,9 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Optional, Union
 
+from fastapi import Path
 from pydantic import (BaseModel, ConfigDict, Field, Strict, StringConstraints, TypeAdapter,
                       ValidationError)
-
-from fastapi import Path
 
 from ..bounds import KINDS
 from ..cull import METHODS
