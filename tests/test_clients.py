@@ -211,3 +211,46 @@ def test_a_thread_count_that_is_no_count_is_refused_as_the_server_or_a_command_s
     assert "WALLCULL_THREADS" in capsys.readouterr().err
     monkeypatch.setenv("WALLCULL_THREADS", "3")
     assert settings_from_env({"WALLCULL_THREADS": "3", "WALLCULL_STATE": "none"})
+
+
+def test_the_server_and_its_clients_speak_tls(tmp_path):
+    """``wallcull serve --tls-cert``: a driver and a node drive and draw a wall over https://
+    and wss://, trusting the authority ``SSL_CERT_FILE`` names; a node that does not trust it
+    stops at once and says so (no retrying mends a certificate)."""
+    import trustme
+
+    ca = trustme.CA()
+    pem, authority, wall, report = (tmp_path / name for name in (
+        "server.pem", "ca.pem", "wall.json", "node.json"))
+    ca.issue_cert("127.0.0.1").private_key_and_cert_chain_pem.write_to_path(str(pem))
+    ca.cert_pem.write_to_path(str(authority))
+    wall.write_text(json.dumps(WALL))
+    with running_server(TOKEN, args=["--tls-cert", str(pem)], ca=str(authority)) as url:
+        assert url.startswith("https://")
+        proc = tool("wallcull_clients.sim", "--server", url, "--reconnect-for", "600")
+        _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2 and "certificate is not trusted" in err, err
+        assert "Traceback" not in err
+        trust = {"SSL_CERT_FILE": str(authority)}
+        node = tool("wallcull_clients.sim", "--server", url, "--until-frame", "4", "--quiet",
+                    "--out", str(report), env=trust)
+        driver = tool("wallcull_clients.driver", "--server", url, "--scene", "fatehpur",
+                      "--wall", str(wall), "--frames", "5", "--rate", "0", "--wait-clients",
+                      "all", "--barrier", "--barrier-timeout", "10", "--delete", env=trust)
+        out, err = driver.communicate(timeout=300)
+        assert driver.returncode == 0, err
+        _, err = node.communicate(timeout=300)
+        assert node.returncode == 0, err
+    tiles = json.loads(report.read_text())["tiles"]
+    assert sorted(t["tile"] for t in tiles) == [0, 1]
+    assert all(t["frame"] == [0, 1, 2, 3, 4] for t in tiles), tiles
+
+
+def test_serve_refuses_tls_files_it_cannot_use(tmp_path, capsys):
+    (tmp_path / "x.pem").write_text("not a certificate")
+    for argv, why in [(["--tls-key", "k.pem"], "--tls-key needs --tls-cert"),
+                      (["--tls-cert", str(tmp_path / "none.pem")], "No such file"),
+                      (["--tls-cert", str(tmp_path / "x.pem")], "cannot serve TLS")]:
+        assert cli.main(["serve", "--state", "none", *argv]) == 2
+        err = capsys.readouterr().err
+        assert why in err and len(err.strip().splitlines()) == 1, err

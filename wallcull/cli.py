@@ -285,8 +285,26 @@ def cmd_serve(args) -> int:
         from .server.nats import check_broker
 
         check_broker(settings["nats"])
-    serve(args.host, args.port, args.log_level, **settings)
+    serve(args.host, args.port, args.log_level, tls=_tls(args.tls_cert, args.tls_key),
+          **settings)
     return 0
+
+
+def _tls(cert: str | None, key: str | None) -> tuple[str, str | None] | None:
+    """``(certificate, key)`` files for ``serve``, checked that they load (one line if not)."""
+    if cert is None:
+        if key is not None:
+            raise InputError("--tls-key needs --tls-cert")
+        return None
+    import ssl
+
+    try:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise InputError(f"cannot serve TLS with --tls-cert {cert}"
+                         f"{f' --tls-key {key}' if key else ''}: "
+                         f"{getattr(exc, 'strerror', None) or exc}") from None
+    return cert, key
 
 
 def cmd_prepare(args) -> int:
@@ -540,6 +558,10 @@ def parser() -> argparse.ArgumentParser:
                    help="delete a wall once it has had no frame, acknowledgement or stream for "
                         "this long (default: $WALLCULL_WALL_TTL, else never; see "
                         "docs/hardening.md)")
+    q.add_argument("--tls-cert", metavar="FILE",
+                   help="serve HTTPS and WSS with this certificate chain (PEM; with its key "
+                        "too, unless --tls-key names the key's own file)")
+    q.add_argument("--tls-key", metavar="FILE", help="the private key of --tls-cert (PEM)")
     q.add_argument("--log-level", default="info",
                    choices=("critical", "error", "warning", "info", "debug", "trace"))
     q.set_defaults(func=cmd_serve)

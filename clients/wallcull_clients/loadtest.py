@@ -159,9 +159,11 @@ class Server:
 
 @contextmanager
 def running_server(token: str | None = None, timeout: float = 120.0, env: dict | None = None,
-                   args=()):
+                   args=(), ca: str | None = None):
     """``wallcull serve`` on a free loopback port, with a temporary state folder, for the
-    ``with`` block (no event loop needed, for tests); yields its base URL."""
+    ``with`` block (no event loop needed, for tests); yields its base URL (``https://`` when
+    ``args`` hold ``--tls-cert``, ``ca`` then the file of the authority that signed it)."""
+    import ssl
     import subprocess
     import urllib.request
 
@@ -173,7 +175,8 @@ def running_server(token: str | None = None, timeout: float = 120.0, env: dict |
     log = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                             env={**os.environ, **(env or {})})
-    url = f"http://127.0.0.1:{port}"
+    url = f"{'https' if '--tls-cert' in args else 'http'}://127.0.0.1:{port}"
+    context = ssl.create_default_context(cafile=ca) if ca else None
     try:
         deadline = time.monotonic() + timeout
         while True:
@@ -182,7 +185,7 @@ def running_server(token: str | None = None, timeout: float = 120.0, env: dict |
                 raise RuntimeError(f"the server exited ({proc.returncode}): "
                                    f"{log.read().decode(errors='replace')[-2000:]}")
             try:
-                with urllib.request.urlopen(f"{url}/health", timeout=2):
+                with urllib.request.urlopen(f"{url}/health", timeout=2, context=context):
                     break
             except OSError:
                 if time.monotonic() > deadline:

@@ -5,13 +5,15 @@ requests a second. ``httpx.AsyncClient`` spends a few hundred microseconds of Py
 which on a 2-core machine shared with the server would measure the client rather than the
 server. This speaks just enough HTTP/1.1 for the wallcull API: ``Content-Length`` and chunked
 bodies, keep-alive, no pipelining, one transparent reconnect when the server closed an idle
-connection before answering.
+connection before answering. ``https://`` goes over TLS, checked against the system's
+certificate authorities (``SSL_CERT_FILE`` names others, as for every Python client).
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import ssl
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
@@ -26,6 +28,10 @@ class HTTPError(Exception):
     def __init__(self, status: int, detail: str, method: str = "", target: str = ""):
         super().__init__(f"{method} {target}: HTTP {status}: {detail}".strip())
         self.status, self.detail = status, detail
+
+
+class Untrusted(ValueError):
+    """An ``https://`` server whose certificate the client does not trust."""
 
 
 @dataclass
@@ -50,12 +56,14 @@ class Response:
         return str(data.get("detail", data)) if isinstance(data, dict) else str(data)
 
 
-def split_url(url: str) -> tuple[str, int, str]:
-    """``(host, port, path prefix)`` of an ``http://`` URL."""
+def split_url(url: str) -> tuple[str, int, str, bool]:
+    """``(host, port, path prefix, tls)`` of an ``http://`` or ``https://`` URL."""
     parts = urlsplit(url)
-    if parts.scheme != "http":
-        raise ValueError(f"only http:// URLs are supported, got {url!r}")
-    return parts.hostname or "127.0.0.1", parts.port or 80, parts.path.rstrip("/")
+    if parts.scheme not in ("http", "https"):
+        raise ValueError(f"only http:// and https:// URLs are supported, got {url!r}")
+    tls = parts.scheme == "https"
+    return parts.hostname or "127.0.0.1", parts.port or (443 if tls else 80), \
+        parts.path.rstrip("/"), tls
 
 
 class Connection:
@@ -63,7 +71,7 @@ class Connection:
     give each task its own (that is what a render node's single socket would be)."""
 
     def __init__(self, base_url: str, token: str | None = None, timeout: float | None = 30.0):
-        self.host, self.port, self.prefix = split_url(base_url)
+        self.host, self.port, self.prefix, self.tls = split_url(base_url)
         self.base_url = base_url.rstrip("/")
         self.token = token
         self.timeout = timeout
@@ -74,7 +82,13 @@ class Connection:
         self.bytes_in = 0
 
     async def _connect(self) -> None:
-        self._reader, self._writer = await asyncio.open_connection(self.host, self.port)
+        try:
+            self._reader, self._writer = await asyncio.open_connection(
+                self.host, self.port, ssl=ssl.create_default_context() if self.tls else None)
+        except ssl.SSLCertVerificationError as exc:  # no retry mends it: not an OSError here
+            raise Untrusted(f"{self.base_url}: the server's certificate is not trusted "
+                            f"({exc.verify_message}); SSL_CERT_FILE names a file of "
+                            f"certificates to trust") from None
 
     async def close(self) -> None:
         if self._writer is not None:

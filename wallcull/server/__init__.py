@@ -292,12 +292,15 @@ def uvicorn_options(app: FastAPI) -> dict:
             "ws_max_size": max(limits.body, limits.message_bytes)}
 
 
-def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info", **settings) -> None:
+def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info",
+          tls: tuple[str, str | None] | None = None, **settings) -> None:
     """Run the server (``settings``: :func:`create_app` keywords) with
-    :func:`uvicorn_options`."""
+    :func:`uvicorn_options`; over TLS with ``tls``, ``(certificate, key)`` files (PEM; the key
+    None when the certificate's file holds it)."""
     import uvicorn
 
     heap.tune()
     app = create_app(**settings)
+    certificate, key = tls or (None, None)
     uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False,
-                **uvicorn_options(app))
+                ssl_certfile=certificate, ssl_keyfile=key, **uvicorn_options(app))
