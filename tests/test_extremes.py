@@ -207,3 +207,64 @@ def test_float32_matrices_on_the_client():
         ndc = clip[:, :2] / clip[:, 3:]
         err = np.abs(ndc - [[-1, -1], [1, 1]]).max()
         assert (err < tol) == ok, err
+
+
+def triangles(points) -> Scene:
+    """A scene of one-triangle leaves, each ``(3, 3)`` world points."""
+    s = trimesh.Scene()
+    for i, t in enumerate(np.asarray(points, float)):
+        m = np.eye(4)
+        m[:3, 3] = t.mean(axis=0)
+        s.add_geometry(trimesh.Trimesh(t - m[:3, 3], [[0, 1, 2]], process=False),
+                       node_name=f"t{i}", geom_name=f"g{i}", transform=m)
+    return Scene.from_trimesh(s, hierarchy="file")
+
+
+def screen(bl, br, tl) -> dict:
+    return {"bottom_left": list(map(float, bl)), "bottom_right": list(map(float, br)),
+            "top_left": list(map(float, tl)), "resolution": [100, 100]}
+
+
+NO_MOVE = {"position": [0.0, 0.0, 0.0], "orientation": [1.0, 0.0, 0.0, 0.0]}
+
+
+def test_a_screen_a_hair_over_its_split_plane_loses_nothing_far_beyond():
+    """Two screens that a plane through the eye and the first one's edge tells apart, but for
+    the second's corners, 3 nm over it. Taken as holding, the plane left a wedge of the second
+    screen's frustum untested, 1.5e-9 rad wide: tiny triangles 4 km out were missed. A split
+    holds only within rounding."""
+    eye, edge = np.array([-2.0, 0.0, 2.0]), np.array([0.0, 0.0, -2.0])
+    ray = (edge - eye) / np.linalg.norm(edge - eye)
+    over = np.array([ray[2], 0.0, -ray[0]])  # across the ray, toward the first screen (x < 0)
+    over = -over if over[0] > 0 else over
+    corner = edge + ray + 3e-9 * over
+    spec = {"screens": [screen([-1, -1, -2], [0, -1, -2], [-1, 1, -2]),
+                        screen(corner + [0, -1, 0], corner + [1, -1, 0], corner + [0, 1, 0])],
+            "near": 0.1, "far": 1e4}
+    t = 1000.0
+    scene = triangles([centre + np.array([[-e, -e, 0], [e, -e, 0], [0, e, 0]])
+                       for s in np.linspace(-3, 3, 13)
+                       for centre, e in [(corner + t * (corner - eye) + s * 3e-9 * (1 + t) * over,
+                                          3e-10 * (1 + t))]])
+    frame = {**NO_MOVE, "eye": eye.tolist()}
+    extent = np.ptp(scene.leaf_points[0], axis=0).max()
+    truth = conservative(scene, spec, frame, 1e-7 * extent)
+    assert len(truth[1]) >= 5  # the second screen sees the wedge's triangles
+
+
+def test_screens_overlapping_by_a_hair_keep_the_overlap_far_beyond():
+    """Neighbouring screens that overlap by 1e-10 m were taken as a seamless grid: the shared
+    plane cut the overlap off the second, a strip 2.5 mm wide 1e8 m out. A tiny overlap stays
+    an overlap; a tiny bezel is still none (sharing the plane only widens a tile)."""
+    spec = {"screens": [screen([-1, -1, -2], [5e-11, -1, -2], [-1, 1, -2]),
+                        screen([-5e-11, -1, -2], [1, -1, -2], [-5e-11, 1, -2])],
+            "near": 0.1, "far": 1e9}
+    wall = Wall.from_dict(spec)
+    assert wall.kind == "grid" and wall.gap[0] < 0
+    z = -1e8
+    scene = triangles([[[-1.5e-3, -1e-3, z], [-1.0e-3, -1e-3, z], [-1.2e-3, 1e-3, z]]])
+    truth = conservative(scene, spec, NO_MOVE, 1e-7 * 2e-3)
+    assert truth == [{scene.leaves[0]}, {scene.leaves[0]}]
+    bezel = {**spec, "screens": [screen([-1, -1, -2], [-5e-11, -1, -2], [-1, 1, -2]),
+                                 screen([5e-11, -1, -2], [1, -1, -2], [5e-11, 1, -2])]}
+    assert Wall.from_dict(bezel).gap[0] == 0.0

@@ -329,7 +329,7 @@ class ScreenHierarchy:
         normal = np.where(length > 0, normal / np.where(length > 0, length, 1), 0.0)
         planes = np.concatenate([normal, -(normal @ eye)[:, None]], axis=1)
         quads = wall.quads.reshape(-1, 3)  # corner 4 t + k of tile t
-        tol = 1e-9 * float(np.abs(quads - eye).max())
+        tol = SLACK * float(np.abs(quads - eye).max())
         nodes, *corners = self._corners
         side = _separates(quads, planes, nodes, *corners, tol)
         side[~split[nodes]] = 0
@@ -365,10 +365,19 @@ def _separates(quads, planes, nodes, first_start, first, second_start, second, t
     return out
 
 
+#: How far, relative to the screens' distance from the eye, a screen's corner may lie on the
+#: wrong side of a split and the split still hold: rounding, no more. A split shares one plane
+#: between its two sides, so a corner over it by ``s`` leaves a wedge of that screen's frustum
+#: untested, ``s / distance`` wide at every depth beyond (with 1e-9, a centimetre 10,000 km
+#: out: a miss). Corners that far over make the split not hold from that eye: it culls
+#: nothing there (conservative, and slower only on such frames).
+SLACK = 1e-13
+
+
 def _best_split(quads: np.ndarray, group: np.ndarray, eye: np.ndarray, scale: float):
     """The most even split of ``group`` by a plane through ``eye`` and one of its screens'
     edges: ``(inside, outside, edge point a, edge point b)``, or None."""
-    tol = 1e-9 * scale
+    tol = SLACK * scale
     corners = quads[group] - eye  # (g, 4, 3)
     edges = np.stack([corners, np.roll(corners, -1, axis=1)], axis=2).reshape(-1, 2, 3)
     normal = np.cross(edges[:, 0], edges[:, 1])

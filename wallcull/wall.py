@@ -183,18 +183,21 @@ class Wall:
 def _grid_axis(lo: np.ndarray, hi: np.ndarray) -> tuple[float, float] | None:
     """``(size, gap)`` of one axis of a grid whose tiles span ``lo[i]..hi[i]`` in order, or
     None if they are not a grid's: alike in size and spacing, centred on the display origin
-    (within 1e-9 of the wall's extent: corners read from a file are rounded). Gaps that
-    small are none (neighbours then share their split planes, as a grid's do); others must
-    not change sign (bezels, or overlap)."""
+    (within 1e-9 of the wall's extent: corners read from a file are rounded; the tiles keep
+    their own edges). Bezels that small are none: neighbours then share their split planes, as
+    a grid's do, which only widens a tile by its bezel. An overlap that small stays an
+    overlap unless it is rounding (a few ulps): a shared plane would cut it off the second
+    tile, a wedge that widens with depth. Gaps must not change sign (bezels, or overlap)."""
     extent = float(hi[-1] - lo[0])
-    tol = 1e-9 * max(extent, abs(float(lo[0])), abs(float(hi[-1])))
+    scale = max(extent, abs(float(lo[0])), abs(float(hi[-1])))
+    tol, rounding = 1e-9 * scale, 8 * np.finfo(float).eps * scale
     sizes, gaps = hi - lo, lo[1:] - hi[:-1]
     size = float(sizes.mean())
     if np.ptp(sizes) > tol or abs(lo[0] + hi[-1]) > tol or size <= 0:
         return None
-    if not len(gaps) or (np.abs(gaps) <= tol).all():
+    if not len(gaps) or ((gaps >= -rounding) & (gaps <= tol)).all():
         return size, 0.0
-    if np.ptp(gaps) > tol or not ((gaps > 0).all() or (gaps < 0).all()):
+    if np.ptp(gaps) > tol or not ((gaps >= 0).all() or (gaps <= 0).all()):
         return None
     return size, float(gaps.mean())
 
