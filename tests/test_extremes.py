@@ -9,6 +9,7 @@ import pytest
 import trimesh
 
 from wallcull.cull import METHODS, cull
+from wallcull.errors import InputError
 from wallcull.fit import FitOptions, tile_projections
 from wallcull.projection import view_matrix
 from wallcull.lowilie import fit_frustum
@@ -268,3 +269,24 @@ def test_screens_overlapping_by_a_hair_keep_the_overlap_far_beyond():
     bezel = {**spec, "screens": [screen([-1, -1, -2], [-5e-11, -1, -2], [-1, 1, -2]),
                                  screen([5e-11, -1, -2], [1, -1, -2], [5e-11, 1, -2])]}
     assert Wall.from_dict(bezel).gap[0] == 0.0
+
+
+@pytest.mark.parametrize("wall", [
+    {"cols": 2, "rows": 2, "tile_size": [1e-9, 1e-9], "distance": 1.0},
+    {"screens": [screen([0, 0, -2], [3e-9, 0, -2], [0, 3e-9, -2])]},
+], ids=["grid", "screens"])
+def test_a_tile_too_small_to_place_from_the_eye_is_refused_not_divided_by(wall):
+    """A nanometre tile seen from 1e8 m aside: its edges are the same float64 from the eye
+    (the projection divided by zero). Refused in one line, naming the tile; from half a metre
+    the same tile is projected to finite matrices."""
+    with pytest.raises(InputError, match="too far for float64 to tell its edges apart"):
+        Frame.from_dict({**NO_MOVE, "eye": [1e8, 0.0, 0.0]}, Wall.from_dict(wall))
+    w = Wall.from_dict(wall)
+    frame = Frame.from_dict({**NO_MOVE, "eye": [0.0, 0.0, 0.5]}, w)
+    near, far = np.full(w.tiles, w.near), np.full(w.tiles, w.far)
+    assert np.isfinite(tile_projections(w, frame, near, far)).all()
+
+
+def test_a_degenerate_screen_says_what_its_edges_need():
+    with pytest.raises(InputError, match=r"longer than 1e-9 of .* \(2 m\), got 1e-09 x 1e-09 m"):
+        Wall.from_dict({"screens": [screen([0, 0, -2], [1e-9, 0, -2], [0, 1e-9, -2])]})

@@ -136,8 +136,9 @@ class ScreenSpec(Document):
         width, height = np.linalg.norm(u), np.linalg.norm(v)
         scale = max(width, height, np.abs(bl).max(), 1e-300)
         if not (width > 1e-9 * scale and height > 1e-9 * scale):
-            raise _refuse("degenerate", "is degenerate: its edges need positive lengths, got "
-                          f"{width:g} x {height:g} m")
+            raise _refuse("degenerate", "is degenerate: each edge must be longer than 1e-9 of "
+                          f"the largest of its edges and its corner's coordinates ({scale:g} m), "
+                          f"got {width:g} x {height:g} m")
         if abs(u @ v) > RIGHT_ANGLE * width * height:
             angle = math.degrees(math.acos(np.clip(u @ v / width / height, -1, 1)))
             raise _refuse("rectangle", "is not a rectangle: its bottom and left edges meet at "

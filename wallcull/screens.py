@@ -36,6 +36,7 @@ from numba import njit
 
 from .documents import ScreensSpec, parse
 from .errors import InputError
+from .validate import RESOLVABLE, check_resolvable
 
 #: Most planes of the cone bounding all screens (the primary bound keeps at most 63 planes).
 MAX_CONE = 48
@@ -125,6 +126,17 @@ class ScreensWall:
             raise InputError(f"{what} {np.round(eye, 9).tolist()} is {distance[t]:.6g} m in front "
                              f"of screen {t}: it must be on its seen side, farther than near = "
                              f"{self.near:g}")
+        least, reach = self._resolution
+        if least < RESOLVABLE * (math.hypot(*eye.tolist()) + reach):  # else far enough
+            reach = np.linalg.norm(self.quads - eye, axis=2).max(axis=1)
+            t = int(np.argmin(self.size.min(axis=1) / reach))
+            check_resolvable(eye, float(self.size[t].min()), float(reach[t]), f"screen {t},",
+                             what)
+
+    @cached_property
+    def _resolution(self) -> tuple[float, float]:
+        """The least side of any screen, and the farthest corner from the origin."""
+        return float(self.size.min()), float(np.linalg.norm(self.quads, axis=2).max())
 
     @cached_property
     def pitch(self) -> tuple[float, float]:

@@ -25,6 +25,23 @@ MAX_COORDINATE = 1e15
 MAX_OCCLUDER_TRIANGLES = 10_000_000
 MIN_TEXELS, MAX_TEXELS = 2, 512
 
+#: The least a tile may span of its distance from the eye. At 1e-10 its edges seen from the
+#: eye are 450,000 ulps apart, and its corners land within about 2e-6 of NDC's (a 25th of a
+#: pixel of a 16k tile); a tile a few ulps wide from there would be projected as noise, or
+#: with a division by zero.
+RESOLVABLE = 1e-10
+
+
+def check_resolvable(eye, size: float, distance: float, which: str,
+                     what: str) -> None:
+    """InputError unless ``size`` (a tile's least side) spans at least :data:`RESOLVABLE` of
+    ``distance`` (its farthest corner's from ``eye``)."""
+    if not size >= RESOLVABLE * distance:
+        raise InputError(f"{what} {[round(float(v), 9) for v in eye]} is {distance:.3g} m from "
+                         f"{which} {size:.3g} m across: too far for float64 to tell its edges "
+                         f"apart (a tile must span at least {RESOLVABLE:g} of its distance "
+                         f"from the eye)")
+
 
 def parse_tiles(spec: str, count: int | None = None) -> list[int]:
     """``"0-63"``, ``"0,2,5-7"`` or ``"all"`` (needs ``count``) to sorted tile ids, each below

@@ -28,7 +28,7 @@ from numba import njit
 
 from . import documents
 from .errors import InputError
-from .validate import MAX_TILES
+from .validate import MAX_TILES, RESOLVABLE, check_resolvable
 
 @dataclass(frozen=True)
 class Wall:
@@ -124,11 +124,23 @@ class Wall:
         }
 
     def check_eye(self, eye: np.ndarray, what: str = "frame eye") -> None:
-        """An eye must be strictly in front of the wall (SPEC section 3)."""
+        """An eye must be strictly in front of the wall (SPEC section 3), and near enough for
+        float64 to tell a tile's edges apart (:func:`check_resolvable`)."""
         if not eye[2] > -self.distance + self.near:
             raise InputError(
                 f"{what} z={eye[2]:g} is not in front of the wall: it must exceed "
                 f"-distance + near = {-self.distance + self.near:g}")
+        size, corners, reach = self._resolution
+        if size < RESOLVABLE * (math.hypot(*eye.tolist()) + reach):  # else far enough
+            check_resolvable(eye, size, np.linalg.norm(corners - eye, axis=1).max(), "a tile",
+                             what)
+
+    @cached_property
+    def _resolution(self) -> tuple[float, np.ndarray, float]:
+        """A tile's least side, the wall's corners and their farthest from the origin."""
+        (x0, x1), (y0, y1) = self.col_edges[[0, -1], [0, 1]], self.row_edges[[-1, 0], [0, 1]]
+        corners = np.array([[x, y, -self.distance] for x in (x0, x1) for y in (y0, y1)])
+        return min(self.tile_size), corners, float(np.linalg.norm(corners, axis=1).max())
 
     @property
     def tiles(self) -> int:
