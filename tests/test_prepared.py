@@ -131,20 +131,34 @@ def bad_header(path):
     path.write_bytes(bytes(data))
 
 
-def bad_table(path):
-    """A header that parses, but whose array table points outside the data."""
+def rewrite_header(path, change):
+    """The header, parsed, changed by ``change`` and written back in the same length."""
     import json
 
     data = path.read_bytes()
     length = int(np.frombuffer(data[8:16], "<u8")[0])
     header = json.loads(data[16:16 + length])
-    header["arrays"]["parent"][2] = 10**12
+    change(header)
     text = json.dumps(header).encode().ljust(length)[:length]
     path.write_bytes(data[:16] + text + data[16 + length:])
 
 
+def bad_table(path):
+    """A header that parses, but whose array table points outside the data."""
+    rewrite_header(path, lambda h: h["arrays"]["parent"].__setitem__(2, 10**12))
+
+
+def arrays_a_list(path):
+    """A header of the wrong shape: its table of arrays a list."""
+    rewrite_header(path, lambda h: h.__setitem__("arrays", []))
+
+
+def meta_a_list(path):
+    rewrite_header(path, lambda h: h.__setitem__("meta", [["key", 1]]))
+
+
 @pytest.mark.parametrize("damage", [flip_a_data_byte, truncate, extend, garbage, bad_header,
-                                    bad_table])
+                                    bad_table, arrays_a_list, meta_a_list])
 def test_a_corrupt_prepared_file_is_refused_and_rebuilt(damage, caplog):
     path, _ = prepare("fatehpur")
     damage(path)

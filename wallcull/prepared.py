@@ -131,6 +131,9 @@ def _header(f, size: int) -> tuple[dict, int]:
         raise Corrupt("truncated header")
     try:
         header = json.loads(f.read(length))
+        if not (isinstance(header, dict) and isinstance(header.get("arrays"), dict)
+                and isinstance(header.get("meta"), dict)):
+            raise Corrupt("a header of the wrong shape")
         start = _aligned(16 + length)
         end = start + int(header["data_bytes"])
         for name, (dtype, shape, offset, nbytes) in header["arrays"].items():
@@ -138,10 +141,10 @@ def _header(f, size: int) -> tuple[dict, int]:
             if (dt.hasobject or int(np.prod(shape, dtype=np.int64)) * dt.itemsize != nbytes
                     or offset % _ALIGN or offset < 0 or start + offset + nbytes > end):
                 raise Corrupt(f"array {name!r} does not fit its table entry")
-        int(header["data_crc32"]), dict(header["meta"])
+        int(header["data_crc32"])
     except Corrupt:
         raise
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise Corrupt(f"unreadable header ({type(exc).__name__})") from None
     if end != size:
         raise Corrupt(f"{size} bytes where the header says {end}")
