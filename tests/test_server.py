@@ -913,7 +913,7 @@ def _bad_glbs():
                                                         "byteLength": 64}]}, b""), "cannot"),
         ("no-geometry", glb_build({"asset": {"version": "2.0"}, "scenes": [{"nodes": [0]}],
                                    "nodes": [{"name": "empty"}]}, b""), "no geometry"),
-        ("nan-vertices", glb_build(doc, bytes(nan)), "geometry"),
+        ("nan-vertices", glb_build(doc, bytes(nan)), "vertex that is not finite"),
         ("node-cycle", glb_build({**doc, "nodes": [{"name": "a", "children": [1], "mesh": 0},
                                                    {"name": "b", "children": [0], "mesh": 1}],
                                   "scenes": [{"nodes": [0]}]}, binary), "cycle"),

@@ -5,6 +5,7 @@ whose memory and time are limited."""
 from __future__ import annotations
 
 import json
+import re
 import os
 
 import numpy as np
@@ -228,3 +229,76 @@ def test_a_child_takes_the_settings_its_parent_has_when_it_starts(monkeypatch):
     assert probe() == "after"
     monkeypatch.delenv("WALLCULL_PROBE")
     assert probe() is None
+
+
+def box_glb(vertices=BOX_V, faces=BOX_F, **change) -> bytes:
+    """The box GLB with other vertex and face bytes (the same counts)."""
+    doc, _ = box_doc(**change)
+    return glb(doc, np.asarray(vertices, "<f4").tobytes() + np.asarray(faces, "<u4").tobytes())
+
+
+def _with(array, at, value):
+    out = np.array(array)
+    out[at] = value
+    return out
+
+
+@pytest.mark.parametrize("data, detail", [
+    (box_glb(faces=_with(BOX_F, (3, 2), 99)), "mesh .* has a face naming vertex 99, outside "
+                                              "its 8 vertices"),
+    (box_glb(vertices=_with(BOX_V, (2, 1), np.nan)), r"has a vertex that is not finite \(vertex 2"),
+    (box_glb(vertices=_with(BOX_V, (5, 0), np.inf)), r"has a vertex that is not finite \(vertex 5"),
+    (box_glb(nodes=[{"name": "x\ud800y", "mesh": 0}]), "node name 'x\\\\ud800y' is not valid "
+                                                        "Unicode"),
+], ids=["index", "nan", "inf", "surrogate"])
+def test_a_mesh_or_name_that_cannot_be_drawn_is_refused_on_every_path(tmp_path, data, detail):
+    """Refused in one line, naming the mesh or node, whether uploaded or read by a command:
+    a face past its vertices used to be stored, served to the nodes and then fail the
+    occlusion (a 500) or use another mesh's vertex; a vertex not finite dropped its mesh in
+    silence; a name with half a surrogate pair was stored, then could not be prepared."""
+    from wallcull.scene import load
+    from wallcull.uploads import parse_glb
+
+    path = tmp_path / "bad.glb"
+    path.write_bytes(data)
+    with pytest.raises(InputError, match=detail):
+        parse_glb(str(path), "bad.glb", Limits())
+    with pytest.raises(InputError, match=detail):
+        load(str(path), cache="off")
+
+
+def test_every_primitive_of_a_mesh_is_loaded_however_the_random_names_fall(monkeypatch):
+    """trimesh names a mesh's extra primitives with 6 random hex digits, and two alike drop
+    one: with the random source stuck (every draw alike), all 40 are still there, named by
+    their geometry, the same on every load."""
+    import random
+
+    from wallcull.scene import Scene, read_glb
+
+    doc, binary = box_doc()
+    doc["meshes"][0]["primitives"] *= 40
+    data = glb(doc, binary)
+    monkeypatch.setattr(random, "getrandbits", lambda bits: 12345)
+    import io
+
+    scenes = [Scene.from_trimesh(read_glb(io.BytesIO(data))) for _ in range(2)]
+    assert scenes[0].stats["leaves"] == 40
+    assert scenes[0].names == scenes[1].names
+
+
+@pytest.mark.parametrize("change, detail", [
+    ({"nodes": [{"name": "box", "mesh": 0, "scale": [1e300, 1, 1]}]}, "cannot be bounded|not "
+                                                                      "finite|too large"),
+    ({"nodes": [{"name": "a", "children": [1]}, {"name": "b", "children": [0], "mesh": 0}]},
+     "no node that carries geometry"),
+], ids=["huge-scale", "cycle"])
+def test_a_command_refuses_a_file_an_upload_refuses(tmp_path, capsys, change, detail):
+    """The command line reads files through the same checks as uploads: one line, status 2
+    (it was an internal error, status 1)."""
+    from wallcull import cli
+
+    path = tmp_path / "odd.glb"
+    path.write_bytes(box_glb(**change))
+    assert cli.main(["walk", str(path), "--frames", "1"]) == 2
+    err = capsys.readouterr().err
+    assert re.search(detail, err) and len(err.strip().splitlines()) == 1, err

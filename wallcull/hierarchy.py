@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .clusters import resolve as resolve_clusters
+from .errors import InputError
 from .instances import MeshTable, instance_extremes
 
 # trimesh names the extra primitives of a multi-primitive glTF mesh "<node>_<6 random hex>";
@@ -51,12 +52,16 @@ class NodeTable:
 
 def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     """The node tree and mesh templates of a ``trimesh.Scene``, in depth-first order from its
-    base frame (children in the graph's order). Meshes without finite vertices count as none."""
+    base frame (children in the graph's order). Meshes without vertices count as none; a mesh
+    with a vertex that is not finite, a face that is no triangle or that names a vertex it has
+    not, or a name that is not Unicode, is refused (:class:`InputError`, naming it): dropped,
+    it would take its nodes with it in silence, and kept, it would be drawn and occlude wrong."""
     meshes, see_through = {}, []
     for key, geom in scene.geometry.items():
         vertices = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64)
-        if len(vertices) and np.isfinite(vertices).all():
+        if len(vertices):
+            _check_mesh(_text(key, "mesh"), vertices, faces)
             meshes[key] = (vertices.reshape(-1, 3), faces.reshape(-1, 3))
             see_through.append(_see_through(geom))
     index = {k: i for i, k in enumerate(meshes)}
@@ -71,7 +76,7 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
         data = edge_data.get((parents.get(node), node), {}) if up >= 0 else {}
         matrix = data.get("matrix", eye)
         geom = data.get("geometry", node_data.get(node, {}).get("geometry"))
-        name = str(node)
+        name = _text(str(node), "node")
         if up >= 0 and geom is not None:
             match = _RANDOM_SUFFIX.match(name)
             if match and match["node"] == names[up] and np.allclose(matrix, eye):
@@ -86,6 +91,33 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
                       np.array(local, dtype=np.float64).reshape(-1, 4, 4),
                       np.array(mesh, dtype=np.int64)),
             MeshTable.from_meshes(meshes, see_through))
+
+
+def _text(name: str, what: str) -> str:
+    """``name``, if it is Unicode that can be written down (UTF-8): JSON lets a file name a
+    node with half a surrogate pair, which no prepared file, packet or page can hold."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{what} name {name!r} is not valid Unicode (half a surrogate pair)"
+                         ) from None
+    return name
+
+
+def _check_mesh(key: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+    if not np.isfinite(vertices).all():
+        bad = int(np.flatnonzero(~np.isfinite(vertices).all(axis=-1))[0])
+        raise InputError(f"mesh {key!r} has a vertex that is not finite (vertex {bad}: "
+                         f"{vertices[bad].tolist()})")
+    if not faces.size:
+        return
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(f"mesh {key!r} has faces that are not triangles (shape "
+                         f"{list(faces.shape)})")
+    lo, hi = int(faces.min()), int(faces.max())
+    if lo < 0 or hi >= len(vertices):
+        raise InputError(f"mesh {key!r} has a face naming vertex {lo if lo < 0 else hi}, "
+                         f"outside its {len(vertices)} vertices")
 
 
 #: An MTL illumination model with transparency (glass, refraction).

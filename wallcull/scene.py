@@ -26,9 +26,11 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import itertools
 import logging
 import os
 import re
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -543,6 +545,32 @@ def node_matrix(value: Any, name: str = "node") -> np.ndarray:
 # --------------------------------------------------------------------------- loading
 
 
+_READING = threading.Lock()
+
+
+def _trimesh_load(source, **kwargs):
+    """``trimesh.load``, one at a time, naming a glTF mesh's extra primitives by a count
+    rather than trimesh's 6 random hex digits: two of those alike drop a primitive (a node of
+    2,000 primitives lost one in about eight loads), and the leaf ids would move from one load
+    of the same file to the next. (Their names then become ``<node>:<geometry>``:
+    :func:`wallcull.hierarchy.read_trimesh`.)"""
+    import trimesh
+
+    count = itertools.count(1)
+    with _READING:
+        random_id, trimesh.util.unique_id = trimesh.util.unique_id, \
+            lambda length=12: f"{next(count):0{length}x}"
+        try:
+            return trimesh.load(source, **kwargs)
+        finally:
+            trimesh.util.unique_id = random_id
+
+
+def read_glb(data):
+    """A GLB (a file object) read as :func:`load_trimesh` reads files."""
+    return _trimesh_load(data, file_type="glb")
+
+
 def load_trimesh(path: str | os.PathLike):
     """Read a scene file with trimesh (SPEC section 4), with a one-line error on failure."""
     import trimesh
@@ -552,7 +580,7 @@ def load_trimesh(path: str | os.PathLike):
         raise InputError(f"scene file not found: {path}")
     kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
     try:
-        loaded = trimesh.load(str(path), **kwargs)
+        loaded = _trimesh_load(str(path), **kwargs)
     except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
         # (trimesh re-raises a reader's import error from its message alone: no name)
         needs = exc.name or next(iter(re.findall(r"named '([\w.]+)'", str(exc))), None)
@@ -566,6 +594,23 @@ def load_trimesh(path: str | os.PathLike):
     if not loaded.geometry:
         raise InputError(f"scene {path.name} has no geometry")
     return loaded
+
+
+def usable(scene):
+    """``scene``, once it is known to have leaves and finite bounds (computed here, in the
+    loading process or thread, rather than by the first wall): a file can be well formed and
+    still carry no drawable node, NaN vertices or transforms that overflow."""
+    if not len(scene.leaves):
+        raise InputError(f"scene {scene.name!r} has no node that carries geometry")
+    if not np.isfinite(scene.box).all():
+        raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
+    try:
+        b = scene.bounds("obb")
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        raise InputError(f"scene {scene.name!r} cannot be bounded: {exc}") from None
+    if not all(np.isfinite(a).all() for a in (b.center, b.axes, b.half, b.radius)):
+        raise InputError(f"scene {scene.name!r} is too large to bound in float64")
+    return scene
 
 
 @dataclass(frozen=True)
@@ -636,7 +681,9 @@ class Source:
               read: tuple | None = None) -> Scene:
         """The scene built from its source, or from what :meth:`read` gave."""
         nodes, meshes = read or self.read()
-        return Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching, clusters=clusters)
+        with np.errstate(all="ignore"):  # odd files overflow on their way to being refused
+            return usable(Scene.from_nodes(nodes, meshes, self.name, hierarchy, branching,
+                                           clusters=clusters))
 
     def prepared(self, hierarchy: str, branching: int, clusters: int | str | None
                  ) -> tuple[Path, dict]:

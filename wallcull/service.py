@@ -36,8 +36,8 @@ from .limits import Limits
 from .occlude import OcclusionOptions
 from .persist import StateFolder, StateWriteFailed, WallRow
 from .pipeline import Session
-from .scene import Scene, bounds_of, load, prepare_path
-from .uploads import parse_sandboxed, usable
+from .scene import Scene, bounds_of, load, prepare_path, usable
+from .uploads import parse_sandboxed
 from .validate import MAX_FRAME
 from .wall import Frame, Wall
 from .workers import background

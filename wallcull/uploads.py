@@ -260,25 +260,6 @@ def _no_cycle(parents: list[int]) -> None:
             state[k] = 2
 
 
-def usable(scene):
-    """``scene``, once it is known to have leaves and finite bounds (computed here, in the
-    loading process or thread, rather than by the first wall): a file can be well formed and
-    still carry no drawable node, NaN vertices or transforms that overflow."""
-    import numpy as np
-
-    if not len(scene.leaves):
-        raise InputError(f"scene {scene.name!r} has no node that carries geometry")
-    if not np.isfinite(scene.box).all():
-        raise InputError(f"scene {scene.name!r} has vertices that are not finite in the world")
-    try:
-        b = scene.bounds("obb")
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-        raise InputError(f"scene {scene.name!r} cannot be bounded: {exc}") from None
-    if not all(np.isfinite(a).all() for a in (b.center, b.axes, b.half, b.radius)):
-        raise InputError(f"scene {scene.name!r} is too large to bound in float64")
-    return scene
-
-
 # --------------------------------------------------------------------------- the parse
 
 
@@ -288,14 +269,14 @@ def parse_glb(path: str, name: str, limits: Limits):
     import numpy as np
     import trimesh
 
-    from .scene import Scene
+    from .scene import Scene, read_glb, usable
 
     data = Path(path).read_bytes()
     doc, binary = check_glb(data, limits)
     import io
 
     try:  # its materials without their images: what occludes needs their alphaMode alone
-        loaded = trimesh.load(io.BytesIO(_without_images(doc, binary)), file_type="glb")
+        loaded = read_glb(io.BytesIO(_without_images(doc, binary)))
     except MemoryError:
         raise
     except Exception as exc:  # noqa: BLE001 - a parser failure is bad input
