@@ -92,6 +92,13 @@ REFUSED = [  # (id, GLB, detail)
     ("scene-root", changed("scenes.0.nodes", [3]), "scene 0 node"),
     ("required-extension", changed("extensionsRequired", ["KHR_draco_mesh_compression"]),
      "extensions"),
+    ("children-not-a-list", changed("nodes.0.children", 5), "node 0 children must be a list"),
+    ("roots-not-a-list", changed("scenes.0.nodes", 0), "scene 0 nodes must be a list"),
+    ("float-indices", changed("accessors.1.componentType", 5126),
+     "indices must be unsigned integer SCALARs"),
+    ("positions-not-floats", changed("meshes.0.primitives.0.attributes.POSITION", 1),
+     "POSITION must be float VEC3"),
+    ("mode", changed("meshes.0.primitives.0.mode", 9), "mode"),
     ("vertex-bomb", vertex_bomb(10 ** 8), "declares"),
     ("issue-10-file", vertex_bomb(9_999_999), "draws 9,999,999 vertices"),
 ]
@@ -122,6 +129,24 @@ def test_two_parents_and_cycles_are_refused():
                                  {"name": "b", "children": [2]}, {"name": "c", "children": [0]}])
     with pytest.raises(InputError, match="cycle"):
         check_glb(glb(doc, binary), Limits())
+
+
+def test_what_the_file_builds_counts_against_the_limits():
+    """Limits hold on what a file makes, not on its declarations: a mesh's primitives beyond
+    its first are a node each, and a strip of n indices draws n - 2 triangles (not n / 3)."""
+    doc, binary = box_doc()
+    doc["meshes"][0]["primitives"] *= 300
+    data = glb(doc, binary)
+    check_glb(data, Limits(nodes=301))
+    with pytest.raises(InputError, match="makes 301 nodes"):
+        check_glb(data, Limits(nodes=300))
+    doc, binary = box_doc()
+    doc["meshes"][0]["primitives"][0]["mode"] = 5  # a strip of 12 indices: 10 triangles
+    check_glb(glb(doc, binary), Limits(faces=10))
+    with pytest.raises(InputError, match="10 triangles"):
+        check_glb(glb(doc, binary), Limits(faces=9))
+    doc["meshes"][0]["primitives"][0]["mode"] = 1  # lines: none
+    check_glb(glb(doc, binary), Limits(faces=0))
 
 
 def test_instances_count_against_the_limits():

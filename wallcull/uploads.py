@@ -10,10 +10,13 @@ turns into gigabytes of zeros (and trimesh into more). So before any reader sees
   no longer than the bytes present;
 * every buffer view lies inside its buffer, with a legal ``byteStride``;
 * every accessor (and the index and value parts of a sparse one) lies inside its buffer view,
-  with a known component type and element type;
+  with a known component type and element type; a primitive's positions are float triples
+  and its indices unsigned integers;
 * nodes form a forest (no node with two parents, no cycle, no index out of range);
-* the totals stay within :class:`wallcull.limits.Limits`: nodes, vertices and triangles counted
-  once per node that draws them, and the bytes every accessor declares.
+* the totals stay within :class:`wallcull.limits.Limits`: nodes (a mesh's primitives beyond
+  its first each become one), vertices and triangles (a strip or fan of n indices draws
+  n - 2, points and lines none) counted once per node that draws them, and the bytes every
+  accessor declares.
 
 Whatever a check misses, the parse itself (trimesh, then :meth:`Scene.from_trimesh` and the
 bounds) runs in a child process with a memory limit and a deadline (:mod:`wallcull.sandbox`):
@@ -36,6 +39,9 @@ GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
 COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
 ELEMENT_SIZE = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
 INDEX_TYPES = (5121, 5123, 5125)
+FLOAT = 5126
+#: A primitive's mode: 4 triangles (the default), 5 a strip, 6 a fan; 0 to 3 points and lines.
+TRIANGLES = 4
 #: glTF counts and offsets are unsigned 32-bit at most in practice; anything larger is a lie.
 MAX_INT = 1 << 32
 
@@ -202,19 +208,29 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
                          f"{limits.nodes:,}")
     parents = [-1] * len(nodes)
     vertices = faces = 0
+    built = len(nodes)  # and a node more for each primitive of a mesh beyond its first
     for i, node in enumerate(nodes):
-        for child in node.get("children", []):
+        children = node.get("children", [])
+        if not isinstance(children, list):
+            raise InputError(f"the uploaded GLB's node {i} children must be a list")
+        for child in children:
             c = _index(child, nodes, f"node {i} child")
             if parents[c] != -1 or c == i:
                 raise InputError(f"the uploaded GLB's node {c} has two parents or is its own: "
                                  "glTF nodes form a tree")
             parents[c] = i
         if "mesh" in node:
-            v, f = per_mesh[_index(node["mesh"], meshes, f"node {i} mesh")]
-            vertices, faces = vertices + v, faces + f
+            v, f, p = per_mesh[_index(node["mesh"], meshes, f"node {i} mesh")]
+            vertices, faces, built = vertices + v, faces + f, built + (p if p > 1 else 0)
+    if built > limits.nodes:
+        raise InputError(f"the uploaded GLB makes {built:,} nodes (a mesh's primitives beyond "
+                         f"its first are one each); a scene may have at most {limits.nodes:,}")
     _no_cycle(parents)
     for k, scene in enumerate(_list(doc, "scenes")):
-        for root in scene.get("nodes", []):
+        roots = scene.get("nodes", [])
+        if not isinstance(roots, list):
+            raise InputError(f"the uploaded GLB's scene {k} nodes must be a list")
+        for root in roots:
             _index(root, nodes, f"scene {k} node")
     if vertices > limits.vertices or faces > limits.faces:
         raise InputError(f"the uploaded GLB draws {vertices:,} vertices and {faces:,} triangles "
@@ -223,25 +239,38 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
     return doc, binary
 
 
-def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int]:
-    """Vertices and triangles one instance of mesh ``k`` declares."""
+def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int, int]:
+    """Vertices, triangles and primitives one instance of mesh ``k`` declares."""
     vertices = faces = 0
     prims = mesh.get("primitives", [])
     if not isinstance(prims, list) or not all(isinstance(p, dict) for p in prims):
         raise InputError(f"the uploaded GLB's mesh {k} primitives are malformed")
-    for p in prims:
+    for j, p in enumerate(prims):
+        what = f"mesh {k} primitive {j}"
         attributes = p.get("attributes", {})
         if not isinstance(attributes, dict):
             raise InputError(f"the uploaded GLB's mesh {k} attributes are malformed")
         for name, a in attributes.items():
             _index(a, accessors, f"mesh {k} attribute {name}")
-        n = accessors[attributes["POSITION"]]["count"] if "POSITION" in attributes else 0
+        n = 0
+        if "POSITION" in attributes:
+            position = accessors[attributes["POSITION"]]
+            if position["componentType"] != FLOAT or position["type"] != "VEC3":
+                raise InputError(f"the uploaded GLB's {what} POSITION must be float VEC3 "
+                                 f"(componentType {FLOAT}), got {position['type']} of "
+                                 f"{position['componentType']}")
+            n = position["count"]
         vertices += n
         if "indices" in p:
-            faces += accessors[_index(p["indices"], accessors, f"mesh {k} indices")]["count"] // 3
-        else:
-            faces += n // 3
-    return vertices, faces
+            indices = accessors[_index(p["indices"], accessors, f"{what} indices")]
+            if indices["componentType"] not in INDEX_TYPES or indices["type"] != "SCALAR":
+                raise InputError(f"the uploaded GLB's {what} indices must be unsigned integer "
+                                 f"SCALARs (componentType {', '.join(map(str, INDEX_TYPES))}), "
+                                 f"got {indices['type']} of {indices['componentType']}")
+            n = indices["count"]
+        mode = _int(p.get("mode", TRIANGLES), f"{what} mode", 0, 6)
+        faces += n // 3 if mode == TRIANGLES else max(n - 2, 0) if mode > TRIANGLES else 0
+    return vertices, faces, len(prims)
 
 
 def _no_cycle(parents: list[int]) -> None:
