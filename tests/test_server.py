@@ -1525,3 +1525,20 @@ def test_a_wall_can_say_what_never_occludes(client):
     assert r.status_code == 422 and "no such node" in r.text, r.text
     for wid in wids.values():
         client.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_scene_a_wall_is_being_made_on_is_not_replaced(client, folder):
+    """Replaced while a wall was being made on it (the scene loaded and bounded, the wall
+    built: seconds), a scene was culled as the old file while the server served the new one:
+    the nodes asked for meshes of ids the new scene has not."""
+    old, new = boxes_glb(("a", "b")), boxes_glb(("c",))
+    assert client.post("/scenes?name=making.glb", content=old, headers=AUTH).status_code == 201
+    try:
+        with client.app.state.server.walls.reservation("making.glb"):
+            r = client.post("/scenes?name=making.glb&replace=true", content=new, headers=AUTH)
+            assert r.status_code == 409 and "one being made" in r.json()["detail"], r.text
+        assert (folder.scenes / "making.glb").read_bytes() == old
+        r = client.post("/scenes?name=making.glb&replace=true", content=new, headers=AUTH)
+        assert r.status_code == 201, r.text
+    finally:
+        (folder.scenes / "making.glb").unlink()

@@ -756,6 +756,7 @@ class Walls:
         #: walls of the state folder waiting for their scene: id -> (row, why)
         self.unavailable: dict[str, tuple[WallRow, str]] = {}
         self.reserved = 0  # walls being made
+        self.making: dict[str, int] = {}  # how many on each scene
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
                history: int, fit: FitOptions = FitOptions(), nodes=None,
@@ -767,21 +768,27 @@ class Walls:
         mirrors for this wall instead of the scene's own. With a state folder, the wall is
         written down before it is returned. (The server does the same in steps: the slow ones
         in a worker thread, :meth:`reservation`, :meth:`build`, :meth:`register`.)"""
-        with self.reservation():
+        with self.reservation(scene.name):
             session, grants = self.build(scene, wall, method, bounds, pseudo_groups, history,
                                          fit, nodes, settings, occlusion)
             self.register(session, grants)
         return session
 
     @contextmanager
-    def reservation(self):
-        """Hold a place for a wall being made (refused when there is none: 409)."""
+    def reservation(self, scene: str):
+        """Hold a place for a wall being made on ``scene`` (refused when there is none: 409),
+        and the scene with it: an upload may not replace a scene while a wall is being made
+        on it, which would cull the old scene while the server serves the new one."""
         self.check_room()
         self.reserved += 1
+        self.making[scene] = self.making.get(scene, 0) + 1
         try:
             yield
         finally:
             self.reserved -= 1
+            self.making[scene] -= 1
+            if not self.making[scene]:
+                del self.making[scene]
 
     def check_room(self) -> None:
         if len(self.sessions) + len(self.unavailable) + self.reserved >= self.limit:
@@ -939,7 +946,7 @@ class Walls:
     def scene_names(self) -> dict[str, set[str]]:
         """The scenes walls use, with the walls' ids (the scene cache keeps them; an upload
         may not replace them; an unavailable wall's scene may be uploaded again)."""
-        out: dict[str, set[str]] = {}
+        out: dict[str, set[str]] = {name: {"one being made"} for name in self.making}
         for w in self.sessions.values():
             out.setdefault(w.scene.name, set()).add(w.id)
         return out

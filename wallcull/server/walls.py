@@ -55,7 +55,7 @@ async def create_wall(request: Request, state: State,
     settings = None if body.settings is None else body.settings.model_dump(exclude_unset=True, exclude_none=True)
     if settings is not None:
         cfg.parse(settings)  # refused here, with its reason, not at the first frame
-    with state.walls.reservation():  # a place for it, before any work
+    with state.walls.reservation(body.scene):  # a place for it, before any work
         scene = await state.store.get(body.scene)
         await state.store.bounds(scene, body.bounds)  # in a child process, with a time budget
         fit = FitOptions(body.depth, body.reversed_z, body.shadow_fit)
