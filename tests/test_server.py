@@ -1542,3 +1542,26 @@ def test_a_scene_a_wall_is_being_made_on_is_not_replaced(client, folder):
         assert r.status_code == 201, r.text
     finally:
         (folder.scenes / "making.glb").unlink()
+
+
+def test_an_upload_killed_with_its_server_leaves_no_spool_behind(folder):
+    """A server killed while receiving an upload left its spooled body in the scene folder,
+    forever. Spools older than any upload could still be written and parsed are removed;
+    a spool of an upload in progress is not."""
+    import time
+
+    from wallcull.service import SceneStore
+
+    store = SceneStore(folder.scenes)
+    stale, fresh = (folder.scenes / ".upload.stale.tmp", folder.scenes / ".upload.fresh.tmp")
+    for path in (stale, fresh):
+        path.write_bytes(b"half a body")
+    old = time.time() - (store.limits.body_seconds + store.limits.parse_seconds + 61)
+    os.utime(stale, (old, old))
+    try:
+        assert store.sweep() == [".upload.stale.tmp"]
+        assert not stale.exists() and fresh.exists()
+        assert (folder.scenes / "two.glb").exists()
+    finally:
+        for path in (stale, fresh):
+            path.unlink(missing_ok=True)

@@ -204,6 +204,24 @@ class SceneStore:
             raise Conflict(f"scene {name!r} is used by wall(s) {', '.join(sorted(users))}; "
                            "delete them first, or upload under another name")
 
+    def sweep(self, now: float | None = None) -> list[str]:
+        """Remove the spooled bodies (:meth:`spool`) no upload can still be writing or
+        parsing: older than a body may take to arrive and be parsed, and a minute (a server
+        killed mid-upload leaves its spool behind); returns their names."""
+        if self.folder is None or not self.folder.is_dir():
+            return []
+        limit = (time.time() if now is None else now) - (
+            self.limits.body_seconds + self.limits.parse_seconds + 60)
+        gone = []
+        for path in self.folder.glob(".upload.*.tmp"):
+            try:
+                if path.is_file() and path.stat().st_mtime < limit:
+                    path.unlink()
+                    gone.append(path.name)
+            except OSError:
+                continue  # taken by its upload meanwhile, or not ours to remove
+        return gone
+
     def spool(self):
         """A temporary file for an upload's body, beside its destination (so that moving it
         into the folder is atomic), or in the system's temporary folder without one."""

@@ -215,12 +215,17 @@ RETRY_PERIOD = 5
 
 
 async def _keep(server: ServerState, wall_ttl: float | None) -> None:
-    """Chores while the server runs: bring back walls whose scenes came back, and delete
-    walls idle longer than ``wall_ttl`` seconds (no frame posted, no stream open)."""
+    """Chores while the server runs: bring back walls whose scenes came back, delete walls
+    idle longer than ``wall_ttl`` seconds (no frame posted, no stream open), and remove the
+    spooled bodies of uploads that will never end (:meth:`SceneStore.sweep`)."""
     period = RETRY_PERIOD if not wall_ttl else min(RETRY_PERIOD, max(wall_ttl / 4, 0.1))
     while True:
         await asyncio.sleep(period)
         try:
+            swept = await background(server.store.sweep)
+            if swept:
+                log.info("removed the spooled bodies of uploads that ended with no answer: %s",
+                         ", ".join(swept))
             if server.walls.unavailable:
                 restored = await server.walls.retry(server.store)
                 if restored:
