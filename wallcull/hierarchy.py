@@ -28,6 +28,7 @@ import numpy as np
 from .clusters import resolve as resolve_clusters
 from .errors import InputError
 from .instances import MeshTable, instance_extremes
+from .validate import MAX_DEPTH
 
 # trimesh names the extra primitives of a multi-primitive glTF mesh "<node>_<6 random hex>";
 # the names change on every load, so they are replaced with "<node>:<geometry name>".
@@ -70,9 +71,12 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     children = forest.children
     eye = np.eye(4)
     names, parent, local, mesh = [], [], [], []
-    stack = [(scene.graph.base_frame, -1)]
+    stack = [(scene.graph.base_frame, -1, 0)]
     while stack:
-        node, up = stack.pop()
+        node, up, depth = stack.pop()
+        if depth > MAX_DEPTH + 1:  # (below the base frame)
+            raise InputError(f"the scene's nodes are over {MAX_DEPTH:,} deep; a scene's may be "
+                             f"at most {MAX_DEPTH:,}")
         data = edge_data.get((parents.get(node), node), {}) if up >= 0 else {}
         matrix = data.get("matrix", eye)
         geom = data.get("geometry", node_data.get(node, {}).get("geometry"))
@@ -86,7 +90,7 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
         parent.append(up)
         local.append(matrix)
         mesh.append(index.get(geom, -1))
-        stack.extend((child, at) for child in reversed(children.get(node, ())))
+        stack.extend((child, at, depth + 1) for child in reversed(children.get(node, ())))
     return (NodeTable(names, np.array(parent, dtype=np.int64),
                       np.array(local, dtype=np.float64).reshape(-1, 4, 4),
                       np.array(mesh, dtype=np.int64)),

@@ -34,6 +34,7 @@ from pathlib import Path
 
 from .errors import InputError
 from .limits import Limits
+from .validate import MAX_DEPTH
 
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = b"glTF", 0x4E4F534A, 0x004E4942
 COMPONENT_BYTES = {5120: 1, 5121: 1, 5122: 2, 5123: 2, 5125: 4, 5126: 4}
@@ -275,18 +276,23 @@ def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int, int]:
 
 def _no_cycle(parents: list[int]) -> None:
     """Every node's chain of parents reaches a root (each node has one parent at most, so a
-    chain that comes back to itself is the only way not to)."""
-    state = [0] * len(parents)  # 0: not seen, 1: on the chain being walked, 2: reaches a root
+    chain that comes back to itself is the only way not to), in at most ``MAX_DEPTH`` steps."""
+    depth = [-1] * len(parents)  # -1: not seen, -2: on the chain being walked
     for i in range(len(parents)):
         chain, j = [], i
-        while j != -1 and state[j] == 0:
-            state[j] = 1
+        while j != -1 and depth[j] == -1:
+            depth[j] = -2
             chain.append(j)
             j = parents[j]
-        if j != -1 and state[j] == 1:
+        if j != -1 and depth[j] == -2:
             raise InputError("the uploaded GLB's nodes form a cycle")
-        for k in chain:
-            state[k] = 2
+        d = -1 if j == -1 else depth[j]
+        for k in reversed(chain):
+            d += 1
+            depth[k] = d
+        if d > MAX_DEPTH:
+            raise InputError(f"the uploaded GLB's nodes are over {MAX_DEPTH:,} deep; a "
+                             f"scene's may be at most {MAX_DEPTH:,}")
 
 
 # --------------------------------------------------------------------------- the parse
