@@ -1007,6 +1007,31 @@ def test_uploads_without_a_folder_stay_in_memory(tmp_path):
         assert r.status_code == 404 and "no scene folder" in r.json()["detail"]
 
 
+def test_uploads_held_in_memory_stay_within_the_scene_cache():
+    """Uploads a server keeps in memory are never evicted (nothing could load them again):
+    they used to grow past the scene cache with every new name. Within it they are taken,
+    beyond it refused, and a replacement counts instead of what it replaces."""
+    import tempfile
+
+    from wallcull.limits import Limits
+    from wallcull.service import footprint
+    from wallcull.uploads import parse_glb
+
+    one = boxes_glb()
+    with tempfile.NamedTemporaryFile(suffix=".glb") as f:
+        f.write(one)
+        f.flush()
+        size = footprint(parse_glb(f.name, "a.glb", Limits()))
+    with TestClient(create_app(None, token=TOKEN,
+                               limits=Limits(scene_cache=int(2.5 * size)))) as c:
+        for name in ("a", "b"):
+            assert c.post(f"/scenes?name={name}", content=one, headers=AUTH).status_code == 201
+        r = c.post("/scenes?name=c", content=one, headers=AUTH)
+        assert r.status_code == 409 and "in memory only" in r.json()["detail"], r.text
+        assert c.post("/scenes?name=b&replace=true", content=one,
+                      headers=AUTH).status_code == 201
+
+
 # --------------------------------------------------------------------------- barrier, caching
 
 

@@ -239,7 +239,14 @@ class SceneStore:
         self._not_in_use(name)  # a wall may have been created on it meanwhile
         if self.folder is not None:
             os.replace(path, self.folder / name)
-        else:
+        else:  # held in memory for good (never evicted: nothing could load it again)
+            held = footprint(scene) + sum(footprint(s) for n, s in self.uploaded.items()
+                                          if n != name)
+            if held > self.limits.scene_cache:
+                raise Conflict(f"this server keeps uploads in memory only (it has no scene "
+                               f"folder), and with {name!r} they would hold {held:,} bytes, "
+                               f"over its scene cache of {self.limits.scene_cache:,}: give it "
+                               "a folder (--scenes or --state), or replace an upload")
             self.uploaded[name] = scene
         self.remember(name, scene)
         return scene
