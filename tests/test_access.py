@@ -377,3 +377,14 @@ def test_a_big_walls_credentials_are_shown_whole_and_each_holds_its_tiles(client
                               headers=bearer(late["token"])).status_code == status
     finally:
         client.delete(f"/walls/{wid}", headers=OPERATOR)
+
+
+def test_a_query_parameter_given_twice_is_refused(client, wall):
+    """Each parameter takes one value: given twice, one of them was used in silence (the
+    last ``name`` of an upload, the first ``tiles`` of a page)."""
+    wid = wall["id"]
+    for path in (f"/walls/{wid}/view?tiles=0&tiles=1", "/scenes?name=a&name=b",
+                 f"/walls/{wid}/tiles/0/packets/latest?wait=0&wait=0"):
+        r = client.request("POST" if path.startswith("/scenes") else "GET", path,
+                           headers=OPERATOR)
+        assert r.status_code == 422 and "more than once" in html.unescape(r.text), (path, r.text)

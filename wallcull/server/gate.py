@@ -9,7 +9,7 @@ request costs least:
    denied 403 before the handshake completes;
 3. the caller's token is checked against the route's role (:mod:`.access`): 401 or 403,
    **before a byte of the body is read**; then a query parameter the route does not declare
-   is refused (422), as an unknown key of a body is;
+   is refused (422), as an unknown key of a body is, and so is one given twice;
 4. a body is capped (``Content-Length`` first, then as it arrives: 413) and must keep arriving
    (``limits.body_idle`` seconds between chunks, ``limits.body_seconds`` in all: 408).
    Uploads at once are capped by their route, once their name is known to be free (503).
@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import json
 import time
+from collections import Counter
 from urllib.parse import parse_qs, parse_qsl, urlsplit
 
 from starlette.requests import Request
@@ -96,10 +97,15 @@ class Gate:
         check(self.state, role_of(route.endpoint), token, params)
         query = scope.get("query_string", b"")
         if query:  # the schema lists every parameter a route takes: no others, like bodies
-            unknown = {k for k, _ in parse_qsl(query.decode("latin-1"), keep_blank_values=True)
-                       } - query_names(route)
+            keys = Counter(k for k, _ in parse_qsl(query.decode("latin-1"),
+                                                   keep_blank_values=True))
+            unknown = set(keys) - query_names(route)
             if unknown:
                 raise Refused(422, f"unknown query parameter(s): {', '.join(sorted(unknown))}")
+            twice = sorted(k for k, n in keys.items() if n > 1)
+            if twice:  # each takes one value: never whichever of two a parser keeps
+                raise Refused(422, f"query parameter(s) given more than once: "
+                                   f"{', '.join(twice)}")
         if scope["type"] == "websocket" or scope["method"] not in BODY_METHODS:
             return receive
         upload = getattr(route.endpoint, "wallcull_upload", False)
