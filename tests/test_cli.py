@@ -113,10 +113,11 @@ def test_bad_input_exits_2_with_one_line(capsys, argv, message):
 
 
 def test_settings_that_are_no_object_or_say_null_are_handled(capsys, tmp_path):
-    (tmp_path / "list.json").write_text("[1, 2]")
-    code, _, err = run(capsys, "cull", "scenes/TestScene.gltf", "--wall", WALL, "--frame", FRAME,
-                       "--settings", str(tmp_path / "list.json"))
-    assert code == 2 and "settings must be an object" in err
+    for text in ("[1, 2]", "[]", "null"):  # the last two used to be taken for no settings
+        (tmp_path / "list.json").write_text(text)
+        code, _, err = run(capsys, "cull", "scenes/TestScene.gltf", "--wall", WALL, "--frame",
+                           FRAME, "--settings", str(tmp_path / "list.json"))
+        assert code == 2 and "settings must be an object" in err, text
     (tmp_path / "null.json").write_text('{"up": null}')  # the default: +y
     code, out, err = run(capsys, "walk", "scenes/TestScene.gltf", "--frames", "2", "--settings",
                          str(tmp_path / "null.json"))

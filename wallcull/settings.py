@@ -88,7 +88,7 @@ class Settings:
 def parse(raw: Mapping[str, Any] | SettingsSpec | None) -> Settings:
     """Validate a settings document (:class:`~wallcull.documents.SettingsSpec`; see the module
     docstring): refused in one line when it is not one."""
-    doc = documents.parse(SettingsSpec, raw or {}, "settings")
+    doc = documents.parse(SettingsSpec, {} if raw is None else raw, "settings")
     lights = tuple(
         Light(item.name or f"light{k}", np.array(item.position), item.type,
               None if item.type != "spot" else documents.unit(item.direction),
@@ -108,13 +108,18 @@ def parse(raw: Mapping[str, Any] | SettingsSpec | None) -> Settings:
 
 
 def read(path: str | Path) -> dict:
-    """A settings document from a JSON file."""
+    """A settings document from a JSON file: an object (``[]`` or ``null`` is no settings
+    document, where it used to be taken for empty settings)."""
     path = Path(path)
     text = documents.read_text(path, "settings")
     try:
-        return json.loads(text)
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"malformed JSON in {path.name}: {exc}") from None
+    if not isinstance(doc, dict):
+        raise InputError(f"settings must be an object, got "
+                         f"{type(doc).__name__ if doc is not None else 'null'} in {path.name}")
+    return doc
 
 
 def sidecar(scene_path: str | Path) -> dict:
