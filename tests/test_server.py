@@ -1590,3 +1590,13 @@ def test_an_upload_killed_with_its_server_leaves_no_spool_behind(folder):
     finally:
         for path in (stale, fresh):
             path.unlink(missing_ok=True)
+
+
+def test_an_upload_cannot_take_the_place_of_a_folder(client, folder):
+    (folder.scenes / "dir.glb").mkdir()
+    try:
+        r = client.post("/scenes?name=dir.glb&replace=true", content=boxes_glb(), headers=AUTH)
+        assert r.status_code == 409 and "not a file" in r.json()["detail"], r.text
+        assert (folder.scenes / "dir.glb").is_dir()
+    finally:
+        (folder.scenes / "dir.glb").rmdir()

@@ -185,7 +185,12 @@ class SceneStore:
             raise Conflict(f"{name!r} is a bundled scene")
         if name in self.receiving:
             raise Conflict(f"scene {name!r} is being uploaded by another request")
-        exists = name in self.uploaded or (self.folder and (self.folder / name).exists())
+        target = self.folder / name if self.folder else None
+        if target is not None and not target.is_symlink() and target.exists() \
+                and not target.is_file():  # a link is replaced, never followed
+            raise Conflict(f"{name!r} in the scene folder is not a file (a folder, or a "
+                           "device): an upload cannot take its place")
+        exists = name in self.uploaded or (target is not None and target.exists())
         if exists and not replace:
             raise Conflict(f"scene {name!r} exists; pass replace=true to overwrite it")
         self._not_in_use(name)
