@@ -201,6 +201,13 @@ def test_an_empty_token_in_the_environment_is_refused():
     assert settings_from_env({"WALLCULL_STATE": "none"})["token"] is None
 
 
+def test_a_cache_that_is_no_folder_is_refused_as_the_server_starts(tmp_path):
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match="WALLCULL_CACHE .* is not a folder"):
+        settings_from_env({"WALLCULL_CACHE": str(tmp_path / "file"), "WALLCULL_STATE": "none"})
+    assert settings_from_env({"WALLCULL_CACHE": str(tmp_path / "new"), "WALLCULL_STATE": "none"})
+
+
 @pytest.mark.parametrize("threads", ["two", "0", "-1", "1.5", " "])
 def test_a_thread_count_that_is_no_count_is_refused_as_the_server_or_a_command_starts(
         threads, monkeypatch, capsys):

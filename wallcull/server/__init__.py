@@ -245,9 +245,14 @@ def settings_from_env(environ=os.environ) -> dict:
     :func:`wallcull.persist.default_folder`), ``WALLCULL_LIMITS`` (``NAME=VALUE,...``),
     ``WALLCULL_CORS_ORIGINS`` (comma-separated), ``WALLCULL_NATS``,
     ``WALLCULL_NATS_PREFIX`` and ``WALLCULL_WALL_TTL`` (seconds); ``WALLCULL_THREADS`` is
-    checked (:func:`wallcull.workers.count`)."""
+    checked (:func:`wallcull.workers.count`), and ``WALLCULL_CACHE`` must be a folder if it
+    exists."""
     state = environ.get("WALLCULL_STATE") or str(default_folder())
     kernel_threads(environ)  # WALLCULL_THREADS, named at start rather than in every frame
+    cache = environ.get("WALLCULL_CACHE")
+    if cache and Path(cache).exists() and not Path(cache).is_dir():
+        raise InputError(f"WALLCULL_CACHE {cache} is not a folder: the prepared scenes go "
+                         "there")
     token = environ.get("WALLCULL_TOKEN")
     if token is not None and not token.strip():
         raise InputError("WALLCULL_TOKEN is set but empty: unset it for a server anyone may "
