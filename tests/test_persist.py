@@ -229,15 +229,20 @@ def test_the_cli_says_it_in_one_line_with_status_2(tmp_path):
 
 
 @pytest.mark.parametrize("pragma, status", [("max_page_count", 507), ("query_only", 503)])
-def test_failed_state_writes_are_507_or_503_and_frames_go_on(tmp_path, pragma, status):
+def test_failed_state_writes_are_507_or_503_and_frames_stop_where_numbers_are_written(
+        tmp_path, monkeypatch, pragma, status):
     """A full disk (SQLite's page limit stands in for it) or a read-only database: writes
-    are refused with the reason, frames are served from memory, health and metrics say so;
-    all is well again once writes succeed."""
+    are refused with the reason, health and metrics say so; frames whose numbers are written
+    down go on, the next is refused (served, its number could be handed out again after a
+    restart); all is well again once writes succeed."""
+    monkeypatch.setattr(FrameNumbers, "AHEAD", 4)
     app = create_app(None, token=TOKEN, state=tmp_path)
     with TestClient(app) as c:
         info = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR).json()
         driver = bearer(info["credentials"]["driver"])
         node0 = bearer(info["credentials"]["nodes"][0]["token"])
+        frames = f"/walls/{info['id']}/frames"
+        assert c.post(frames, json={"frame": FRAME}, headers=driver).json()["frame"] == 0
         db = app.state.server.walls.state._db
         pages = db.execute("PRAGMA page_count").fetchone()[0]
         db.execute(f"PRAGMA {pragma} = {pages if pragma == 'max_page_count' else 1}")
@@ -252,19 +257,58 @@ def test_failed_state_writes_are_507_or_503_and_frames_go_on(tmp_path, pragma, s
         health = c.get("/health").json()
         assert health["status"] == "degraded" and "walls.sqlite3" in health["problems"][0]
         assert "wallcull_state_write_failing 1.0" in c.get("/metrics").text
-        for _ in range(3):  # frames are still culled and served
-            assert c.post(f"/walls/{info['id']}/frames", json={"frame": FRAME},
-                          headers=driver).status_code == 200
-        assert c.get(f"/walls/{info['id']}/tiles/0/packets/latest",
-                     headers=node0).status_code == 200
+        for number in range(1, 5):  # written down up to 4: culled and served
+            assert c.post(frames, json={"frame": FRAME}, headers=driver).json()["frame"] == number
+        r = c.post(frames, json={"frame": FRAME}, headers=driver)
+        if pragma == "query_only":  # (the page limit still takes a number in its page)
+            assert r.status_code == status and "walls.sqlite3" in r.json()["detail"], r.text
+            assert c.get(f"/walls/{info['id']}/tiles/0/packets/latest",
+                         headers=node0).json()["frame"] == 4
         if pragma == "query_only":  # (a full disk still lets a wall be deleted)
             walls = len(c.get("/walls").json()["walls"])
             assert c.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == status
             assert len(c.get("/walls").json()["walls"]) == walls  # a failed delete keeps it
         db.execute("PRAGMA max_page_count = 1000000" if pragma == "max_page_count"
                    else "PRAGMA query_only = 0")
+        assert c.post(frames, json={"frame": FRAME}, headers=driver).status_code == 200
         assert c.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == 204
         assert c.get("/health").json()["status"] == "ok"
+
+
+@pytest.mark.parametrize("how", ["deleted", "moved", "lock deleted"])
+def test_a_state_folder_taken_away_while_the_server_runs_is_written_no_more(
+        tmp_path, monkeypatch, how):
+    """Its folder deleted or moved, or its lock deleted (a second server could then take the
+    folder), a server went on answering 201 to new walls it could never bring back, and its
+    clean stop could write a frame number below one the other server handed out. Now every
+    write is refused, and frames beyond the numbers written down; health says why."""
+    import shutil
+
+    monkeypatch.setattr(FrameNumbers, "AHEAD", 4)
+    folder = tmp_path / "state"
+    app = create_app(None, token=TOKEN, state=folder)
+    with TestClient(app) as c:
+        info = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR).json()
+        driver = bearer(info["credentials"]["driver"])
+        frames = f"/walls/{info['id']}/frames"
+        assert c.post(frames, json={"frame": FRAME}, headers=driver).json()["frame"] == 0
+        if how == "deleted":
+            shutil.rmtree(folder)
+        elif how == "moved":
+            folder.rename(tmp_path / "elsewhere")
+        else:
+            (folder / "lock").unlink()
+            other = StateFolder(folder)  # a second server may now take the folder
+        r = c.post("/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=OPERATOR)
+        assert r.status_code == 503 and "moved, deleted or replaced" in r.json()["detail"]
+        health = c.get("/health").json()
+        assert health["status"] == "degraded" and "moved, deleted" in health["problems"][0]
+        for number in range(1, 5):
+            assert c.post(frames, json={"frame": FRAME}, headers=driver).json()["frame"] == number
+        assert c.post(frames, json={"frame": FRAME}, headers=driver).status_code == 503
+    if how == "lock deleted":  # the clean stop wrote nothing below what is on disk
+        assert [r.last_frame for r in other.walls()] == [4]
+        other.close()
 
 
 def test_idle_walls_expire_with_wall_ttl_and_not_without(tmp_path, monkeypatch):

@@ -63,6 +63,20 @@ class StateWriteFailed(RuntimeError):
         self.status = status
 
 
+def _full(folder: Path) -> bool:
+    """Whether the disk holding ``folder`` is (nearly) full: SQLite reports a full disk at
+    times as a "disk I/O error"."""
+    try:
+        s = os.statvfs(folder)
+    except OSError:
+        return False
+    return s.f_bavail * s.f_frsize < FULL_BELOW
+
+
+#: Free bytes below which a disk counts as full.
+FULL_BELOW = 1 << 20
+
+
 @dataclass
 class WallRow:
     id: str
@@ -92,13 +106,52 @@ class StateFolder:
         self.file = self.path / "walls.sqlite3"
         #: why the last write failed, until one succeeds again (health and metrics show it)
         self.failure: str | None = None
+        self.lost: str | None = None  # see :meth:`check`
         self._mutex = threading.Lock()  # frames are culled in worker threads: one connection
         try:
             self._open()
             self.rows = self._read()
+            self._probe()
         except BaseException:
             self.close()
             raise
+        self._identity = self._files()
+
+    def _probe(self) -> None:
+        """Write, and take it back: a database or folder that cannot be written stops the
+        start (it used to start, healthy, until its first write), and the file is untouched."""
+        try:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                self._db.execute(f"PRAGMA user_version={VERSION}")
+            finally:
+                if self._db.in_transaction:
+                    self._db.execute("ROLLBACK")
+        except sqlite3.OperationalError as exc:
+            full = "full" in str(exc) or _full(self.path)
+            raise InputError(f"cannot write the state database {self.file}: {exc}" + (
+                " (the disk is full: free some space)" if full else
+                " (is the folder, the database or its -wal or -shm file read-only?)")) from None
+
+    def _files(self) -> tuple | None:
+        """What the lock and the database are on the disk (device and inode), or None where
+        one is gone."""
+        try:
+            return tuple((s.st_dev, s.st_ino) for s in (os.stat(self.path / "lock"),
+                                                         os.stat(self.file)))
+        except OSError:
+            return None
+
+    def check(self) -> str | None:
+        """Why the folder can no longer be trusted, or None: its lock or database removed,
+        moved or replaced while the server runs (a second server could then take it, and
+        every write here would be lost). Once it is, every write is refused, frames beyond
+        those written down included, until a restart."""
+        if self.lost is None and self.__dict__.get("_identity", self._files()) != self._files():
+            self.lost = self.failure = (
+                f"the state folder {self.path} was moved, deleted or replaced while the server "
+                "ran: its walls are no longer written down; restart the server")
+        return self.lost
 
     def _open(self) -> None:
         """Open and check the database (creating it when there is none), or refuse to start."""
@@ -124,6 +177,10 @@ class StateFolder:
             raise self._corrupt(str(exc)) from None
 
     def _corrupt(self, what: str) -> InputError:
+        if _full(self.path):  # not damage: the disk is full (SQLite says "disk I/O error")
+            return InputError(f"state database {self.file} cannot be opened ({what}): the disk "
+                              "holding it is full; free some space (the database is left "
+                              "untouched)")
         return InputError(f"state database {self.file} cannot be used ({what}); it is left "
                           "untouched: move it aside to start with no walls, or restore it from "
                           "a backup")
@@ -162,6 +219,8 @@ class StateFolder:
         """Run ``work`` in one transaction, or raise :class:`StateWriteFailed` (and remember
         why) when the folder cannot take it."""
         with self._mutex:
+            if self.check() is not None:  # not this server's folder any more
+                raise StateWriteFailed(503, self.lost)
             try:
                 self._db.execute("BEGIN IMMEDIATE")
                 try:
@@ -172,10 +231,11 @@ class StateFolder:
                         self._db.execute("ROLLBACK")
             except sqlite3.OperationalError as exc:
                 text = str(exc)
-                full = "full" in text
+                full = "full" in text or _full(self.path)
                 self.failure = (f"cannot write the state database {self.file}: {text}"
                                 + (" (free some space)" if full else
-                                   " (is the folder read-only?)" if "readonly" in text else ""))
+                                   " (is the folder, the database or its -wal or -shm file "
+                                   "read-only?)" if "readonly" in text else ""))
                 raise StateWriteFailed(507 if full else 503, self.failure) from None
         self.failure = None
 

@@ -500,6 +500,8 @@ class WallSession:
             raise Conflict(f"frame {number} is out of order: frame {self.newest} is already in")
         # Validate the whole request before anything moves: a refused frame changes nothing.
         frame = Frame.from_dict(frame, self.wall)
+        if self.on_number is not None:  # its number written down (or the frame refused)
+            self.on_number(number)
         changed = np.zeros(0, dtype=np.int64)
         if updates:
             self.session.move(updates, refit)
@@ -517,8 +519,6 @@ class WallSession:
         # worker thread) rather than on the event loop when the first stream asks for it
         encode.entries(record, self.history.get(self.latest))
         t3 = time.perf_counter()
-        if self.on_number is not None:
-            self.on_number(number)
         return record, {"update_ms": (t1 - t0) * 1e3, **result.timings,
                         "encode_ms": (t3 - t2) * 1e3,
                         "total_ms": (time.perf_counter() - t0) * 1e3}
@@ -741,9 +741,12 @@ class FrameNumbers:
     clean stop writes the last one handed out (:meth:`settle`). After a kill the numbers go on
     up to ``AHEAD`` past the last one handed out.
 
-    A frame is served even when its number cannot be written down (a full disk): health and
-    metrics report the failure, every frame beyond what is written tries again, and a
-    restart before it is fixed may number frames again from the last one written."""
+    A frame whose number is beyond what is written down, and cannot be written (a full
+    disk, a read-only folder, a folder moved away), is refused (:class:`StateWriteFailed`:
+    507 or 503), before it changes anything: served, its number could be handed out again
+    after a restart, to another frame, and a node holding the first would take the second for
+    it. So a wall whose state folder fails stops within ``AHEAD`` frames, and says why (health
+    and metrics too), until the folder is mended."""
 
     AHEAD = 1024
 
@@ -753,15 +756,19 @@ class FrameNumbers:
         self._lock = threading.Lock()  # the frame's thread, and the event loop's at a stop
 
     def __call__(self, number: int) -> None:
-        """Frame ``number`` is about to be published."""
+        """Frame ``number`` is about to be computed and published (StateWriteFailed when its
+        number cannot be written down: see the class docstring)."""
         with self._lock:
-            self.handed = max(self.handed, number)
             if number > self.written:
                 self._write(number + self.AHEAD, self.state.set_last_frame)
+            self.handed = max(self.handed, number)
 
     def settle(self) -> None:
         with self._lock:
-            self._write(self.handed, self.state.settle_last_frame)
+            try:
+                self._write(self.handed, self.state.settle_last_frame)
+            except StateWriteFailed:
+                pass  # (logged) what is written stays ahead of every number handed out
 
     def _write(self, number: int, how: Callable[[str, int], None]) -> None:
         try:
@@ -769,6 +776,7 @@ class FrameNumbers:
             self.written = number
         except StateWriteFailed as exc:
             log.warning("%s", exc)
+            raise
 
 
 class Walls:

@@ -219,9 +219,12 @@ async def _keep(server: ServerState, wall_ttl: float | None) -> None:
     idle longer than ``wall_ttl`` seconds (no frame posted, no stream open), and remove the
     spooled bodies of uploads that will never end (:meth:`SceneStore.sweep`)."""
     period = RETRY_PERIOD if not wall_ttl else min(RETRY_PERIOD, max(wall_ttl / 4, 0.1))
+    unwritten = None  # the state folder's last failure a chore met (said once)
     while True:
         await asyncio.sleep(period)
         try:
+            if server.walls.state is not None:
+                server.walls.state.check()  # moved or deleted under the server: health says
             swept = await background(server.store.sweep)
             if swept:
                 log.info("removed the spooled bodies of uploads that ended with no answer: %s",
@@ -232,7 +235,13 @@ async def _keep(server: ServerState, wall_ttl: float | None) -> None:
                     log.info("wall(s) back with their scenes: %s", ", ".join(restored))
             if wall_ttl:
                 for wid in server.walls.idle(wall_ttl):
-                    server.walls.delete(wid)
+                    try:
+                        server.walls.delete(wid)
+                    except StateWriteFailed as exc:  # health says why; tried again later
+                        if str(exc) != unwritten:
+                            log.warning("an idle wall is kept: %s", exc)
+                        unwritten = str(exc)
+                        continue
                     server.metrics.expired.inc()
                     log.info("wall %s deleted: idle for over %g s (--wall-ttl)", wid, wall_ttl)
         except Exception:  # noqa: BLE001 - a chore that fails now is tried again later

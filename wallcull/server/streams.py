@@ -17,6 +17,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from .. import protocol
 from ..credentials import DRIVER, NODE
 from ..errors import InputError
+from ..persist import StateWriteFailed
 from ..service import Conflict, NotFound, Unavailable, WallSession
 from ..validate import parse_tiles
 from .access import bearer, needs
@@ -111,6 +112,8 @@ async def frame_stream(ws: WebSocket, wid: str, format: str = "msgpack"):
                 answer = {"error": refusal_detail(exc), "status": 422}
             except Refused as exc:
                 answer = {"error": exc.detail, "status": exc.status}
+            except StateWriteFailed as exc:
+                answer = {"error": str(exc), "status": exc.status}
             except (InputError, Conflict, NotFound) as exc:
                 status = 422 if isinstance(exc, InputError) else \
                     409 if isinstance(exc, Conflict) else 404
