@@ -261,3 +261,15 @@ def test_serve_refuses_tls_files_it_cannot_use(tmp_path, capsys):
         assert cli.main(["serve", "--state", "none", *argv]) == 2
         err = capsys.readouterr().err
         assert why in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_limits_read_sizes_in_binary_and_counts_in_decimal():
+    """Every limit of bytes takes K, M and G as 1024s (``message_bytes`` and ``open_bytes``
+    used to be read as counts: 64K was 64,000); counts take k and M as 1000s."""
+    from wallcull.limits import Limits
+
+    limits = Limits().with_text("message_bytes=64K,open_bytes=4M,body=1M,scene_bytes=1G,"
+                                "faces=8M,nodes=250k")
+    assert (limits.message_bytes, limits.open_bytes, limits.body, limits.scene_bytes) == (
+        64 << 10, 4 << 20, 1 << 20, 1 << 30)
+    assert (limits.faces, limits.nodes) == (8_000_000, 250_000)

@@ -63,7 +63,8 @@ class Limits:
 
 _SIZE = {"k": 1 << 10, "m": 1 << 20, "g": 1 << 30}
 _COUNT = {"k": 10 ** 3, "m": 10 ** 6}
-_BYTES = {"body", "upload", "scene_bytes", "parse_memory", "scene_cache"}
+_BYTES = {name for name in Limits.__dataclass_fields__ if name.endswith("_bytes")} | {
+    "body", "upload", "parse_memory", "scene_cache"}
 
 
 def _value(name: str, text: str, kind) -> int | float:
