@@ -1,11 +1,13 @@
-"""The adaptive traversal as a numpy frontier, the design DESIGN.md starts from, measured
-against the compiled kernel that replaced it.
+"""The adaptive traversal as a numpy frontier, the project's first design, measured against
+the compiled kernel that replaced it.
 
 Each step classifies every (object node, frustum node) pair of the frontier against its
 frustum node's split planes at once; pairs on one side move down the frustum hierarchy, cut
-pairs unfold the object into its children, pairs at a frustum leaf are emitted. This is the paper's Algorithm 2 as written, so its leaf
-lists are checked equal to ``fh``'s (the same split planes decide); the times are printed
-beside the compiled ``adaptive`` kernel's.
+pairs unfold the object into its children, pairs at a frustum leaf are emitted. This is the
+paper's Algorithm 2 as written, so its leaf lists are checked to hold ``fh``'s, the same split
+planes deciding, where ``fh`` goes on to test each pair against its tile's own planes and the
+separating axes (:mod:`wallcull.separate`), dropping some; the times are printed beside the
+compiled ``adaptive`` kernel's.
 
     python benchmarks/numpy_frontier.py [SCENE] [WALL.json] [FRAMES]
 """
@@ -24,13 +26,17 @@ from wallcull.scene import SceneState, load
 from wallcull.wall import Frusta, Wall
 
 OUT, CUT, FULL = 0, 1, 2
+NEAR_BIT = 1 << 4  # a grid's primary planes: left, right, top, bottom, near, far
 
 
 def states(s, r):
     return np.where(s < -r, OUT, np.where(s >= r, FULL, CUT))
 
 
-def adaptive_frontier(scene, b, planes, fh, roots, shared):
+def adaptive_frontier(scene, b, planes, fh, roots, behind, shared):
+    """``behind``: per root, whether the near plane cuts it (then a bezel split's two planes
+    are both tested: the shortcut below holds only in front of the eye); its descendants
+    inherit it."""
     c, axes, half, rad = b.center, b.axes, b.half, b.radius
     o = roots
     f = np.zeros(len(roots), dtype=np.int64)
@@ -40,7 +46,7 @@ def adaptive_frontier(scene, b, planes, fh, roots, shared):
         done = tile >= 0
         nodes.append(o[done])
         tiles.append(tile[done])
-        o, f = o[~done], f[~done]
+        o, f, behind = o[~done], f[~done], behind[~done]
         if not len(o):
             break
 
@@ -54,9 +60,9 @@ def adaptive_frontier(scene, b, planes, fh, roots, shared):
         sa = states(s, r)
         sb = states(-s, r) if shared else states(*test(fh.plane_b[f]))
         if not shared:  # in front of the eye, inside one bezel plane is outside the other
-            sb = np.where(sa == FULL, OUT, sb)
+            sb = np.where((sa == FULL) & ~behind, OUT, sb)
         cut = (sa == CUT) | (sb == CUT)
-        leaf = scene.is_leaf[o]
+        leaf = scene.is_leaf[o] | (scene.child_count[o] == 0)  # a cluster has no children
         to_second = (~cut & (sb == FULL)) | (cut & leaf & (sb != OUT))
         to_first = (~cut & (sa == FULL)) | (cut & leaf & (sa != OUT))
         unfold = cut & ~leaf
@@ -65,6 +71,8 @@ def adaptive_frontier(scene, b, planes, fh, roots, shared):
         offsets = np.repeat(scene.child_start[parents] - np.cumsum(counts) + counts, counts)
         kids = scene.children[np.arange(counts.sum()) + offsets]
         o = np.concatenate([o[to_first], o[to_second], kids])
+        behind = np.concatenate([behind[to_first], behind[to_second],
+                                 np.repeat(behind[unfold], counts)])
         f = np.concatenate([fh.first[f[to_first]], fh.second[f[to_second]],
                             np.repeat(pf, counts)])
     return np.concatenate(nodes), np.concatenate(tiles)
@@ -81,6 +89,7 @@ def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100
     b = state.bounds
     box, n = packed(state), len(scene)
     numpy_ms, kernel_ms = [], []
+    extra = 0  # leaf-tile pairs fh's tests at the tiles drop from the frontier's
     for frame in path:
         t0 = time.perf_counter()
         frusta = Frusta.build(wall, frame)
@@ -90,19 +99,24 @@ def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100
         count, _ = _primary(*culler._tree, box, planes, culler._primary_planes, roots, masks,
                             *stack)
         nodes, tiles = adaptive_frontier(scene, b, planes, wall.hierarchy, roots[:count],
-                                         shared)
+                                         (masks[:count] & NEAR_BIT) != 0, shared)
         numpy_ms.append((time.perf_counter() - t0) * 1e3)
         t0 = time.perf_counter()
         culler.cull(Frusta.build(wall, frame))
         kernel_ms.append((time.perf_counter() - t0) * 1e3)
         vis = reference.cull(frusta)
+        # a listed cluster (or group of them) stands for its leaf
+        nodes = np.where(scene.cluster_leaf[nodes] >= 0, scene.cluster_leaf[nodes], nodes)
         for t in range(wall.tiles):
             got = np.unique(scene.subtree_leaves(nodes[tiles == t]))
-            assert np.array_equal(got, vis.tile_leaves(t)), "answers differ"
+            lost = vis.tile_leaves(t)[~np.isin(vis.tile_leaves(t), got)]
+            assert not len(lost), f"the frontier lost leaves {lost[:5]} of fh's in tile {t}"
+            extra += len(got) - len(vis.tile_leaves(t))
     print(f"{scene_name}, {wall.cols} x {wall.rows}, {frames} frames of the orbit path: "
           f"numpy frontier median {np.median(numpy_ms[3:]):.3f} ms, "
           f"numba adaptive kernel median {np.median(kernel_ms[3:]):.3f} ms (the frontier's "
-          "leaf lists equal fh's)")
+          f"leaf lists hold fh's, and {extra / len(path):.0f} pairs a frame more, which fh's "
+          "tests at the tiles drop)")
 
 
 if __name__ == "__main__":
