@@ -519,7 +519,8 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--method", choices=METHODS, default="adaptive")
     q.add_argument("--bounds", choices=KINDS, default="obb")
     q.add_argument("--occlusion", action="store_true",
-                   help="also the clusters' lists with occlusion culling on (every frame)")
+                   help="also each list setting (leaves, and the clusters') with occlusion "
+                        "culling on (every frame)")
     q.add_argument("--visible", action="store_true",
                    help="also count the visible floor: the triangles with a pixel in the tile's "
                         "id buffer (each tile's list rasterized in software: slower)")

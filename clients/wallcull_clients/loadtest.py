@@ -576,9 +576,11 @@ def walkthrough_targets(report: dict) -> dict:
     b = report["bytes"]
     return {
         "rate": {"target": rate, "value": achieved, "met": bool(achieved >= 0.99 * rate)},
+        # met only with nothing dropped: a frame a tile never got has no latency to count
         "p99_all_tiles_ms": {"target": TARGETS["p99_all_tiles_ms"], "value": p99,
                              "met": bool(p99 is not None and p99 < TARGETS["p99_all_tiles_ms"]
-                                         and report["dropped"]["tile_frames"] == 0)},
+                                         and report["dropped"]["tile_frames"] == 0),
+                             "and": "no tile-frame dropped"},
         "bytes_reduction_lists": {"target": TARGETS["bytes_reduction_lists"],
                                   "value": b["lists_reduction"],
                                   "met": bool((b["lists_reduction"] or 0)
@@ -890,7 +892,8 @@ def _targets_md(report: dict) -> list[str]:
     lines = ["| target | wanted | measured | |", "|---|---|---|---|"]
     for name, t in report.get("targets", {}).items():
         value = "-" if t["value"] is None else f"{t['value']:.1f}"
-        lines.append(f"| {name} | {t['target']:g} | {value} | "
+        wanted = f"{t['target']:g}" + (f", {t['and']}" if "and" in t else "")
+        lines.append(f"| {name} | {wanted} | {value} | "
                      f"{'met' if t['met'] else '**missed**'} |")
     return lines + [""]
 

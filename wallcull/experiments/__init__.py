@@ -19,7 +19,7 @@ import time
 from contextlib import nullcontext
 from pathlib import Path
 
-from ..errors import optional
+from ..errors import InputError, optional
 from .context import ROOT, Context, Experiment, loadavg, machine, progress_bar, write_json
 
 
@@ -103,6 +103,10 @@ def register(subparsers) -> None:
 def cmd_experiment(args) -> int:
     for module in ("matplotlib", "scipy", "psutil"):  # refused before any work, not midway
         optional(module, "experiments", "wallcull experiment")
+    if not (ROOT / "examples").is_dir():
+        raise InputError("wallcull experiment runs in a checkout of the repository (it reads "
+                         "its examples/ and scenes/): run it from one, or install one with "
+                         "pip install -e")
     out = Path(args.out) if args.out else ROOT / DEFAULT_OUT
     scenes = Path(args.scenes) if args.scenes else None
     if args.name == "all":
@@ -180,7 +184,8 @@ def assemble(out: Path, report: Path, results: dict, summary: dict) -> str:
         f"{m['numpy']}, numba {m['numba']}, scipy {m['scipy']}, trimesh {m['trimesh']}."
         + (f" Load average (1 min) before each experiment: "
            f"{', '.join(str(x[0]) for x in loads)}." if loads else "") + "\n\n"
-        "From the project root, after `python3 -m pip install -e '.[test]' matplotlib`:\n\n"
+        "From the root of a checkout installed as the README says (`pip install -e "
+        "'.[test]'` in its virtual environment, which brings matplotlib):\n\n"
         "    " + command("all", summary["quick"], summary["seed"])
         + f"      # everything, {summary['total_s'] / 60:.1f} min here\n\n"
         + "\n".join(f"    {r['command']}" for r in results.values()) + "\n\n"

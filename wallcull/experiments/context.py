@@ -13,7 +13,17 @@ from typing import Any, Callable
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+def _root() -> Path:
+    """The checkout whose ``examples/`` and ``scenes/`` the experiments read and whose
+    ``docs/`` they write: the package's own (installed with ``pip install -e``), else the
+    current folder's."""
+    for root in (Path(__file__).resolve().parents[2], Path.cwd()):
+        if (root / "examples" / "wall-8x8.json").is_file():
+            return root
+    return Path.cwd()
+
+
+ROOT = _root()
 
 
 @dataclass
