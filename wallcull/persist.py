@@ -107,6 +107,7 @@ class StateFolder:
         #: why the last write failed, until one succeeds again (health and metrics show it)
         self.failure: str | None = None
         self.lost: str | None = None  # see :meth:`check`
+        self._identity: tuple | None = None  # the lock's and database's, once open
         self._mutex = threading.Lock()  # frames are culled in worker threads: one connection
         try:
             self._open()
@@ -147,7 +148,8 @@ class StateFolder:
         moved or replaced while the server runs (a second server could then take it, and
         every write here would be lost). Once it is, every write is refused, frames beyond
         those written down included, until a restart."""
-        if self.lost is None and self.__dict__.get("_identity", self._files()) != self._files():
+        if self.lost is None and self._identity is not None \
+                and self._files() != self._identity:
             self.lost = self.failure = (
                 f"the state folder {self.path} was moved, deleted or replaced while the server "
                 "ran: its walls are no longer written down; restart the server")
