@@ -142,6 +142,28 @@ def test_full_lists_on_request_and_after_a_reconnection(client, wall, scene):
         assert message["frame"] == 3 and message["base"] == 2
 
 
+def test_after_full_lists_no_delta_goes_against_a_frame_before_them(client, wall, scene):
+    """A node that asked for full lists (it could not use a delta) got them, then deltas
+    against what it had acknowledged before, until it acknowledged the full ones: unusable
+    again, and the project's own nodes then asked again, for good."""
+    wid, creds = wall["id"], wall["credentials"]
+    driver = {"Authorization": f"Bearer {creds['driver']}"}
+    path = frames(scene, 5)
+    with client.websocket_connect(f"/walls/{wid}/nodes/stream?token="
+                                  f"{creds['nodes'][0]['token']}") as ws:
+        bases = []
+        for k in range(5):
+            client.post(f"/walls/{wid}/frames", json={"frame": path[k]}, headers=driver)
+            bases.append(msgpack.unpackb(ws.receive_bytes())["base"])
+            if k == 0:
+                ws.send_bytes(msgpack.packb({"ack": 0}))
+            if k == 1:  # this delta is of no use: full lists, please (no acknowledgement)
+                ws.send_bytes(msgpack.packb({"full": True}))
+            if k == 3:
+                ws.send_bytes(msgpack.packb({"ack": 3}))
+        assert bases == [None, 0, None, None, 3]
+
+
 def test_two_nodes_on_the_same_tiles_each_get_deltas_against_what_they_hold(client, wall,
                                                                               scene):
     """Node A (tiles 0-2) acknowledges every frame; node B (tiles 1-2) joins late and falls

@@ -1600,3 +1600,76 @@ def test_an_upload_cannot_take_the_place_of_a_folder(client, folder):
         assert (folder.scenes / "dir.glb").is_dir()
     finally:
         (folder.scenes / "dir.glb").rmdir()
+
+
+def test_a_frame_culled_as_its_wall_is_deleted_is_neither_published_nor_answered():
+    """A frame in the worker thread when its wall was deleted was answered 200, with a
+    number, after the DELETE's 204: it is a 404 now, and the wall publishes nothing more."""
+    import asyncio
+    import threading
+
+    from wallcull.service import NotFound, Walls
+    from wallcull.wall import Wall
+
+    walls = Walls()
+    session = walls.create(load("fatehpur"), Wall.from_dict(WALL), "adaptive", "obb", False, 8)
+    culling, go_on = threading.Event(), threading.Event()
+    compute = session.compute_frame
+
+    def slow(*args):
+        culling.set()
+        go_on.wait(60)
+        return compute(*args)
+
+    session.compute_frame = slow
+
+    async def race():
+        posted = asyncio.ensure_future(session.post_frame_async(
+            {"position": [0.0, 20.0, 300.0], "orientation": [1.0, 0.0, 0.0, 0.0]}))
+        await asyncio.to_thread(culling.wait, 60)
+        walls.delete(session.id)
+        go_on.set()
+        with pytest.raises(NotFound, match="deleted"):
+            await posted
+
+    asyncio.run(race())
+    assert session.latest == -1
+
+
+def test_a_replacing_upload_waits_for_a_load_of_the_old_file(folder, tmp_path, monkeypatch):
+    """A load of a scene file that ended after an upload replaced the file cached the old
+    scene over the new one: walls made then culled the old geometry. The upload now takes
+    the name's lock, as a load does, and waits for it."""
+    import asyncio
+    import threading
+
+    import wallcull.service as service
+    from wallcull.service import SceneStore
+
+    name, old, new = "racing.glb", boxes_glb(("a", "b")), boxes_glb(("c",))
+    (folder.scenes / name).write_bytes(old)
+    spool = tmp_path / "new.glb"
+    spool.write_bytes(new)
+    parsed = threading.Event()
+    parse = service.parse_sandboxed
+    monkeypatch.setattr(service, "parse_sandboxed",
+                        lambda *a: (parse(*a), parsed.set())[0])
+    store = SceneStore(folder.scenes)
+
+    async def race():
+        lock = store._locks.setdefault(name, asyncio.Lock())
+        await lock.acquire()  # a load of the old file, in progress
+        upload = asyncio.ensure_future(store.upload(name, spool))
+        await asyncio.to_thread(parsed.wait, 120)
+        await asyncio.sleep(0.2)
+        assert (folder.scenes / name).read_bytes() == old and not upload.done()
+        store.cache[name] = glb_from_bytes(old, name)  # what the load caches as it ends
+        lock.release()
+        return await upload
+
+    try:
+        scene = asyncio.run(race())
+        assert store.cache[name] is scene and scene.stats["leaves"] == 1
+        assert (folder.scenes / name).read_bytes() == new
+    finally:
+        (folder.scenes / name).unlink()

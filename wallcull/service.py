@@ -241,19 +241,23 @@ class SceneStore:
         (:mod:`wallcull.uploads`), then moved into the folder atomically."""
         scene = await background(lambda: settled(parse_sandboxed(path, name,
                                                                         self.limits)))
-        self._not_in_use(name)  # a wall may have been created on it meanwhile
-        if self.folder is not None:
-            os.replace(path, self.folder / name)
-        else:  # held in memory for good (never evicted: nothing could load it again)
-            held = footprint(scene) + sum(footprint(s) for n, s in self.uploaded.items()
-                                          if n != name)
-            if held > self.limits.scene_cache:
-                raise Conflict(f"this server keeps uploads in memory only (it has no scene "
-                               f"folder), and with {name!r} they would hold {held:,} bytes, "
-                               f"over its scene cache of {self.limits.scene_cache:,}: give it "
-                               "a folder (--scenes or --state), or replace an upload")
-            self.uploaded[name] = scene
-        self.remember(name, scene)
+        # after a load of the file being replaced has ended (:meth:`get` holds the name's
+        # lock while it loads): it would cache the old scene over this one
+        async with self._locks.setdefault(name, asyncio.Lock()):
+            self._not_in_use(name)  # a wall may have been created on it meanwhile
+            if self.folder is not None:
+                os.replace(path, self.folder / name)
+            else:  # held in memory for good (never evicted: nothing could load it again)
+                held = footprint(scene) + sum(footprint(s) for n, s in self.uploaded.items()
+                                              if n != name)
+                if held > self.limits.scene_cache:
+                    raise Conflict(f"this server keeps uploads in memory only (it has no "
+                                   f"scene folder), and with {name!r} they would hold "
+                                   f"{held:,} bytes, over its scene cache of "
+                                   f"{self.limits.scene_cache:,}: give it a folder (--scenes "
+                                   "or --state), or replace an upload")
+                self.uploaded[name] = scene
+            self.remember(name, scene)
         return scene
 
     # ------------------------------------------------------------------ the memory budget
@@ -525,6 +529,8 @@ class WallSession:
 
     def publish(self, record: protocol.FrameRecord) -> int:
         """Make a computed frame visible and wake whoever waits for it (on the event loop)."""
+        if self.closed:
+            raise NotFound(f"wall {self.id} was deleted")
         if record.number <= self.latest:
             raise Conflict(f"frame {record.number} is out of order: frame {self.latest} is in")
         self.history.add(record)
@@ -551,6 +557,8 @@ class WallSession:
                 raise NotFound(f"wall {self.id} was deleted")
             record, timings = await asyncio.to_thread(self.compute_frame, frame, updates, number,
                                                       refit)
+            if self.closed:  # deleted while it was culled: never published, never answered
+                raise NotFound(f"wall {self.id} was deleted")
             return self.publish(record), timings
 
     async def _wait(self, done, event, timeout: float) -> bool:

@@ -240,15 +240,22 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
     acked = [-1]  # the newest frame acknowledged on this stream
     sent: deque = deque(maxlen=STREAM_WINDOW)  # the numbers of its last packets
     ack_came = asyncio.Event()
+    full_sent = [-1]  # the newest full message sent
+
+    def may_go() -> bool:
+        """A node that could not use a delta acknowledges nothing until it has full lists:
+        its request lets one full message past the window, not one per request."""
+        return bool(wants.get("full")) and acked[0] >= full_sent[0]
 
     async def acknowledged(number: int) -> bool:
-        """Wait until this stream has acknowledged ``number`` or asked for full lists (a node
-        that could not use a delta acknowledges nothing until it has them); False: idle too
-        long."""
-        while acked[0] < number and not wants.get("full") and not session.closed:
+        """Wait until this stream has acknowledged ``number`` (or may have full lists past
+        the window); False: nothing acknowledged for ``idle`` seconds."""
+        deadline = asyncio.get_running_loop().time() + idle
+        while acked[0] < number and not may_go() and not session.closed:
             ack_came.clear()
+            left = deadline - asyncio.get_running_loop().time()
             try:
-                await _unless_deleted(session, asyncio.wait_for(ack_came.wait(), idle))
+                await _unless_deleted(session, asyncio.wait_for(ack_came.wait(), max(left, 0)))
             except asyncio.TimeoutError:
                 return False
         return True
@@ -279,7 +286,8 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
                 data, delta = protocol.encode(pkt, False), pkt["base"] is not None
             await write(data)
             sent.append(number)
-            since = number if since < 0 else since
+            if full:  # asked for (the first, or a node that dropped what it held): from
+                since = full_sent[0] = number  # here on, no delta against a frame before
             metrics.packet(delta, len(data), "ws")
             last = number
 
