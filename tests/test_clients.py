@@ -273,3 +273,13 @@ def test_limits_read_sizes_in_binary_and_counts_in_decimal():
     assert (limits.message_bytes, limits.open_bytes, limits.body, limits.scene_bytes) == (
         64 << 10, 4 << 20, 1 << 20, 1 << 30)
     assert (limits.faces, limits.nodes) == (8_000_000, 250_000)
+
+
+@pytest.mark.parametrize("prefix", ["a b", "*", "x.>", "a.", "a..b", "p" * 65])
+def test_a_nats_prefix_that_is_no_subject_prefix_is_refused_in_one_line(prefix, capsys):
+    """A wildcard took every other server's subjects; spaces, empty tokens or a prefix too
+    long crashed the start with a traceback, or each wall's publisher at its first frame."""
+    assert cli.main(["serve", "--state", "none", "--nats", "nats://127.0.0.1:1",
+                     "--nats-prefix", prefix]) == 2
+    err = capsys.readouterr().err
+    assert "NATS prefix" in err and len(err.strip().splitlines()) == 1, err

@@ -325,3 +325,56 @@ def test_a_node_that_joins_late_over_nats_asks_for_full_lists(nats_server, scene
             await driver.call("DELETE", f"/walls/{wid}", auth=True)
 
     asyncio.run(scenario())
+
+
+def test_nodes_over_nats_ride_out_a_broker_restart(scene):
+    """The broker away for a while, then back on its address. What the server published
+    meanwhile reached no one, and it stopped publishing for good once no acknowledgement came
+    for a window of frames, while health said all was well. Now health says the broker is
+    away, and once it is back every node gets frames again, in full first."""
+    import httpx
+
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    first = broker.Broker().start()
+    try:
+        with running_server(TOKEN, args=["--nats", first.url]) as url:
+            async def scenario():
+                async with Driver(url, TOKEN) as driver, httpx.AsyncClient() as http:
+                    info = await driver.create_wall(SCENE, WALL, nodes=[list(range(8)),
+                                                                       list(range(8, 16))])
+                    wid = info["id"]
+                    frames = await driver.frames(SCENE, info["wall"], "orbit", 40)
+                    nodes = asyncio.create_task(run_wall(
+                        url, wid, "all", token=TOKEN, until=39, tiles_per_node=8,
+                        nats=first.url, reconnect_for=120))
+                    for frame in frames[:10]:
+                        await driver.post(wid, frame)
+                        await asyncio.sleep(0.05)
+                    first.stop()
+                    deadline = time.monotonic() + 60
+                    while "NATS" not in " ".join((await http.get(f"{url}/health")).json()
+                                                 ["problems"]):
+                        assert time.monotonic() < deadline, "health never said so"
+                        await asyncio.sleep(0.1)
+                    for frame in frames[10:20]:  # culled and served; published to no one
+                        await driver.post(wid, frame)
+                    again = broker.Broker(first.port).start()
+                    try:
+                        while (await http.get(f"{url}/health")).json()["status"] != "ok":
+                            assert time.monotonic() < deadline + 60, "never back"
+                            await asyncio.sleep(0.1)
+                        for frame in frames[20:]:
+                            await driver.post(wid, frame)
+                            await asyncio.sleep(0.05)
+                        clients = await asyncio.wait_for(nodes, 120)
+                    finally:
+                        again.stop()
+                return clients
+
+            clients = asyncio.run(scenario())
+            for c in clients:
+                for s in c.tile_stats.values():
+                    assert s.errors == [] and s.frame[-1] == 39, (s.tile, s.frame[-5:])
+    finally:
+        first.stop()

@@ -477,3 +477,54 @@ def test_nodes_on_one_subject_hold_every_base_whatever_the_interleaving(scene, s
                     await s.take(step)
 
     assert _on_one_subject(scene, script) == []
+
+
+def test_a_publish_the_broker_refuses_costs_that_frame_of_that_node_alone(scene):
+    """One publish refused (a message over the broker's max_payload, a full buffer) stopped
+    the wall's publisher for good, for every node; now that node misses that frame, the
+    others get theirs, and the next frame is tried again."""
+    from wallcull.fit import FitOptions
+    from wallcull.server.metrics import Metrics
+    from wallcull.server.nats import NatsBridge
+    from wallcull.service import Walls
+
+    class Refusing(_Broker):
+        refuse = True
+
+        async def publish(self, subject, data):
+            if subject.endswith(".node.0") and self.refuse:
+                raise ValueError("nats: maximum payload exceeded")
+            self.queues.setdefault(subject, []).append(data)
+
+    walls = Walls()
+    seen = []
+    walls.on_add.append(seen.append)
+    session = walls.create(scene, Wall.from_dict(WALL), "adaptive", "obb", False, 64,
+                           FitOptions(), nodes=[[0, 1, 2], [3, 4, 5]])
+    assert seen == [session]  # a wall joining is handed to whoever publishes walls
+    bridge = NatsBridge("nats://unused", walls, Metrics())
+    bridge.nc = broker = Refusing()
+    path = frames(scene, 4)
+
+    async def scenario():
+        bridge.watch(session)
+        for k in range(4):
+            if k == 2:
+                broker.refuse = False
+            session.post_frame(path[k])
+            for _ in range(200):
+                if len(broker.queues.get(bridge.subject(session.id, "node", 3), [])) > k:
+                    break
+                await asyncio.sleep(0)
+            await bridge._ack(_Msg(bridge.subject(session.id, "ack", 3),
+                                   msgpack.packb({"ack": k})))
+        for _ in range(100):
+            await asyncio.sleep(0)
+        assert not bridge.tasks[session.id].done()
+        bridge.tasks[session.id].cancel()
+
+    asyncio.run(scenario())
+    assert len(broker.queues[bridge.subject(session.id, "node", 3)]) == 4
+    # refused until frame 2, then published (and, with nobody acknowledging it, no more)
+    assert [msgpack.unpackb(m)["frame"] for m in
+            broker.queues[bridge.subject(session.id, "node", 0)]] == [2]

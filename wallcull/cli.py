@@ -276,7 +276,9 @@ def cmd_serve(args) -> int:
     if args.nats:
         settings["nats"] = args.nats
     if args.nats_prefix:
-        settings["nats_prefix"] = args.nats_prefix
+        from .server.nats import check_prefix
+
+        settings["nats_prefix"] = check_prefix(args.nats_prefix)
     if args.wall_ttl is not None:
         settings["wall_ttl"] = seconds_setting(args.wall_ttl, "--wall-ttl")
     for text in args.limit:

@@ -803,6 +803,8 @@ class Walls:
         self.unavailable: dict[str, tuple[WallRow, str]] = {}
         self.reserved = 0  # walls being made
         self.making: dict[str, int] = {}  # how many on each scene
+        #: called with every wall as it joins (the NATS bridge publishes it from then on)
+        self.on_add: list[Callable[[WallSession], None]] = []
 
     def create(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,
                history: int, fit: FitOptions = FitOptions(), nodes=None,
@@ -873,6 +875,8 @@ class Walls:
         session.issued = issued
         self.grants[session.id] = issued
         self.sessions[session.id] = session
+        for added in self.on_add:  # created, restored at start, or back with its scene
+            added(session)
 
     def check_specs(self) -> None:
         """Refuse to start (one line naming the state database and the wall) when a wall

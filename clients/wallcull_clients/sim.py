@@ -76,6 +76,11 @@ except ImportError:  # pragma: no cover - 3.10
     _timeout = None
 
 
+#: Seconds a NATS node hears nothing before it asks for full lists again (a frame lost while
+#: the broker was away, or a wall that is gone).
+NATS_QUIET = 5.0
+
+
 async def _next(source, timeout: float | None):
     """The next message of a WebSocket (``recv``) or a queue (``get``), or
     :class:`asyncio.TimeoutError` after ``timeout`` seconds (None: no limit). On Python 3.11 and
@@ -827,7 +832,10 @@ class NodeClient(TileClient):
 
     async def _run_nats(self, until, idle_timeout) -> None:
         """Subscribe to the node's subject, ask for full lists, then take every message; the
-        broker reconnects by itself (nats-py), and a node that loses its base asks again."""
+        broker reconnects by itself (nats-py), and a node that loses its base, or is back
+        with the broker, or hears nothing for ``NATS_QUIET`` seconds, asks again. A request
+        nobody answers (no server holds the wall) is checked over HTTP: a deleted wall ends
+        the node."""
         import nats
         from nats.errors import TimeoutError as NatsTimeout
 
@@ -841,11 +849,14 @@ class NodeClient(TileClient):
         async def quiet(exc) -> None:  # nats-py prints every failed try's traceback otherwise
             failed.append(exc)
 
+        async def back() -> None:  # what the server published meanwhile went to no one
+            self._wants_full = True
+
         try:  # the first connection within --reconnect-for; later, for as long as it takes
             self._nc = await asyncio.wait_for(nats.connect(
                 self.nats, name=f"wallcull-node-{self.wall_id}-{self.tiles[0]}",
-                max_reconnect_attempts=-1, reconnect_time_wait=0.5, error_cb=quiet),
-                self.backoff.give_up)
+                max_reconnect_attempts=-1, reconnect_time_wait=0.5, error_cb=quiet,
+                reconnected_cb=back), self.backoff.give_up)
         except asyncio.TimeoutError:
             why = failed[-1] if failed else "no answer"
             raise ClientFailure(f"cannot reach the NATS broker at {self.nats} within "
@@ -855,6 +866,7 @@ class NodeClient(TileClient):
             self.stats.connects += 1
             self.connected.set()
             self._wants_full = True
+            unanswered, heard = 0, time.monotonic()
             while not self._done(until):
                 if self._wants_full:
                     self._wants_full = False
@@ -862,19 +874,39 @@ class NodeClient(TileClient):
                         reply = await self._nc.request(
                             self.subject("full"), msgpack.packb({"node": self.name}), timeout=5)
                     except NatsTimeout:
-                        self._wants_full = True  # no server yet: ask again
+                        self._wants_full = True  # no server yet, or none holds the wall
+                        unanswered += 1
+                        if unanswered % 3 == 0:
+                            await self._check_wall()
                         continue
+                    unanswered = 0
                     await self._take(reply.data)
                     continue
+                wait = NATS_QUIET
+                if idle_timeout and self.last_frame >= 0:  # idle for good after that long
+                    wait = min(wait, heard + idle_timeout - time.monotonic())
+                    if wait <= 0:
+                        return
                 try:
-                    msg = await _next(inbox, idle_timeout if idle_timeout and
-                                      self.last_frame >= 0 else None)
+                    msg = await _next(inbox, wait)
                 except asyncio.TimeoutError:
-                    return
+                    self._wants_full = True  # nothing for a while: a lost frame, or no wall
+                    continue
+                heard = time.monotonic()
                 await self._take(msg.data)
         finally:
             nc, self._nc = self._nc, None
             await nc.drain()
+
+    async def _check_wall(self) -> None:
+        """ClientFailure if the server says the wall is gone (a deleted wall's subjects are
+        answered by no one)."""
+        try:
+            r = await self.http.request("GET", f"/walls/{self.wall_id}")
+        except (ConnectionError, OSError, asyncio.TimeoutError):
+            return  # the server is away too: its wall may come back with it
+        if r.status == 404:
+            raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
 
     async def _take(self, data: bytes) -> None:
         recv = time.time()

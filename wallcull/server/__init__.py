@@ -46,7 +46,7 @@ from .deps import ServerState
 from .gate import Gate
 from .http import Refused, refusal_detail, status_handler
 from .metrics import Metrics
-from .nats import NatsBridge
+from .nats import NatsBridge, check_prefix
 
 #: Bytes a request body may have (frames, walls, updates); uploads have their own limit.
 MAX_BODY = Limits.body
@@ -96,7 +96,7 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     metrics = server.metrics
     if nats:
         optional("nats", "nats", "--nats")  # refused now, not when the server starts
-        server.bridge = NatsBridge(nats, walls_, metrics, nats_prefix)
+        server.bridge = NatsBridge(nats, walls_, metrics, check_prefix(nats_prefix))
 
     @asynccontextmanager
     async def lifespan(app):
@@ -163,13 +163,15 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     @app.get("/health", tags=["service"], operation_id="health")
     async def health():
         """``ok``, or ``degraded`` with the ``problems`` an operator should fix (the state
-        folder cannot be written; walls wait for their scenes). Frames are served either way,
+        folder cannot be written; the NATS broker is away; walls wait for their scenes). Frames are served either way,
         so the answer is 200. ``kernels``: ``loading`` for a second or two after a start
         (frames wait for them meanwhile), then ``ready``."""
         problems = []
         failure = folder.failure if folder is not None else None
         if failure:
             problems.append(failure)
+        if server.bridge is not None and server.bridge.problem:
+            problems.append(server.bridge.problem)
         for wid, (_, why) in server.walls.unavailable.items():
             problems.append(f"wall {wid} is unavailable: {why}")
         metrics.state_failing.set(failure is not None)
@@ -277,7 +279,7 @@ def settings_from_env(environ=os.environ) -> dict:
             "origins": tuple(o.strip() for o in environ.get("WALLCULL_CORS_ORIGINS", "").split(",")
                              if o.strip()),
             "nats": environ.get("WALLCULL_NATS") or None,
-            "nats_prefix": environ.get("WALLCULL_NATS_PREFIX") or "wallcull",
+            "nats_prefix": check_prefix(environ.get("WALLCULL_NATS_PREFIX") or "wallcull"),
             "wall_ttl": seconds_setting(environ.get("WALLCULL_WALL_TTL"), "WALLCULL_WALL_TTL")}
 
 

@@ -91,7 +91,9 @@ CHANNELS = {
     "natsNode": {"address": "{prefix}.{wid}.node.{first}", "title": "NATS: a node's messages",
                  "parameters": _params("prefix", "wid", "first"),
                  "messages": _ref("nodeMessage")},
-    "natsAck": {"address": "{prefix}.{wid}.ack.{first}", "title": "NATS: a node's acks",
+    "natsAck": {"address": "{prefix}.{wid}.ack.{first}",
+                "title": "NATS: a node's acknowledgements ({\"ack\": n, \"node\": name}; no "
+                         "reply, and no credential: the broker's permissions guard it)",
                 "parameters": _params("prefix", "wid", "first"), "messages": _ref("control")},
     "natsFull": {"address": "{prefix}.{wid}.full.{first}",
                  "title": "NATS: full lists, by request (the reply: a node message)",

@@ -42,8 +42,10 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
+import re
+
 from ..errors import InputError, optional
-from ..service import Gone, NotFound, WallSession, Walls
+from ..service import Gone, NotFound, Unavailable, WallSession, Walls
 from .messages import control
 from .metrics import Metrics
 
@@ -53,6 +55,19 @@ log = logging.getLogger("wallcull")
 WINDOW = 8
 #: Subscribers one node subject keeps track of (their names come from the network).
 MAX_SUBSCRIBERS = 32
+#: A prefix of subjects: tokens of letters, digits, ``_`` and ``-``, joined by dots (no
+#: wildcard, no space, no empty token), short enough to leave room for the rest.
+PREFIX = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
+MAX_PREFIX = 64
+
+
+def check_prefix(prefix: str) -> str:
+    """``prefix``, or :class:`InputError` if it is no prefix of NATS subjects."""
+    if not (PREFIX.match(prefix) and len(prefix) <= MAX_PREFIX):
+        raise InputError(f"NATS prefix {prefix!r} must be tokens of letters, digits, '_' and "
+                         f"'-' joined by dots, at most {MAX_PREFIX} characters (no '*', '>' "
+                         "or spaces: a wildcard would take other servers' subjects)")
+    return prefix
 
 
 @dataclass
@@ -82,6 +97,9 @@ class _Node:
     holders: set = field(default_factory=set)
     #: a subscriber left the window: it may still listen (slow, not dead) and hold less
     left: bool = False
+    #: frames still published in full to no one known: after the broker came back, when the
+    #: nodes subscribe again (what was published meanwhile went to nobody)
+    fresh: int = 0
 
     def base(self) -> tuple[bool, int | None]:
         """Whether to publish the next frame, and the base every subscriber holds (None: full
@@ -92,7 +110,7 @@ class _Node:
         self.left |= len(live) < len(self.subscribers)
         self.subscribers = live
         if not live:
-            return self.sent < 0, None
+            return self.sent < 0 or self.fresh > 0, None
         oldest = min(v.acked for v in live.values())
         held = oldest in self.published or (oldest == self.answered and not self.left
                                              and live.keys() <= self.holders)
@@ -102,8 +120,16 @@ class _Node:
         """Frame ``number`` was published on the subject, a delta against ``base``."""
         self.sent = number
         self.published.append(number)
+        self.fresh = max(self.fresh - 1, 0)
         if base is not None:
             self.floor = max(self.floor, base)
+
+    def lost(self) -> None:
+        """The broker went away and came back: what was published meanwhile reached no one,
+        and whoever listens now holds nothing this subject can count on. Full lists, to
+        whoever subscribes, for a window's frames."""
+        self.subscribers, self.holders, self.published = {}, set(), deque(maxlen=WINDOW)
+        self.floor, self.left, self.fresh = max(self.floor, self.sent + 1), True, WINDOW
 
     def take(self, name, ack: int | None = None, since: int | None = None) -> None:
         """An acknowledgement (``ack``) or a full request answered with frame ``since``."""
@@ -124,7 +150,7 @@ class _Node:
             found.acked = ack
 
 
-async def _connect(url: str, timeout: float, reconnect: bool):
+async def _connect(url: str, timeout: float, reconnect: bool, **callbacks):
     """A connection to the broker at ``url``, or :class:`InputError` after ``timeout``
     seconds (a broker named but unreachable is a configuration error). ``reconnect``: once
     connected, reconnect for as long as it takes when the broker goes away."""
@@ -139,7 +165,7 @@ async def _connect(url: str, timeout: float, reconnect: bool):
         return await asyncio.wait_for(nats.connect(
             url, name="wallcull", connect_timeout=timeout, allow_reconnect=reconnect,
             max_reconnect_attempts=-1 if reconnect else 0, reconnect_time_wait=0.5,
-            error_cb=quiet), timeout)
+            error_cb=quiet, **callbacks), timeout)
     except Exception as exc:  # nats raises its own errors, and OSError, for an absent broker
         if isinstance(exc, asyncio.TimeoutError):
             exc = failed[-1] if failed else "no answer"
@@ -169,25 +195,49 @@ class NatsBridge:
 
     async def start(self, timeout: float = 10.0) -> None:
         """Connect (failing after ``timeout`` seconds: a broker named but unreachable is a
-        configuration error), subscribe, and publish every wall already held."""
-        self.nc = await _connect(self.url, timeout, reconnect=True)
+        configuration error), subscribe, and publish every wall held, now and as they come."""
+        self.nc = await _connect(self.url, timeout, reconnect=True,
+                                 disconnected_cb=self._away, reconnected_cb=self._back)
         await self.nc.subscribe(f"{self.prefix}.*.ack.*", cb=self._ack)
         await self.nc.subscribe(f"{self.prefix}.*.full.*", cb=self._full)
         for session in list(self.walls.sessions.values()):
             self.watch(session)
+        self.walls.on_add.append(self.watch)
         log.info("publishing node messages on NATS %s (subjects %s.<wall>.node.<tile>)",
                  self.url, self.prefix)
 
+    @property
+    def problem(self) -> str | None:
+        """Why the bridge is not publishing (health shows it), or None."""
+        if self.nc is not None and not self.nc.is_connected:
+            return f"the NATS broker at {self.url} is away: reconnecting"
+        return None
+
+    async def _away(self) -> None:
+        log.warning("the NATS broker at %s went away: reconnecting", self.url)
+
+    async def _back(self) -> None:
+        log.info("the NATS broker at %s is back: full lists to every node", self.url)
+        for node in self.nodes.values():
+            node.lost()
+
     async def close(self) -> None:
+        if self.watch in self.walls.on_add:
+            self.walls.on_add.remove(self.watch)
         for task in self.tasks.values():
             task.cancel()
         await asyncio.gather(*self.tasks.values(), return_exceptions=True)
         if self.nc is not None:
-            await self.nc.drain()
+            try:  # a broker that is away cannot be drained: the stop goes on without it
+                await asyncio.wait_for(self.nc.drain(), 5)
+            except Exception as exc:  # noqa: BLE001 - nats-py raises its own, or a timeout
+                log.warning("NATS %s not drained at the stop: %r", self.url, exc)
+                await self.nc.close()
 
     def watch(self, session: WallSession) -> None:
         """Publish this wall's frames from now on (until it is deleted)."""
-        self.tasks[session.id] = asyncio.create_task(self._publish(session))
+        if session.id not in self.tasks:
+            self.tasks[session.id] = asyncio.create_task(self._publish(session))
 
     def subject(self, wid: str, kind: str, first: int) -> str:
         return f"{self.prefix}.{wid}.{kind}.{first}"
@@ -199,6 +249,7 @@ class NatsBridge:
             self.nodes[session.id, str(tiles[0])] = node
             nodes.append(node)
         last = -1
+        refused: dict[str, str] = {}  # subject -> why its last publish failed (said once)
         try:
             while not session.closed:
                 number = await session.next_frame(last)
@@ -208,15 +259,23 @@ class NatsBridge:
                         continue  # no subscriber acknowledged any of the last WINDOW frames
                     data, delta = session.node_message(node.tiles, number, full=base is None,
                                                        held=base)
-                    await self.nc.publish(node.subject, data)
+                    try:
+                        await self.nc.publish(node.subject, data)
+                    except Exception as exc:  # noqa: BLE001 - nats-py's own: too large, a
+                        # full buffer, a closed connection; this node misses this frame
+                        self.metrics.errors.labels("nats").inc()
+                        if str(exc) != refused.get(node.subject):
+                            log.warning("NATS: frame %d not published on %s (%d bytes): %s",
+                                        number, node.subject, len(data),
+                                        str(exc) or type(exc).__name__)
+                        refused[node.subject] = str(exc)
+                        continue
+                    refused.pop(node.subject, None)
                     self.metrics.packet(delta, len(data), "nats")
                     node.sent_frame(number, base if delta else None)
                 last = number
         except NotFound:
             pass  # the wall was deleted
-        except Exception:
-            log.exception("NATS publisher of wall %s stopped", session.id)
-            raise
         finally:
             self.tasks.pop(session.id, None)
             for node in nodes:
@@ -245,6 +304,10 @@ class NatsBridge:
             log.debug("NATS ack on %s refused: %r", msg.subject, exc)
 
     async def _full(self, msg) -> None:
+        parts = msg.subject.split(".")
+        if len(parts) < 3 or parts[-3] not in self.walls.sessions and \
+                parts[-3] not in self.walls.unavailable:
+            return  # not a wall of this server: another on the broker may hold it
         try:
             session, node = self._node(msg.subject)
             if session.latest < 0:
@@ -255,7 +318,8 @@ class NatsBridge:
             data, _ = session.node_message(node.tiles, number, full=True)
             node.take(name, since=number)
             self.metrics.packet(False, len(data), "nats")
-        except (NotFound, Gone, InputError, ValueError, msgpack.UnpackException) as exc:
-            data = msgpack.packb({"error": str(exc)})
+        except (NotFound, Gone, Unavailable, InputError, ValueError,
+                msgpack.UnpackException) as exc:
+            data = msgpack.packb({"error": str(exc) or type(exc).__name__})
         if msg.reply:
             await msg.respond(data)

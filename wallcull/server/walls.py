@@ -63,9 +63,7 @@ async def create_wall(request: Request, state: State,
         session, grants = await background(
             state.walls.build, scene, wall, body.method, body.bounds, body.pseudo_groups,
             body.history, fit, body.nodes, settings, body.occlusion)
-        state.walls.register(session, grants)
-    if state.bridge is not None:
-        state.bridge.watch(session)
+        state.walls.register(session, grants)  # (and published on NATS, if there is one)
     # the nodes' first mesh requests find them encoded (a thread: the loop keeps serving)
     warming = asyncio.ensure_future(background(warm_meshes, scene))
     state.warming.add(warming)
