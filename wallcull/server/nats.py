@@ -36,13 +36,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
 from collections import deque
 from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
-
-import re
 
 from ..errors import InputError, optional
 from ..service import Gone, NotFound, Unavailable, WallSession, Walls
