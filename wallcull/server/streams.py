@@ -250,10 +250,13 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
     async def acknowledged(number: int) -> bool:
         """Wait until this stream has acknowledged ``number`` (or may have full lists past
         the window); False: nothing acknowledged for ``idle`` seconds."""
-        deadline = asyncio.get_running_loop().time() + idle
+        clock = asyncio.get_running_loop().time
+        deadline, heard = clock() + idle, acked[0]
         while acked[0] < number and not may_go() and not session.closed:
             ack_came.clear()
-            left = deadline - asyncio.get_running_loop().time()
+            if acked[0] > heard:  # an acknowledgement came (a full request is none)
+                deadline, heard = clock() + idle, acked[0]
+            left = deadline - clock()
             try:
                 await _unless_deleted(session, asyncio.wait_for(ack_came.wait(), max(left, 0)))
             except asyncio.TimeoutError:
