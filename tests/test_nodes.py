@@ -528,3 +528,30 @@ def test_a_publish_the_broker_refuses_costs_that_frame_of_that_node_alone(scene)
     # refused until frame 2, then published (and, with nobody acknowledging it, no more)
     assert [msgpack.unpackb(m)["frame"] for m in
             broker.queues[bridge.subject(session.id, "node", 0)]] == [2]
+
+
+def test_full_requests_neither_lift_the_window_nor_keep_a_silent_stream_open(scene):
+    """A node that acknowledges nothing but asks for full lists again and again was sent a
+    full message per request past the window of 8, and never closed as idle."""
+    from starlette.websockets import WebSocketDisconnect
+
+    from wallcull.limits import Limits
+    from wallcull.server.streams import STREAM_WINDOW
+
+    with TestClient(create_app(None, token=TOKEN, state=None,
+                               limits=Limits(stream_idle=2.0))) as c:
+        info = c.post("/walls", json={"wall": WALL, "scene": "fatehpur", "nodes": NODES},
+                      headers=AUTH).json()
+        wid, creds = info["id"], info["credentials"]
+        driver = {"Authorization": f"Bearer {creds['driver']}"}
+        received = 0
+        with c.websocket_connect(f"/walls/{wid}/nodes/stream?token="
+                                 f"{creds['nodes'][0]['token']}") as ws:
+            for frame in frames(scene, 20):
+                c.post(f"/walls/{wid}/frames", json={"frame": frame}, headers=driver)
+                ws.send_bytes(msgpack.packb({"full": True}))
+            with pytest.raises(WebSocketDisconnect) as closed:
+                while True:
+                    ws.receive_bytes()
+                    received += 1
+        assert received <= STREAM_WINDOW + 1 and closed.value.code == 4408, received
