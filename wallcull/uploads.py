@@ -13,8 +13,8 @@ turns into gigabytes of zeros (and trimesh into more). So before any reader sees
   with a known component type and element type; a primitive's positions are float triples
   and its indices unsigned integers;
 * nodes form a forest (no node with two parents, no cycle, no index out of range);
-* the totals stay within :class:`wallcull.limits.Limits`: nodes (a mesh's primitives beyond
-  its first each become one), vertices and triangles (a strip or fan of n indices draws
+* the totals stay within :class:`wallcull.limits.Limits`: nodes (each primitive of a mesh of
+  several becomes one), vertices and triangles (a strip or fan of n indices draws
   n - 2, points and lines none) counted once per node that draws them, and the bytes every
   accessor declares.
 
@@ -209,7 +209,7 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
                          f"{limits.nodes:,}")
     parents = [-1] * len(nodes)
     vertices = faces = 0
-    built = len(nodes)  # and a node more for each primitive of a mesh beyond its first
+    built = len(nodes)  # and a node for each primitive of a mesh of several
     for i, node in enumerate(nodes):
         children = node.get("children", [])
         if not isinstance(children, list):
@@ -224,8 +224,8 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
             v, f, p = per_mesh[_index(node["mesh"], meshes, f"node {i} mesh")]
             vertices, faces, built = vertices + v, faces + f, built + (p if p > 1 else 0)
     if built > limits.nodes:
-        raise InputError(f"the uploaded GLB makes {built:,} nodes (a mesh's primitives beyond "
-                         f"its first are one each); a scene may have at most {limits.nodes:,}")
+        raise InputError(f"the uploaded GLB makes {built:,} nodes (each primitive of a mesh of "
+                         f"several is one); a scene may have at most {limits.nodes:,}")
     _no_cycle(parents)
     for k, scene in enumerate(_list(doc, "scenes")):
         roots = scene.get("nodes", [])
