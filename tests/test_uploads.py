@@ -132,8 +132,8 @@ def test_two_parents_and_cycles_are_refused():
 
 
 def test_what_the_file_builds_counts_against_the_limits():
-    """Limits hold on what a file makes, not on its declarations: a mesh's primitives beyond
-    its first are a node each, and a strip of n indices draws n - 2 triangles (not n / 3)."""
+    """Limits hold on what a file makes, not on its declarations: each primitive of a mesh of
+    several is a node, and a strip of n indices draws n - 2 triangles (not n / 3)."""
     doc, binary = box_doc()
     doc["meshes"][0]["primitives"] *= 300
     data = glb(doc, binary)
