@@ -555,3 +555,48 @@ def test_full_requests_neither_lift_the_window_nor_keep_a_silent_stream_open(sce
                     ws.receive_bytes()
                     received += 1
         assert received <= STREAM_WINDOW + 1 and closed.value.code == 4408, received
+
+
+def test_nats_full_requests_answer_for_this_servers_walls_alone(scene):
+    """Another server's wall (on one broker, one prefix) is left to that server: it was
+    answered with an error, which often came first. A wall waiting for its scene is answered
+    with why (it was not answered at all). And a stop with the broker away goes on (a drain
+    that fails is followed by a close)."""
+    from wallcull.fit import FitOptions
+    from wallcull.persist import WallRow
+    from wallcull.server.metrics import Metrics
+    from wallcull.server.nats import NatsBridge
+    from wallcull.service import Walls
+
+    walls = Walls()
+    session = walls.create(scene, Wall.from_dict(WALL), "adaptive", "obb", False, 64,
+                           FitOptions(), nodes=[list(range(6))])
+    walls.unavailable["0123456789ab"] = (WallRow("0123456789ab", 0.0, {}, -1, None),
+                                         "its scene 'gone.glb' cannot be loaded")
+    bridge = NatsBridge("nats://unused", walls, Metrics())
+
+    class Away:
+        closed = False
+
+        async def drain(self):
+            raise ConnectionError("nats: connection closed")
+
+        async def close(self):
+            self.closed = True
+
+    async def scenario():
+        bridge.nc = away = Away()
+        bridge.watch(session)
+        await asyncio.sleep(0)  # its publisher holds the wall's nodes
+        others, waiting, ours = (_Msg(f"wallcull.{wid}.full.0", b"") for wid in (
+            "fedcba987654", "0123456789ab", session.id))
+        for msg in (others, waiting, ours):
+            await bridge._full(msg)
+        await bridge.close()
+        return others.answer, msgpack.unpackb(waiting.answer), msgpack.unpackb(ours.answer), away
+
+    others, waiting, ours, away = asyncio.run(scenario())
+    assert others is None
+    assert "unavailable" in waiting["error"] and "gone.glb" in waiting["error"]
+    assert ours["error"] == "no frame yet"
+    assert away.closed
