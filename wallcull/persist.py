@@ -129,10 +129,17 @@ class StateFolder:
                 if self._db.in_transaction:
                     self._db.execute("ROLLBACK")
         except sqlite3.OperationalError as exc:
-            full = "full" in str(exc) or _full(self.path)
-            raise InputError(f"cannot write the state database {self.file}: {exc}" + (
-                " (the disk is full: free some space)" if full else
-                " (is the folder, the database or its -wal or -shm file read-only?)")) from None
+            raise InputError(str(self._unwritable(exc))) from None
+
+    def _unwritable(self, exc: sqlite3.OperationalError) -> StateWriteFailed:
+        """What a write that failed says: 507 when the disk is full, 503 else, and why."""
+        text = str(exc)
+        full = "full" in text or _full(self.path)
+        return StateWriteFailed(507 if full else 503, (
+            f"cannot write the state database {self.file}: {text}"
+            + (" (free some space)" if full else
+               " (is the folder, the database or its -wal or -shm file read-only?)"
+               if "readonly" in text else "")))
 
     def _files(self) -> tuple | None:
         """What the lock and the database are on the disk (device and inode), or None where
@@ -232,13 +239,9 @@ class StateFolder:
                     if self._db.in_transaction:  # (SQLite ends it itself on a full disk)
                         self._db.execute("ROLLBACK")
             except sqlite3.OperationalError as exc:
-                text = str(exc)
-                full = "full" in text or _full(self.path)
-                self.failure = (f"cannot write the state database {self.file}: {text}"
-                                + (" (free some space)" if full else
-                                   " (is the folder, the database or its -wal or -shm file "
-                                   "read-only?)" if "readonly" in text else ""))
-                raise StateWriteFailed(507 if full else 503, self.failure) from None
+                failed = self._unwritable(exc)
+                self.failure = str(failed)
+                raise failed from None
         self.failure = None
 
     def add_wall(self, wid: str, created: float, spec: dict, issued: Issued) -> None:

@@ -557,9 +557,7 @@ class WallSession:
                 raise NotFound(f"wall {self.id} was deleted")
             record, timings = await asyncio.to_thread(self.compute_frame, frame, updates, number,
                                                       refit)
-            if self.closed:  # deleted while it was culled: never published, never answered
-                raise NotFound(f"wall {self.id} was deleted")
-            return self.publish(record), timings
+            return self.publish(record), timings  # (NotFound if deleted while it was culled)
 
     async def _wait(self, done, event, timeout: float) -> bool:
         """Wait until ``done()``, waking whenever ``event()`` is set (read again each time:
@@ -801,8 +799,7 @@ class Walls:
         self.grants: dict[str, credentials.Issued] = {}  # wall id -> its credentials
         #: walls of the state folder waiting for their scene: id -> (row, why)
         self.unavailable: dict[str, tuple[WallRow, str]] = {}
-        self.reserved = 0  # walls being made
-        self.making: dict[str, int] = {}  # how many on each scene
+        self.making: dict[str, int] = {}  # walls being made, how many on each scene
         #: called with every wall as it joins (the NATS bridge publishes it from then on)
         self.on_add: list[Callable[[WallSession], None]] = []
 
@@ -828,18 +825,16 @@ class Walls:
         and the scene with it: an upload may not replace a scene while a wall is being made
         on it, which would cull the old scene while the server serves the new one."""
         self.check_room()
-        self.reserved += 1
         self.making[scene] = self.making.get(scene, 0) + 1
         try:
             yield
         finally:
-            self.reserved -= 1
             self.making[scene] -= 1
             if not self.making[scene]:
                 del self.making[scene]
 
     def check_room(self) -> None:
-        if len(self.sessions) + len(self.unavailable) + self.reserved >= self.limit:
+        if len(self.sessions) + len(self.unavailable) + sum(self.making.values()) >= self.limit:
             raise Conflict(f"the server already holds {self.limit} walls; delete one first")
 
     def build(self, scene: Scene, wall, method: str, bounds: str, pseudo_groups: bool,

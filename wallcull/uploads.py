@@ -226,7 +226,7 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
     if built > limits.nodes:
         raise InputError(f"the uploaded GLB makes {built:,} nodes (each primitive of a mesh of "
                          f"several is one); a scene may have at most {limits.nodes:,}")
-    _no_cycle(parents)
+    _rooted(parents)
     for k, scene in enumerate(_list(doc, "scenes")):
         roots = scene.get("nodes", [])
         if not isinstance(roots, list):
@@ -274,7 +274,7 @@ def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int, int]:
     return vertices, faces, len(prims)
 
 
-def _no_cycle(parents: list[int]) -> None:
+def _rooted(parents: list[int]) -> None:
     """Every node's chain of parents reaches a root (each node has one parent at most, so a
     chain that comes back to itself is the only way not to), in at most ``MAX_DEPTH`` steps."""
     depth = [-1] * len(parents)  # -1: not seen, -2: on the chain being walked

@@ -13,6 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+
 def _root() -> Path:
     """The checkout whose ``examples/`` and ``scenes/`` the experiments read and whose
     ``docs/`` they write: the package's own (installed with ``pip install -e``), else the

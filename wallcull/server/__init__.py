@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import time
 from pathlib import Path
 from contextlib import asynccontextmanager
 from dataclasses import replace
@@ -163,9 +164,9 @@ def create_app(scene_folder=None, token: str | None = None, max_body: int | None
     @app.get("/health", tags=["service"], operation_id="health")
     async def health():
         """``ok``, or ``degraded`` with the ``problems`` an operator should fix (the state
-        folder cannot be written; the NATS broker is away; walls wait for their scenes). Frames are served either way,
-        so the answer is 200. ``kernels``: ``loading`` for a second or two after a start
-        (frames wait for them meanwhile), then ``ready``."""
+        folder cannot be written; the NATS broker is away; walls wait for their scenes).
+        Frames are served either way, so the answer is 200. ``kernels``: ``loading`` for a
+        second or two after a start (frames wait for them meanwhile), then ``ready``."""
         problems = []
         failure = folder.failure if folder is not None else None
         if failure:
@@ -222,15 +223,18 @@ async def _keep(server: ServerState, wall_ttl: float | None) -> None:
     spooled bodies of uploads that will never end (:meth:`SceneStore.sweep`)."""
     period = RETRY_PERIOD if not wall_ttl else min(RETRY_PERIOD, max(wall_ttl / 4, 0.1))
     unwritten = None  # the state folder's last failure a chore met (said once)
+    sweep = 0.0  # when to look for uploads' spools next (once a minute is soon enough)
     while True:
         await asyncio.sleep(period)
         try:
             if server.walls.state is not None:
                 server.walls.state.check()  # moved or deleted under the server: health says
-            swept = await background(server.store.sweep)
-            if swept:
-                log.info("removed the spooled bodies of uploads that ended with no answer: %s",
-                         ", ".join(swept))
+            if time.monotonic() >= sweep:
+                sweep = time.monotonic() + 60
+                swept = await background(server.store.sweep)
+                if swept:
+                    log.info("removed the spooled bodies of uploads that ended with no "
+                             "answer: %s", ", ".join(swept))
             if server.walls.unavailable:
                 restored = await server.walls.retry(server.store)
                 if restored:

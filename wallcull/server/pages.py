@@ -122,6 +122,12 @@ _REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests",
             503: "Service Unavailable"}
 
 
+def _missing(request: Request, exc: Exception) -> HTMLResponse:
+    """The page of a wall (or tiles) that is not there: 503 while its scene is away (it
+    comes back with it), else 404."""
+    return error_page(request, 503 if isinstance(exc, Unavailable) else 404, str(exc))
+
+
 def _root(request: Request) -> str:
     """The path the app is served under (uvicorn's ``--root-path``), for the pages' links."""
     return html.escape(request.scope.get("root_path", "").rstrip("/"))
@@ -188,10 +194,8 @@ async def view_page(request: Request, state: State, wid: WallId,
         session = state.walls.get(wid)
         count = session.wall.tiles
         chosen = None if tiles is None else parse_tiles(tiles, count)
-    except (NotFound, InputError) as exc:
-        return error_page(request, 404, str(exc))
-    except Unavailable as exc:  # its scene is away: it comes back with it
-        return error_page(request, 503, str(exc))
+    except (NotFound, InputError, Unavailable) as exc:
+        return _missing(request, exc)
     if chosen is None:
         grant = state.walls.grant(token) if token else None
         chosen = sorted(grant.tiles) if grant is not None and grant.wall == wid else \
@@ -216,10 +220,8 @@ async def console_page(request: Request, state: State, wid: WallId,
     gets ``token`` (the operator's, or a credential of the wall) with the link."""
     try:
         state.walls.get(wid)
-    except NotFound as exc:
-        return error_page(request, 404, str(exc))
-    except Unavailable as exc:
-        return error_page(request, 503, str(exc))
+    except (NotFound, Unavailable) as exc:
+        return _missing(request, exc)
     root = _root(request)
     legend = "".join(f'<li class="{name}"><span class="swatch"></span>{name}: {text}</li>'
                      for name, text in LEGEND)

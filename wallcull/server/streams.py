@@ -240,12 +240,13 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
     acked = [-1]  # the newest frame acknowledged on this stream
     sent: deque = deque(maxlen=STREAM_WINDOW)  # the numbers of its last packets
     ack_came = asyncio.Event()
-    full_sent = [-1]  # the newest full message sent
+    #: the newest full lists asked for and sent: the node holds no frame from before them
+    since = [-1]
 
     def may_go() -> bool:
         """A node that could not use a delta acknowledges nothing until it has full lists:
         its request lets one full message past the window, not one per request."""
-        return bool(wants.get("full")) and acked[0] >= full_sent[0]
+        return bool(wants.get("full")) and acked[0] >= since[0]
 
     async def acknowledged(number: int) -> bool:
         """Wait until this stream has acknowledged ``number`` (or may have full lists past
@@ -266,7 +267,7 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
     write = writer(ws, binary)
 
     async def sender():
-        last = since = -1
+        last = -1
         while True:
             number = await session.next_frame(last)
             if len(sent) == STREAM_WINDOW and acked[0] < sent[0]:
@@ -280,17 +281,18 @@ async def _serve(ws: WebSocket, state: ServerState, session: WallSession, tiles:
             # deltas against what this stream acknowledged, not what the tiles did: another
             # node on the same tiles may be ahead of this one (or behind it)
             if node:  # its tiles' entries, encoded once per frame for every node
-                data, delta = session.node_message(tiles, number, full, since, binary,
+                data, delta = session.node_message(tiles, number, full, since[0], binary,
                                                    held=acked[0])
             elif binary:  # encoded once per frame for every tile (wallcull.encode)
-                data, delta = session.packet_bytes(tile, number, full, since, held=acked[0])
+                data, delta = session.packet_bytes(tile, number, full, since[0],
+                                                   held=acked[0])
             else:
-                pkt = session.packet(tile, number, full, since, held=acked[0])
+                pkt = session.packet(tile, number, full, since[0], held=acked[0])
                 data, delta = protocol.encode(pkt, False), pkt["base"] is not None
             await write(data)
             sent.append(number)
             if full:  # asked for (the first, or a node that dropped what it held): from
-                since = full_sent[0] = number  # here on, no delta against a frame before
+                since[0] = number  # here on, no delta against a frame before
             metrics.packet(delta, len(data), "ws")
             last = number
 
