@@ -216,6 +216,55 @@ def test_spot_light_behind_everything_casts_nothing():
     assert not any("shadows" in t for t in result.fits)
 
 
+def test_a_spot_lights_a_floor_passing_under_it_though_no_corner_is_in_its_cone():
+    """A spot at the origin along +x (30 degrees) over a floor running from behind it to 5 m
+    ahead: no corner of the floor's box lies in the cone and its centre lies behind the light,
+    but the cone lights the floor from 1.7 m on, and a box hanging there shades it. A tile that
+    sees only that floor gets the spot's shadow with the box among its casters (it got none:
+    its receivers were judged unlit)."""
+    s = trimesh.Scene()
+    s.add_geometry(trimesh.Trimesh([[-20, -1, -10], [5, -1, -10], [5, -1, 10], [-20, -1, 10]],
+                                   [[0, 2, 1], [0, 3, 2]], process=False),
+                   node_name="floor", geom_name="floor")
+    hanging = trimesh.creation.box(extents=[0.3, 0.3, 0.3])
+    hanging.apply_translation([3.0, -0.5, 0.0])
+    s.add_geometry(hanging, node_name="hanging", geom_name="hanging")
+    scene = Scene.from_trimesh(s, hierarchy="file", clusters=None)  # the floor one box
+    scene.settings = {"lights": [{"name": "spot", "type": "spot", "position": [0, 0, 0],
+                                  "direction": [1, 0, 0], "angle": 30}]}
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [0.8, 0.6], "distance": 1.0,
+                           "resolution": [120, 90]})
+    frame = {"position": [4.5, -0.2, 0.0],  # looking straight down at the shaded floor
+             "orientation": [np.cos(-np.pi / 4), np.sin(-np.pi / 4), 0, 0]}
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    assert result.visibility.names(0) == ["floor"]
+    (shadow,) = result.fits[0]["shadows"]
+    assert scene.index["hanging"] in shadow["casters"]
+
+
+@given(st.integers(0, 2**32 - 1))
+@hsettings(max_examples=200, deadline=None)
+def test_a_sphere_meeting_a_cone_is_never_judged_apart(seed):
+    """``lowilie._meets_cone`` against sampled points: a sphere with any point in the cone
+    (its centre, points on its surface and inside it) meets it."""
+    from wallcull.lowilie import _meets_cone
+
+    rng = np.random.default_rng(seed)
+    apex = rng.normal(size=3) * 5
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    cos = np.cos(np.radians(rng.uniform(1, 89)))
+    center = apex + rng.normal(size=3) * rng.choice([0.5, 5, 50])
+    radius = rng.choice([0.01, 1, 10, 100]) * rng.uniform()
+    points = rng.normal(size=(4000, 3))
+    points *= (radius * rng.uniform(size=(4000, 1)) ** (1 / 3)
+               / np.linalg.norm(points, axis=1, keepdims=True))
+    rel = np.vstack([center, center + points]) - apex
+    inside = rel @ axis >= np.linalg.norm(rel, axis=1) * cos
+    if inside.any():
+        assert _meets_cone(apex, axis, cos, center, radius)
+
+
 MIRROR = {"name": "pond", "point": [0, 0.01, 0], "normal": [0, 1, 0],
           "polygon": [[-10, 0.01, -10], [10, 0.01, -10], [10, 0.01, 10], [-10, 0.01, 10]]}
 

@@ -62,6 +62,75 @@ def test_culled_list_renders_exactly_like_the_whole_scene(clusters, fine):
     assert drawn > 1000  # the view is not empty
 
 
+def _lost_to_the_range(scene, wall, frame, fit):
+    """Pixels each tile's fitted list and frusta lose against the whole scene drawn with the
+    wall's depth range (a different range than the fitted one: what the fit may not clip)."""
+    result = Session(scene, wall, fit=fit).frame(frame)
+    r = renderer_for(*wall.resolution, scene=scene)
+    everything = r.draws.everything()
+    wide = tile_projections(wall, frame, np.full(wall.tiles, wall.near),
+                            np.full(wall.tiles, wall.far), fit.reversed_z)
+    lost = shown = 0
+    for t in range(wall.tiles):
+        view = np.asarray(result.fits[t]["view"])
+        proj = np.asarray(result.fits[t]["projection"])
+        culled = r.render(r.draws.tile(result.visibility, t), view, proj,
+                          reversed_z=fit.reversed_z).ids
+        whole = r.render(everything, view, wide[t], reversed_z=fit.reversed_z).ids
+        lost += int(((whole > 0) & (culled == 0)).sum())
+        shown += int((whole > 0).sum())
+    return lost, shown
+
+
+@pytest.mark.parametrize("reversed_z", [False, True])
+@pytest.mark.parametrize("room,eye_z", [((8, 4, 12), 1.0), ((4, 3, 5), 0.0), ((20, 6, 60), 0.0)])
+def test_the_fitted_depth_range_keeps_a_wall_seen_face_on_at_its_far_end(room, eye_z,
+                                                                          reversed_z):
+    """From inside a box room looking straight at its back wall, the wall is the farthest
+    listed bound and lies face-on at it: the fitted far plane must leave it inside the depth
+    range after float32 rounding and a 24-bit depth buffer (a margin of a millionth of the far
+    distance lost the whole wall, in either depth convention)."""
+    if reversed_z and not render.reversed_z_available():
+        pytest.skip("this OpenGL has no glClipControl for reversed-Z")
+    box = trimesh.creation.box(extents=room)
+    box.apply_translation([0, 0, -room[2] / 2 + 2])
+    s = trimesh.Scene()
+    s.add_geometry(box, node_name="room", geom_name="room")
+    scene = Scene.from_trimesh(s, hierarchy="file")
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "distance": 1.0,
+                           "resolution": [160, 90]})
+    frame = Frame.from_dict({"position": [0, 0, eye_z], "orientation": [1, 0, 0, 0]}, wall)
+    lost, shown = _lost_to_the_range(scene, wall, frame, FitOptions(reversed_z=reversed_z))
+    assert shown == 4 * 160 * 90
+    assert lost == 0
+
+
+@pytest.mark.parametrize("yaw", [19, 54, 68])
+def test_a_flat_facade_seen_head_on_keeps_its_pixels(yaw):
+    """A facade 2 km long of one quad, turned by ``yaw`` and seen head-on from 10 m, 50 m from
+    one end: its depth range has nearly no width, and a projection fitted that narrowly made
+    float32's rounding of the matrices clip the facade from every tile (at these yaws). The
+    range spans at least a sixty-fourth of its far distance."""
+    a = np.radians(yaw)
+    facade = trimesh.Trimesh([[0, 0, 0], [2000, 0, 0], [2000, 30, 0], [0, 30, 0]],
+                             [[0, 1, 2], [0, 2, 3]], process=False)
+    facade.apply_transform(trimesh.transformations.rotation_matrix(a, [0, 1, 0]))
+    s = trimesh.Scene()
+    s.add_geometry(facade, node_name="facade", geom_name="facade")
+    scene = Scene.from_trimesh(s, hierarchy="file")
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "distance": 1.0,
+                           "resolution": [160, 90]})
+    along, normal = np.array([np.cos(a), 0, -np.sin(a)]), np.array([np.sin(a), 0, np.cos(a)])
+    eye = 50 * along + [0, 5, 0] + 10 * normal
+    frame = Frame.from_dict({"position": eye.tolist(),  # looking down -normal
+                             "orientation": [np.cos(a / 2), 0, np.sin(a / 2), 0]}, wall)
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    assert result.fits[0]["far"] - result.fits[0]["near"] < 1.0  # it is seen head-on
+    lost, shown = _lost_to_the_range(scene, wall, frame, FitOptions())
+    assert shown == 4 * 160 * 90
+    assert lost == 0
+
+
 def test_stereo_eyes_render_exactly_like_the_whole_scene():
     """A stereo frame on a 2 x 2 wall, eyes far apart: each eye's image of each tile, drawn
     from the tile's one list (what either eye sees) and its ranges, equals that eye's image of
@@ -181,3 +250,43 @@ def test_low_ilie_frustum_clips_no_pixel_and_covers_more(seed, capsys):
     with capsys.disabled():
         print(f"\nLow-Ilie coverage {covered:.3f} against {sample_covered:.3f} (symmetric)")
     assert covered >= sample_covered and covered > 0.5
+
+
+@pytest.mark.parametrize("glass", [False, True])
+def test_a_mirror_shows_what_lies_beyond_the_tiles_own_depth_range(glass):
+    """A wall mirror 4 m ahead, facing the viewer, who sees a small box 2.5 m ahead (and, with
+    ``glass``, the mirror's own surface just behind its plane): what the mirror shows lies 5 to
+    14 m away, beyond the tile's fitted far plane. The mirror's pass keeps every pixel of the
+    reflection drawn with the wall's range and a clip plane at the mirror; it lost them all
+    when its projection kept the tile's own far plane, and without the glass (the far plane
+    before the mirror) the tile had no mirror pass at all."""
+    from wallcull import settings as cfg
+
+    s = trimesh.Scene()
+    boxes = {"near_box": ([0.4, 0.4, 0.4], [0.5, 0.0, -2.5]),
+             "behind": ([1.5, 1.5, 1.5], [-0.3, 0.0, 6.0])}
+    if glass:
+        boxes["glass"] = ([3, 3, 0.01], [0, 0, -4.006])
+    for name, (extents, at) in boxes.items():
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(at)
+        s.add_geometry(m, node_name=name, geom_name=name)
+    settings = {"mirrors": [{"name": "wallmirror", "point": [0, 0, -4], "normal": [0, 0, 1]}]}
+    scene = Scene.from_trimesh(s, hierarchy="file", settings=settings)
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+                           "resolution": [160, 90]})
+    frame = Frame.from_dict({"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}, wall)
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    assert result.fits[0]["far"] < 5  # the tile's own range ends before the reflection
+    (entry,) = result.fits[0]["mirrors"]
+    r = renderer_for(160, 90, scene)
+    mirror = cfg.parse(settings).mirrors[0]
+    wide = tile_projections(wall, frame, np.array([wall.near]), np.array([wall.far]))[0]
+    reflected = np.asarray(result.fits.view) @ mirror.reflection
+    ref = r.render(r.draws.everything(), reflected, wide, clip_plane=list(mirror.plane),
+                   front_face_cw=True).ids
+    img = r.render(r.draws.leaves(entry["visible"]), np.asarray(entry["view"]),
+                   np.asarray(entry["projection"]), front_face_cw=True).ids
+    assert {scene.names[i - 1] for i in np.unique(ref) if i} == {"near_box", "behind"}
+    assert int((ref > 0).sum()) > 100
+    assert int(((ref > 0) & (img == 0)).sum()) == 0

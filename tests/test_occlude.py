@@ -187,7 +187,8 @@ def test_a_mesh_covers_across_its_shared_edges_and_no_more(seed, n, fold, cluste
 def test_closed_meshes_through_the_near_plane_claim_only_what_they_cover(seed, count):
     """Boxes, spheres and cylinders at random, some through the near plane or around the eye,
     some mirrored (wound the other way): each claims only what its faces beyond the near plane
-    cover, at their depth or beyond (their back faces skipped); so in threads; scratch that
+    cover, at their depth or beyond (their back faces skipped where they lie beyond the near
+    plane); so in threads; scratch that
     served a frame before changes nothing."""
     rng = np.random.default_rng(seed)
     meshes = []
@@ -477,6 +478,25 @@ def check_pixels(scene, wall_spec, frame_spec, eyes=(None,), options=OcclusionOp
 def test_a_grid_drawn_from_occlusion_culled_lists_loses_no_pixel():
     assert check_pixels(boxes_behind_a_wall(), WALL,
                         {"position": [0.3, 0.2, 0], "orientation": [1, 0, 0, 0]}) > 0
+
+
+@pytest.mark.parametrize("winding", [1, -1])
+def test_a_room_of_one_closed_mesh_hides_what_lies_outside_it(winding):
+    """The eye inside a room modelled as one closed box (wound either way: a mirroring
+    placement), objects outside its walls: its faces, all back faces from inside, hide them
+    (skipped as back faces, the room hid nothing), and no pixel is lost."""
+    s = trimesh.Scene()
+    room = np.diag([winding, 1.0, 1.0, 1.0])
+    s.add_geometry(trimesh.creation.box(extents=[12, 6, 16]), node_name="room",
+                   geom_name="room", transform=room)
+    for k, x in enumerate(np.linspace(-4, 4, 5)):
+        m = np.eye(4)
+        m[:3, 3] = [x, 0.4 * k - 1, -12]  # beyond the far wall (z = -8)
+        s.add_geometry(trimesh.creation.icosphere(2, radius=0.5), node_name=f"outside{k}",
+                       geom_name=f"o{k}", transform=m)
+    scene = Scene.from_trimesh(s, hierarchy="file", clusters=32)
+    occluded = check_pixels(scene, WALL, {"position": [0, 0, 2], "orientation": [1, 0, 0, 0]})
+    assert occluded >= 5
 
 
 @pytest.mark.parametrize("name,frame", [

@@ -46,10 +46,19 @@ from .projection import look_at, mirrored_views, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, matrix_quaternions
 
-#: Depth ranges are widened by this fraction of their far distance, so that rounding in the
-#: client's float32 matrices never clips a surface lying exactly on a fitted plane.
-DEPTH_MARGIN = 1e-6
+#: A fitted depth range keeps this much of the depth buffer free beyond its bounds at both
+#: ends (in window depth, [0, 1], the same in either convention: reversed-Z's is one minus the
+#: standard one): a surface lying on the nearest or the farthest listed bound stays inside
+#: the range after a node's float32 matrices and its depth buffer have rounded it. A relative
+#: margin of the distances does not do that: at the far end a standard projection's depth
+#: changes by ``n / f`` of what it changes by at the near end, and a reversed-Z one puts the
+#: farthest bound at depth ``~ n / f * margin``, which a 24-bit buffer rounds to its clear value.
+DEPTH_SLACK = 2.0 ** -10
 
+#: A fitted range spans at least this fraction of its far distance: a flat surface seen
+#: head-on has a range of nearly no width, whose projection's depth row (``~ f / (f - n)``)
+#: turns float32's rounding of a node's matrices into whole metres, clipping the surface.
+MIN_DEPTH_SPAN = 2.0 ** -6
 
 @dataclass(frozen=True)
 class FitOptions:
@@ -160,17 +169,22 @@ def depth_ranges(state: SceneState, wall, frame: Frame, visibility: Visibility,
 
 @njit(cache=True)
 def _tight(lo, hi, wall_near, wall_far, near, far):
-    """Each tile's depth range from the depths ``lo``, ``hi`` its bounds span (NaN: none),
-    widened by a margin against rounding, rounded outward to float32 and clamped to the
-    wall's ``[wall_near, wall_far]`` (the wall's for a tile that shows nothing); a flat range
-    still has two planes."""
-    eps = np.finfo(np.float64).eps
+    """Each tile's depth range from the depths ``lo``, ``hi`` its bounds span (NaN: none):
+    ``near`` and ``far`` such that depths ``lo`` and ``hi`` lie :data:`DEPTH_SLACK` inside
+    the depth buffer's ends and the range spans :data:`MIN_DEPTH_SPAN` of ``far``, rounded
+    outward to float32 and clamped to the wall's ``[wall_near, wall_far]`` (the wall's for a
+    tile that shows nothing). In window depth ``z(d) = f (d - n) / ((f - n) d)``:
+    ``n = lo (1 - s)`` gives ``z(lo) >= s`` for every ``f``; ``f = n hi (1 - s) / (n - s hi)``
+    gives ``z(hi) = 1 - s``, and a larger ``f`` keeps both. When ``hi >= n / s`` no far plane
+    does: the wall's then."""
+    s = DEPTH_SLACK
     for t in range(lo.shape[0]):
         n, f = wall_near, wall_far
         if math.isfinite(lo[t]):
-            margin = DEPTH_MARGIN * abs(hi[t]) + eps * max(abs(lo[t]), abs(hi[t]))
-            n = min(max(outward(lo[t] - margin, -1.0), wall_near), wall_far)
-            f = min(max(outward(hi[t] + margin, 1.0), wall_near), wall_far)
+            n = min(max(outward(lo[t] * (1 - s), -1.0), wall_near), wall_far)
+            if n > s * hi[t]:  # False for an infinite hi: the wall's far
+                f = max(n * hi[t] * (1 - s) / (n - s * hi[t]), n / (1 - MIN_DEPTH_SPAN))
+                f = min(max(outward(f, 1.0), wall_near), wall_far)
             if f <= n:
                 f = outward(n * (1 + 1e-9) + 1e-300, 1.0)
         near[t], far[t] = n, f
@@ -709,9 +723,20 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
         # cores, while a shadow pass waits for its threads, the other core does the mirrors.
         frusta = frusta or Frusta.build(wall, frame)
         culler = culler or Culler(state, wall)
-        made = workers.aside(lambda: [
-            (s.tiles(s.seen(culler, frusta), out.view, out.projection),
-             [s.matrices(eye.view, eye.projection) for eye in out.eyes]) for s in sights])
+
+        def mirrored():
+            # What a mirror shows lies beyond it, past what the tile shows directly: its
+            # projection is the tile's with the wall's depth range, the mirror its near plane.
+            ranged = [out.projection] + [eye.projection for eye in out.eyes]
+            if tight:
+                near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
+                ranged = [tile_projections(wall, frame, near, far, options.reversed_z, e)
+                          for e in [frame.eye, *([] if frame.stereo is None else frame.eyes)]]
+            return [(s.tiles(s.seen(culler, frusta), out.view, ranged[0]),
+                     [s.matrices(eye.view, p) for eye, p in zip(out.eyes, ranged[1:])])
+                    for s in sights]
+
+        made = workers.aside(mirrored)
     try:
         if declared:
             out.shadows = shadow_sets(state, scene_settings.lights, visibility,

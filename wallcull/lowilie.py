@@ -649,19 +649,43 @@ def _fit_core(eye, centers, g, width, height, near_in, far_in, effort, view, pro
     return OK
 
 
+@njit(cache=True, inline="always")
+def _meets_cone(apex, axis, cos, center, radius):
+    """Whether the sphere (``center``, ``radius``) meets the cone from ``apex`` around the unit
+    ``axis`` with half-angle ``acos(cos)`` (below 90 degrees): Eberly's test, the sphere grown
+    by a millionth so that rounding keeps it conservative. A box whose corners all lie outside
+    the cone and whose centre lies behind the apex can still cross the cone (a floor passing
+    under a spot light)."""
+    sin = math.sqrt(max(1.0 - cos * cos, 0.0))
+    r = radius * (1 + 1e-6) + 1e-12 * (abs(center[0] - apex[0]) + abs(center[1] - apex[1])
+                                        + abs(center[2] - apex[2]))
+    step = r / sin  # the cone's apex moved back along the axis: the sphere's centre in it
+    dx = center[0] - apex[0] + step * axis[0]
+    dy = center[1] - apex[1] + step * axis[1]
+    dz = center[2] - apex[2] + step * axis[2]
+    e = dx * axis[0] + dy * axis[1] + dz * axis[2]
+    if not (e > 0 and e * e >= (dx * dx + dy * dy + dz * dz) * cos * cos):
+        return False
+    dx, dy, dz = center[0] - apex[0], center[1] - apex[1], center[2] - apex[2]
+    e = -(dx * axis[0] + dy * axis[1] + dz * axis[2])
+    dd = dx * dx + dy * dy + dz * dz
+    if e > 0 and e * e >= dd * sin * sin:  # behind the apex, outside the cone's mirror image
+        return dd <= r * r
+    return True
+
+
 @njit(cache=True, nogil=True)
 def _fit_boxes(eye, center, axes, half, radius, start, nodes, width, height, effort, spot,
                spot_dir, spot_cos, views, projections, near, far, coverage, status):
     """:func:`_fit_core` for many sets of boxes at once: set ``q`` is the boxes enclosing the
     rounded boxes ``nodes[start[q]:start[q + 1]]`` (a tile's receivers). With ``spot``, a set
-    none of whose corners the cone (``spot_dir``, ``spot_cos``) reaches and none of whose
-    centres lies in front of the light is ``UNLIT``."""
+    none of whose boxes' spheres reaches into the cone (``spot_dir``, ``spot_cos``) is
+    ``UNLIT``."""
     most = 0
     for q in range(start.shape[0] - 1):
         most = max(most, start[q + 1] - start[q])
     c = np.empty((most, 3))
     g = np.empty((most, 3, 3))
-    corner = np.empty((8, 3))
     quad, target, rays, axis = np.empty((4, 2)), np.empty((4, 2)), np.empty((4, 3)), np.empty(3)
     info = np.zeros(INFO_SIZE)
     for q in range(start.shape[0] - 1):
@@ -677,15 +701,12 @@ def _fit_boxes(eye, center, axes, half, radius, start, nodes, width, height, eff
                 for b in range(3):
                     g[j, a, b] = axes[i, a, b] * (half[i, a] + radius[i])
             if not lit:
-                lit = ((center[i, 0] - eye[0]) * spot_dir[0] + (center[i, 1] - eye[1])
-                       * spot_dir[1] + (center[i, 2] - eye[2]) * spot_dir[2]) > 0
-            if not lit:
-                for k in range(_corners_of(c, g, j, corner, 0)):
-                    dx, dy, dz = corner[k, 0] - eye[0], corner[k, 1] - eye[1], corner[k, 2] - eye[2]
-                    along = dx * spot_dir[0] + dy * spot_dir[1] + dz * spot_dir[2]
-                    lit = lit or along >= math.sqrt(dx * dx + dy * dy + dz * dz) * spot_cos
+                lit = _meets_cone(eye, spot_dir, spot_cos, center[i],
+                                  math.sqrt((half[i, 0] + radius[i]) ** 2
+                                            + (half[i, 1] + radius[i]) ** 2
+                                            + (half[i, 2] + radius[i]) ** 2))
         if not lit:
-            status[q] = UNLIT  # every receiver lies behind the spot light: nothing there is lit
+            status[q] = UNLIT  # no receiver reaches into the spot light's cone
             continue
         status[q] = _fit_core(eye, c[:count], g[:count], width, height, np.nan, np.nan, effort,
                               views[q], projections[q], quad, target, rays, axis, info)

@@ -21,7 +21,8 @@ Conservative on both sides, so that dropping never removes a pixel:
   fill the texel. A texel claimed keeps the nearest of the *farthest* depths of what claimed
   it (depth's reciprocal is affine on each face, so the farthest is at a corner of the face's
   part in the texel): everything beyond it, over the whole texel, is hidden. Faces before the
-  near plane are cut off; a closed mesh's back faces are skipped (its front faces hide them);
+  near plane are cut off; a closed mesh's back faces are skipped where the mesh lies wholly
+  beyond the near plane (its front faces hide them; from inside it they are what is seen);
   two faces across a side that make a convex quadrilateral are drawn as one polygon (a
   wall's, a pipe's sides), each keeping its own depths;
 * a node's bound is projected whole (its box's eight corners, grown by its ball): the texels
@@ -771,7 +772,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
     the mesh table, the face across each edge, -1 for none; ``outward``: per mesh, +1 (-1)
     when it is closed and its faces wind counter-clockwise (clockwise) seen from outside, 0
     when it is not closed: a closed mesh's back faces lie behind its front faces and are
-    skipped. The rest: scratch kept between frames (see :func:`_scratch`), marked with the
+    skipped where its sphere lies wholly beyond the near plane (from inside it, or with the
+    near plane through it, they are what is seen). The rest: scratch kept between frames (see :func:`_scratch`), marked with the
     ``stamps`` of leaves (updated).
 
     Writes from row ``start`` on (room for every face in every view) the patches' polygons
@@ -862,6 +864,12 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
             a = affine[v]
             if not _in_view(box, leaf, a, rect[v], size[v], cut):
                 continue
+            # From outside a closed mesh its front faces hide its back faces; from inside it,
+            # or where the near plane cuts it, its back faces are what is seen.
+            skip = front
+            if skip != 0 and not -_to_view(a, box[leaf, 0], box[leaf, 1], box[leaf, 2])[2] \
+                    - box[leaf, 13] > cut:
+                skip = 0
             for r in range(3):  # world -> view, for this leaf
                 for c in range(4):
                     m_[r, c] = a[r, 0] * w[0, c] + a[r, 1] * w[1, c] + a[r, 2] * w[2, c] \
@@ -885,8 +893,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
                 c0, c1, c2 = corner[s, 0], corner[s, 1], corner[s, 2]
                 # counter-clockwise seen from the eye (the origin): a negative triple product
                 t3 = _triple(vview[c0], vview[c1], vview[c2])
-                if front != 0 and (t3 < 0) != (front > 0):
-                    continue  # a back face of a closed mesh
+                if skip != 0 and (t3 < 0) != (skip > 0):
+                    continue  # a back face of a closed mesh seen from outside
                 if vdepth[c0] > cut and vdepth[c1] > cut and vdepth[c2] > cut:
                     for c in range(3):
                         x = corner[s, c]

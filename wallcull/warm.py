@@ -1,8 +1,8 @@
 """Compile every numba kernel once, so that no client waits for a compiler.
 
 The kernels are compiled with ``cache=True``: the first process to use one writes it to
-numba's cache (``$NUMBA_CACHE_DIR``, else ``__pycache__`` beside the sources, else the user's
-cache folder), and every later process loads it in milliseconds. :func:`culling` runs what a
+numba's cache (a folder keyed by the kernel modules' digest: see ``wallcull._kernel_cache``),
+and every later process loads it in milliseconds. :func:`culling` runs what a
 mono frame on a grid needs; :func:`the_rest` runs stereo, screens walls, shadow and mirror
 frusta and the packet encoders. The server runs both in a worker thread as it starts. ``python -m wallcull.warm`` runs both: the Dockerfile does
 at image build, so that a fresh container answers its health check in seconds rather than
