@@ -10,7 +10,6 @@ around them) and the traversal's time per box-plane test.
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 import numpy as np
@@ -19,6 +18,7 @@ from wallcull.cull import Culler
 from wallcull.paths import scene_path
 from wallcull.scene import SceneState, load
 from wallcull.wall import Frusta, Wall
+from _cli import count, run, wall_file  # beside this file
 
 STAGES = ("traverse_ms", "separate_ms", "sort_ms")
 
@@ -49,4 +49,6 @@ def main(scene_name: str = "powerplant", wall_file: str = "examples/wall-8x8.jso
 
 
 if __name__ == "__main__":
-    main(*(sys.argv[1:3]), *(int(a) for a in sys.argv[3:4]))
+    run(main, __doc__, ("scene", "powerplant", str, "a scene name or file"),
+        ("wall", "examples/wall-8x8.json", wall_file, "the wall file"),
+        ("frames", 200, count(1), "frames of the orbit"))

@@ -12,7 +12,6 @@ ranges).
 
 from __future__ import annotations
 
-import sys
 from collections import Counter
 
 import msgpack
@@ -20,6 +19,7 @@ import numpy as np
 from server_frame import wall_session  # beside this file
 
 from wallcull import encode
+from _cli import count, run, wall_file  # beside this file
 
 
 def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
@@ -55,4 +55,7 @@ def main(wall_file: str = "examples/wall-16x16.json", per_node: int = 4,
 
 
 if __name__ == "__main__":
-    main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]), *(sys.argv[4:5]))
+    run(main, __doc__, ("wall", "examples/wall-16x16.json", wall_file, "the wall file"),
+        ("per_node", 4, count(1), "tiles a node draws"),
+        ("frames", 150, count(31), "frames of the orbit (the first 30 are left out)"),
+        ("clusters", "auto", str, "cluster size, auto or off"))

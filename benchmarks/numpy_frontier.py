@@ -15,7 +15,6 @@ compiled ``adaptive`` kernel's.
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 import numpy as np
@@ -24,6 +23,7 @@ from wallcull.cull import Culler, _primary, _shared_planes, packed
 from wallcull.paths import camera_path
 from wallcull.scene import SceneState, load
 from wallcull.wall import Frusta, Wall
+from _cli import count, run, wall_file  # beside this file
 
 OUT, CUT, FULL = 0, 1, 2
 NEAR_BIT = 1 << 4  # a grid's primary planes: left, right, top, bottom, near, far
@@ -120,4 +120,6 @@ def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:3], *(int(a) for a in sys.argv[3:4]))
+    run(main, __doc__, ("scene", "powerplant", str, "a scene name or file"),
+        ("wall", "examples/wall-4x4.json", wall_file, "the wall file"),
+        ("frames", 100, count(1), "frames of the path"))

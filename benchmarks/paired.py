@@ -10,8 +10,9 @@ minute to the next, a ratio of paired frames by a few hundredths).
 ``REV``'s ``wallcull`` package is extracted once (``git archive``) as ``wallcull_base`` into
 ``$WALLCULL_CACHE/paired/`` (default ``~/.cache/wallcull``), where its compiled kernels are
 kept for the next run. Prints both medians and the median and mean of the paired ratios
-(working tree over ``REV``); below 1 is faster. ``total`` is the session's stages (cull,
-occlusion, leaf lists, fits), not the encoding.
+(working tree over ``REV``); below 1 is faster, over the frames where the stage ran on both
+sides (``frames_paired``). ``total`` is the session's stages (cull, occlusion, leaf lists,
+fits), not the encoding. Both sides must make the same frames of the path.
 """
 
 from __future__ import annotations
@@ -80,12 +81,21 @@ def main() -> None:
     p.add_argument("--wall", default=str(ROOT / "examples" / "wall-8x8.json"))
     p.add_argument("--scene", default="powerplant")
     args = p.parse_args()
+    if args.frames < 1:
+        p.error(f"--frames must be at least 1, got {args.frames}")
+    if args.stage == "occlude" and not args.occlusion:
+        p.error("--stage occlude needs --occlusion on or auto (without it nothing is timed)")
     settings = None
     if args.settings:
         with open(args.settings) as f:
             settings = json.load(f)
     sys.path.insert(0, str(base_package(args.rev)))
     pairs = [session("wallcull_base", args, settings), session("wallcull", args, settings)]
+    poses = [np.array([np.r_[f.position, f.orientation] for f in frames[:args.frames]])
+             for _, frames in pairs]
+    if poses[0].shape != poses[1].shape or not np.array_equal(*poses):
+        sys.exit(f"paired.py: {args.rev} makes other frames of the {args.path} path than the "
+                 "working tree (its paths or scene loading differ): no pairs to compare")
     key = f"{args.stage}_ms"
     times = [[], []]
     for k in range(args.frames):
@@ -95,12 +105,19 @@ def main() -> None:
             times[which].append(sum(v for n, v in timings.items() if n.endswith("_ms"))
                                 if args.stage == "total" else timings.get(key, 0.0))
     base, new = np.array(times[0]), np.array(times[1])
-    ratio = new / np.maximum(base, 1e-9)
+    ran = (base > 0) & (new > 0)  # a stage skipped on a frame (occlusion's auto) is no pair
+    if not ran.any():
+        sys.exit(f"paired.py: the {args.stage} stage ran on none of the {args.frames} frames "
+                 "on both sides")
+    base, new = base[ran], new[ran]
+    ratio = new / base
     print(json.dumps({"rev": args.rev, "stage": args.stage, "frames": args.frames,
+                      "frames_paired": int(ran.sum()),
                       "base_median_ms": round(float(np.median(base)), 3),
                       "new_median_ms": round(float(np.median(new)), 3),
                       "paired_ratio_median": round(float(np.median(ratio)), 3),
-                      "ratio_of_means": round(float(new.mean() / base.mean()), 3)}))
+                      "ratio_of_means": round(float(new.mean() / base.mean()), 3)},
+                     allow_nan=False))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ measures beyond this is the WebSocket (or NATS) stack around the same calls.
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 import numpy as np
@@ -19,6 +18,7 @@ from wallcull.paths import scene_path
 from wallcull.scene import load, parse_clusters
 from wallcull.service import Walls
 from wallcull.wall import Wall
+from _cli import count, run, wall_file  # beside this file
 
 
 def wall_session(wall_file: str, per_node: int, clusters: str = "auto"):
@@ -62,4 +62,6 @@ def main(wall_file: str = "examples/wall-8x8.json", per_node: int = 4,
 
 
 if __name__ == "__main__":
-    main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]))
+    run(main, __doc__, ("wall", "examples/wall-8x8.json", wall_file, "the wall file"),
+        ("per_node", 4, count(1), "tiles a node draws"),
+        ("frames", 300, count(31, 600), "frames of the orbit (the first 30 are left out)"))

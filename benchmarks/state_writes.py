@@ -7,13 +7,13 @@ ahead of use (``wallcull.service.FrameNumbers``, what it does), in a fresh state
 
 from __future__ import annotations
 
-import sys
 import tempfile
 import time
 
 from wallcull.credentials import Issued
 from wallcull.persist import StateFolder
 from wallcull.service import FrameNumbers
+from _cli import count, run  # beside this file
 
 RATE = 60  # frames a second
 
@@ -46,4 +46,4 @@ def main(frames: int = 3600) -> None:
 
 
 if __name__ == "__main__":
-    main(*(int(a) for a in sys.argv[1:]))
+    run(main, __doc__, ("frames", 3600, count(1), "frames numbered"))

@@ -8,7 +8,6 @@ the same frames.
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 import numpy as np
@@ -17,6 +16,7 @@ from wallcull.cull import Culler, merge
 from wallcull.paths import scene_path
 from wallcull.scene import SceneState, load
 from wallcull.wall import Frame, Frusta, Wall
+from _cli import count, run, wall_file  # beside this file
 
 IPD = 0.064
 
@@ -49,4 +49,6 @@ def main(scene_name: str = "powerplant", wall_file: str = "examples/wall-8x8.jso
 
 
 if __name__ == "__main__":
-    main(*(sys.argv[1:3]), *(int(a) for a in sys.argv[3:4]))
+    run(main, __doc__, ("scene", "powerplant", str, "a scene name or file"),
+        ("wall", "examples/wall-8x8.json", wall_file, "the wall file"),
+        ("frames", 200, count(1), "frames of the orbit"))

@@ -157,6 +157,38 @@ def test_bench_json_follows_the_spec(capsys, glb):
     assert all(0 <= v["rate"] <= 1 for k in ("obb", "aabb") for v in acc[k].values())
 
 
+def test_bench_times_the_methods_in_turns(capsys, glb, monkeypatch):
+    """The methods' frames interleave, a turn of frames each, so that a ratio between two of
+    them is of the same minutes on a shared machine (they ran one after the other)."""
+    from wallcull import bench
+
+    log, real = [], bench.timing
+
+    def logged(*args, **kwargs):
+        inner = real(*args, **kwargs)
+        while True:
+            try:
+                next(inner)
+            except StopIteration as done:
+                return done.value
+            log.append(args[3])
+            yield
+
+    monkeypatch.setattr(bench, "timing", logged)
+    monkeypatch.setattr(bench, "TURN", 3)
+    code, out, err = run(capsys, "bench", glb, "--wall", WALL, "--frames", "8", "--json",
+                         "--methods", "adaptive,oh")
+    assert code == 0, err
+    turns = ["adaptive"] * 3 + ["oh"] * 3
+    assert log == turns + turns + ["adaptive"] * 2 + ["oh"] * 2
+    assert json.loads(out)["adaptive_speedup_vs_oh"] > 0
+
+
+def test_bench_refuses_a_negative_frame_count_for_what_it_is(capsys, glb):
+    code, _, err = run(capsys, "bench", glb, "--wall", WALL, "--frames", "-5")
+    assert code == 2 and "--frames must be at least 1, got -5" in err
+
+
 def test_bench_dynamic_reports_refit_times(capsys, glb):
     code, out, _ = run(capsys, "bench", glb, "--wall", WALL, "--frames", "4", "--json",
                        "--methods", "adaptive", "--moving", "1.0", "--refit", "aabb")

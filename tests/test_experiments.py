@@ -281,6 +281,20 @@ def test_unknown_experiment_is_bad_input(capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("extra,said", [
+    (["--seed", "-1", "--out", "OUT"], "--seed must be 0 or more"),
+    (["--quick"], "--quick needs --out DIR"),
+    (["--out", "FILE"], "is a file, not a folder")])
+def test_careless_experiment_options_are_one_line(tmp_path, capsys, extra, said):
+    """A negative seed, a quick run into the published pages, an output folder that is a
+    file: one line and status 2 (they were internal errors, or overwrote the docs' numbers)."""
+    (tmp_path / "FILE").write_text("not a folder")
+    extra = [str(tmp_path / a) if a in ("OUT", "FILE") else a for a in extra]
+    assert main(["experiment", "fig6", *extra]) == 2
+    err = capsys.readouterr().err
+    assert said in err and len(err.strip().splitlines()) == 1
+
+
 def test_scale(out):
     """Each step in its own process: a first prepare, then a prepared load and its culling."""
     res = check_output(out, "scale", E.run("scale", out, quick=True, progress=False))

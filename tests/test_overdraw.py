@@ -68,6 +68,18 @@ def test_overdraw_command_orders_its_counts(capsys):
     assert by["off"]["over_floor"] > 2 * by[32]["over_floor"]  # the truck is one mesh or so
 
 
+def test_overdraw_names_the_size_auto_chose_once(capsys):
+    """``auto`` is reported as the cluster size it chose (it was "clusters of auto"), and
+    asking for that size beside it measures it once."""
+    from wallcull.scene import load
+
+    chosen = load("scenes/CesiumMilkTruck.glb").cluster_size
+    assert main(["overdraw", "scenes/CesiumMilkTruck.glb", "--wall", "examples/wall-4x4.json",
+                 "--frames", "2", "--sizes", f"auto,{chosen}", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert [e["clusters"] for e in report["settings"]] == ["off", chosen]
+
+
 def test_overdraw_refuses_bad_sizes(capsys):
     assert main(["overdraw", "powerplant", "--sizes", "8"]) == 2
     assert "between 32 and 4096" in capsys.readouterr().err

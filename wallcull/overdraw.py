@@ -274,7 +274,9 @@ def run(spec: str, wall: Wall, path: str = "orbit", frames: int = 60,
     from .paths import scene_path
     from .scene import load
 
-    scenes = {size: load(spec, hierarchy, branching, clusters=size)
-              for size in dict.fromkeys((None, *sizes))}
+    loaded = [load(spec, hierarchy, branching, clusters=size)
+              for size in dict.fromkeys((None, *sizes))]
+    # by the size each scene has: "auto" is reported as the size it chose, once
+    scenes = {scene.cluster_size: scene for scene in loaded}
     return measure(scenes, wall, scene_path(scenes[None], wall, path, frames), method, bounds,
                    progress, occlusion, resolution)

@@ -90,7 +90,8 @@ def register(subparsers) -> None:
     q.add_argument("--out", default=None,
                    help=f"output folder for JSON, PNG and markdown (default: the project's "
                         f"{DEFAULT_OUT}/)")
-    q.add_argument("--quick", action="store_true", help="a tiny version, for the test suite")
+    q.add_argument("--quick", action="store_true",
+                   help="a tiny version, for the test suite (needs --out)")
     q.add_argument("--seed", type=int, default=0, help="seed of every random choice")
     q.add_argument("--scenes", default=None,
                    help="folder of the third-party scenes (default: the project's scenes/)")
@@ -107,7 +108,14 @@ def cmd_experiment(args) -> int:
         raise InputError("wallcull experiment runs in a checkout of the repository (it reads "
                          "its examples/ and scenes/): run it from one, or install one with "
                          "pip install -e")
+    if args.seed < 0:
+        raise InputError(f"--seed must be 0 or more, got {args.seed}")
+    if args.quick and not args.out:
+        raise InputError(f"--quick needs --out DIR: a quick run would replace the published "
+                         f"{DEFAULT_OUT}/ pages with its tiny numbers")
     out = Path(args.out) if args.out else ROOT / DEFAULT_OUT
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file, not a folder")
     scenes = Path(args.scenes) if args.scenes else None
     if args.name == "all":
         report = Path(args.report) if args.report else (

@@ -124,7 +124,7 @@ def against_paper(data: dict) -> str:
         + "; ".join(f"{n}: `oh` {e['methods']['oh']['tests_per_frame']:,.0f}, adaptive "
                     f"{e['methods']['adaptive']['tests_per_frame']:,.0f}"
                     for n, e in scenes.items())
-        + ". Adaptive's lead appears as the wall grows (Fig. 5).")
+        + ". How the lead changes as the wall grows is Fig. 5's question.")
     if "powerplant" in med:
         parts.append(f"Absolute times are about {5 / med['powerplant']['adaptive']:.0f}x below "
                      f"the paper's (adaptive on the power plant: "

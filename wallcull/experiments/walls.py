@@ -4,9 +4,8 @@ grid, each mono and stereo.
 
 The power plant, OBBs; the orbit path, which for walls that surround the user (the CAVEs) is a
 ring inside the plant with the camera looking along it (:func:`wallcull.paths.camera_path`).
-Each configuration's three hierarchy methods are timed in turns over the same frames by
-:func:`wallcull.bench.time_method`, the numbers ``wallcull bench --wall ... [--stereo IPD]``
-prints. Stereo frames are the same frames with two eyes 64 mm apart, the head level with the
+Each configuration's three hierarchy methods are timed in turns over the same frames
+(:func:`wallcull.bench.in_turns`), as ``wallcull bench --wall ... [--stereo IPD]`` times them. Stereo frames are the same frames with two eyes 64 mm apart, the head level with the
 display (SPEC section 3): a grid is culled once against planes that hold both eyes' frusta, a
 screens wall eye by eye and merged.
 """
@@ -17,7 +16,7 @@ import json
 
 import numpy as np
 
-from ..bench import time_method
+from ..bench import in_turns, timing
 from ..wall import Frame, Wall
 from . import common as C
 from .context import ROOT, Context
@@ -44,12 +43,11 @@ def run(ctx: Context) -> tuple[dict, str]:
         if eyes == "stereo":
             frames = [Frame.make(f.position, f.orientation, f.eye, wall,
                                  (IPD, (1.0, 0.0, 0.0, 0.0))) for f in frames]
-        per = {}
-        for method in METHODS:
-            timed = time_method(scene, wall, frames, method, "obb")
-            per[method] = {k: timed[k] for k in ("median_ms", "p99_ms", "tests_per_frame",
-                                                 "nodes_per_frame")}
-            task.advance()
+        timed = in_turns({m: timing(scene, wall, frames, m, "obb") for m in METHODS},
+                         len(frames))  # the methods in turns: of the same minutes
+        per = {m: {k: timed[m][k] for k in ("median_ms", "p99_ms", "tests_per_frame",
+                                            "nodes_per_frame")} for m in METHODS}
+        task.advance(len(METHODS))
         out.setdefault(name, {"tiles": wall.tiles})[eyes] = per
     task.done()
     data = {"scene": "powerplant", "path": "orbit", "bounds": "obb", "ipd": IPD, "walls": out}
