@@ -759,6 +759,28 @@ def _in_view(box, i, a, rect, size, cut):
     return True
 
 
+@njit(cache=True, inline="always")
+def _clear_of_near(box, i, a, rect, cut):
+    """Whether node ``i``'s box (packed: centre, ball, half-extent axes) lies farther from the
+    eye of the view ``a`` than any point of its near rectangle (at depth ``cut``, across the
+    tangents ``rect``): the eye is outside it and the near plane cuts nothing of it in view."""
+    cx, cy, cz = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
+    gap = 0.0
+    for k in range(3):
+        ax = a[0, 0] * box[i, 4 + 3 * k] + a[0, 1] * box[i, 5 + 3 * k] + a[0, 2] * box[i, 6 + 3 * k]
+        ay = a[1, 0] * box[i, 4 + 3 * k] + a[1, 1] * box[i, 5 + 3 * k] + a[1, 2] * box[i, 6 + 3 * k]
+        az = a[2, 0] * box[i, 4 + 3 * k] + a[2, 1] * box[i, 5 + 3 * k] + a[2, 2] * box[i, 6 + 3 * k]
+        half = math.sqrt(ax * ax + ay * ay + az * az)  # the axis premultiplied by its half
+        if half > 0:
+            out = abs(cx * ax + cy * ay + cz * az) / half - half  # the eye beyond this slab
+            if out > 0:
+                gap += out * out
+    tx = max(abs(rect[0]), abs(rect[1]))
+    ty = max(abs(rect[2]), abs(rect[3]))
+    reach = cut * math.sqrt(1.0 + tx * tx + ty * ty) * (1 + 1e-9)
+    return math.sqrt(gap) - box[i, 3] > reach
+
+
 @njit(cache=True, nogil=True)
 def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertices, face_start,
            faces, neighbors, outward, affine, rect, size, near, face_marks, vertex_marks,
@@ -772,8 +794,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
     the mesh table, the face across each edge, -1 for none; ``outward``: per mesh, +1 (-1)
     when it is closed and its faces wind counter-clockwise (clockwise) seen from outside, 0
     when it is not closed: a closed mesh's back faces lie behind its front faces and are
-    skipped where its sphere lies wholly beyond the near plane (from inside it, or with the
-    near plane through it, they are what is seen). The rest: scratch kept between frames (see :func:`_scratch`), marked with the
+    skipped where its box lies clear of the eye and the near plane (from inside it, or with
+    the near plane through it, they are what is seen). The rest: scratch kept between frames (see :func:`_scratch`), marked with the
     ``stamps`` of leaves (updated).
 
     Writes from row ``start`` on (room for every face in every view) the patches' polygons
@@ -866,10 +888,7 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
                 continue
             # From outside a closed mesh its front faces hide its back faces; from inside it,
             # or where the near plane cuts it, its back faces are what is seen.
-            skip = front
-            if skip != 0 and not -_to_view(a, box[leaf, 0], box[leaf, 1], box[leaf, 2])[2] \
-                    - box[leaf, 13] > cut:
-                skip = 0
+            skip = front if front != 0 and _clear_of_near(box, leaf, a, rect[v], cut) else 0
             for r in range(3):  # world -> view, for this leaf
                 for c in range(4):
                     m_[r, c] = a[r, 0] * w[0, c] + a[r, 1] * w[1, c] + a[r, 2] * w[2, c] \
