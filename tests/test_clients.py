@@ -283,3 +283,70 @@ def test_a_nats_prefix_that_is_no_subject_prefix_is_refused_in_one_line(prefix, 
                      "--nats-prefix", prefix]) == 2
     err = capsys.readouterr().err
     assert "NATS prefix" in err and len(err.strip().splitlines()) == 1, err
+
+
+def _wall_drawn(server, frames: int) -> str:
+    """A wall of ``WALL`` with ``frames`` frames posted (no node yet)."""
+    r = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"}, headers=AUTH,
+                   timeout=60)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+def _post_and_wait_acks(server, wid, count):
+    for _ in range(count):
+        r = httpx.post(f"{server}/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH,
+                       timeout=60)
+        assert r.status_code == 200, r.text
+        last = r.json()["frame"]
+    r = httpx.get(f"{server}/walls/{wid}/barrier/{last}?timeout=10", timeout=60)
+    assert r.json()["complete"], r.text  # every tile drew the last frame
+    return last
+
+
+def test_a_node_whose_wall_is_deleted_still_writes_what_it_drew(server, tmp_path):
+    """A run that ends on a failure writes its records, marked incomplete with the reason,
+    then exits 2 as before (the records were lost)."""
+    wid = _wall_drawn(server, 0)
+    out = tmp_path / "nodes.json"
+    node = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--quiet",
+                "--out", str(out))
+    try:
+        wait_for(lambda: httpx.get(f"{server}/walls/{wid}", timeout=60).json()["subscribers"]
+                 == 2, "both nodes streaming", node)
+        _post_and_wait_acks(server, wid, 3)
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+        _, err = node.communicate(timeout=120)
+    finally:
+        node.kill()
+    assert node.returncode == 2 and f"wall {wid} was deleted" in err, err
+    report = json.loads(out.read_text())
+    assert report["complete"] is False and "was deleted" in report["reason"]
+    assert sorted(t["tile"] for t in report["tiles"]) == [0, 1]
+    assert all(len(t["frame"]) == 3 for t in report["tiles"]), report["tiles"]
+
+
+def test_a_node_stopped_by_its_idle_timeout_says_so(server, tmp_path):
+    wid = _wall_drawn(server, 0)
+    node = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--quiet",
+                "--idle-timeout", "2", "--out", str(tmp_path / "nodes.json"))
+    try:
+        wait_for(lambda: httpx.get(f"{server}/walls/{wid}", timeout=60).json()["subscribers"]
+                 == 2, "both nodes streaming", node)
+        last = _post_and_wait_acks(server, wid, 2)
+        _, err = node.communicate(timeout=120)
+    finally:
+        node.kill()
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+    assert node.returncode == 0, err  # a stop it was told to make, not a failure
+    assert err == (f"clients.sim: stopped: no packet for 2 s (--idle-timeout) on 2 of 2 "
+                   f"nodes; last frame taken {last}\n"), err
+    assert json.loads((tmp_path / "nodes.json").read_text())["complete"] is True
+
+
+def test_an_interrupted_command_says_so_in_one_line(monkeypatch, capsys):
+    def interrupted(args):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli, "cmd_scenes", interrupted)
+    assert cli.main(["scenes"]) == 130
+    assert capsys.readouterr().err == "wallcull: interrupted\n"

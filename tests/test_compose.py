@@ -265,7 +265,8 @@ def test_compose_commands_run_on_loopback(tmp_path):
     lines = [json.loads(ln) for ln in driver.stdout.splitlines() if ln.startswith("{")]
     assert lines[0]["tiles"] == 16 and lines[1] == {"subscribers": 16}
     summary = lines[-1]["summary"]
-    assert summary["frames"] == 60 and summary["barrier_incomplete"] == 0
+    # a driver behind its schedule (a busy machine) skips the slots it missed
+    assert summary["frames"] + summary["skipped"] == 60 and summary["barrier_incomplete"] == 0
     ready = json.loads(out.splitlines()[0])
     assert ready["ready"] and ready["tiles"] == list(range(16))
 

@@ -597,6 +597,7 @@ def main(argv=None) -> int:
         print(f"wallcull: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        print("wallcull: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:
         return 0

@@ -6,7 +6,11 @@ the time it sent the frame and the time the answer came back. With ``barrier`` i
 swap barrier, ``GET /walls/{wid}/barrier/{n}``, until every tile has acknowledged frame ``n``
 (or ``barrier_timeout`` seconds), and records when it completed: frame ``n + 1`` is never posted
 before the barrier of ``n`` has answered. Frames are paced from a fixed schedule (frame ``k`` no
-earlier than ``t0 + k / rate``); a driver that falls behind posts at once rather than skipping.
+earlier than ``t0 + k / rate``). A driver that falls behind by more than a frame period (a
+server that stalled, a barrier that waited) skips the slots it missed and posts the frame of the
+current one, as a tracker sends its newest pose rather than a backlog; the last frame is always
+posted, and the summary counts the frames skipped (``--no-skip``: post every frame, the late ones
+at once).
 
 The camera follows :func:`wallcull.paths.camera_path` around the scene's bounds (from
 ``GET /scenes/{name}``), one loop every ``path_frames`` frames.
@@ -42,7 +46,7 @@ from wallcull.paths import PATHS, camera_path
 from wallcull.wall import Wall
 
 from .rawhttp import Connection, HTTPError, run
-from .retry import Backoff, ClientFailure, retrying, stop_on_signals
+from .retry import Backoff, ClientFailure, Stopped, retrying, stop_on_signals
 
 PATH_FRAMES = 600  # one loop of the walkthrough: 10 s at 60 frames/s
 
@@ -59,6 +63,7 @@ class FrameLog:
     barrier_done: list[float] = field(default_factory=list)  # when the barrier answered
     barrier_complete: list[bool] = field(default_factory=list)
     barrier_acked: list[int] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)  # path frames whose slot had passed
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -77,16 +82,17 @@ class Driver:
     """Posts frames to one wall of a server (see the module docstring). Every request is
     retried with backoff while the server is away (a restart), for up to ``retry_for``
     seconds; the server numbers frames on after the last one it handed out, so frames stay
-    in order across a restart (one whose answer was lost is posted again, as a new frame)."""
+    in order across a restart (one whose answer was lost is posted again, as a new frame).
+    ``stop``: an event that ends the retrying at once (:class:`.retry.Stopped`) and the run."""
 
     def __init__(self, server: str, token: str | None = None, timeout: float = 30.0,
-                 retry_for: float = 60.0):
+                 retry_for: float = 60.0, stop: asyncio.Event | None = None):
         self.server = server.rstrip("/")
         self.token = token
         self.conn = Connection(server, token, timeout)
         self._frames = None  # the frame stream, once opened
         self.log = FrameLog()
-        self.backoff = Backoff(retry_for)
+        self.backoff = Backoff(retry_for, stop=stop)
 
     @property
     def retries(self) -> int:
@@ -177,8 +183,12 @@ class Driver:
     async def run(self, wid: str, frames: list[dict], rate: float = 60.0, barrier: bool = False,
                   barrier_timeout: float = 1.0, on_event: Callable | None = None,
                   stop: asyncio.Event | None = None,
-                  progress: Callable[[int], None] | None = None) -> FrameLog:
-        """Post ``frames`` in order at ``rate`` per second (0: as fast as possible).
+                  progress: Callable[[int], None] | None = None,
+                  skip: bool = False) -> FrameLog:
+        """Post ``frames`` in order at ``rate`` per second (0: as fast as possible). With
+        ``skip``, a driver behind its schedule by more than a frame period skips the frames
+        whose slots have passed (``log.skipped``; never the last frame). The run ends early
+        when ``stop`` is set, also while a request is being retried.
 
         ``on_event(kind, frame)`` is called with ``"post"`` just before a frame is sent,
         ``"posted"`` when its answer came and ``"barrier"`` when its barrier answered.
@@ -186,16 +196,28 @@ class Driver:
         log = self.log
         period = 1.0 / rate if rate > 0 else 0.0
         t0 = time.monotonic()
-        for k, frame in enumerate(frames):
+        k = -1
+        while k + 1 < len(frames):
+            k += 1
             if stop is not None and stop.is_set():
                 break
             delay = t0 + k * period - time.monotonic()
+            if skip and period and -delay > period:  # behind: the current slot's frame
+                now_k = min(int((time.monotonic() - t0) / period), len(frames) - 1)
+                if now_k > k:
+                    log.skipped.extend(range(k, now_k))
+                    k = now_k
+                delay = t0 + k * period - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)
+            frame = frames[k]
             if on_event:
                 on_event("post", log.frame[-1] + 1 if log.frame else None)
             send = time.time()
-            answer = await self.post(wid, frame)
+            try:
+                answer = await self.post(wid, frame)
+            except Stopped:
+                break
             done = time.time()
             number = answer["frame"]
             log.frame.append(number)
@@ -206,7 +228,10 @@ class Driver:
             if on_event:
                 on_event("posted", number)
             if barrier:
-                state = await self.barrier(wid, number, barrier_timeout)
+                try:
+                    state = await self.barrier(wid, number, barrier_timeout)
+                except Stopped:
+                    break
                 log.barrier_done.append(time.time())
                 log.barrier_complete.append(bool(state["complete"]))
                 log.barrier_acked.append(int(state["acked"]))
@@ -219,7 +244,7 @@ class Driver:
 
 def summary(log: FrameLog) -> dict:
     """Achieved rate, post round trips and barrier latencies (ms)."""
-    out: dict = {"frames": len(log.frame)}
+    out: dict = {"frames": len(log.frame), "skipped": len(log.skipped)}
     if len(log.send) > 1:
         out["rate"] = (len(log.send) - 1) / (log.send[-1] - log.send[0])
     if log.frame:
@@ -267,6 +292,9 @@ def parser() -> argparse.ArgumentParser:
                    help="frames per loop of the path")
     p.add_argument("--post", choices=("stream", "http"), default="stream",
                    help="post frames over one WebSocket (the frame stream) or one request each")
+    p.add_argument("--no-skip", action="store_true",
+                   help="post every frame, the late ones at once, instead of skipping the "
+                        "slots a driver behind its schedule missed")
     p.add_argument("--barrier", action="store_true", help="wait on the swap barrier every frame")
     p.add_argument("--barrier-timeout", type=float, default=1.0)
     p.add_argument("--wait-clients", type=_count_or_all, default=0, metavar="N|all",
@@ -307,7 +335,7 @@ async def _main(args) -> int:
         if path and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
             raise InputError(f"no folder for {path}")
     await _wait_server(args.server, args.wait_timeout)
-    async with Driver(args.server, args.token, retry_for=args.retry_for) as driver:
+    async with Driver(args.server, args.token, retry_for=args.retry_for, stop=stop) as driver:
         if args.wall_id:
             info = await driver.wall_info(args.wall_id)
         else:
@@ -333,7 +361,7 @@ async def _main(args) -> int:
                 await driver.stream_frames(wid)
             driving[0] = True  # from now on a signal ends the run, with its summary
             log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
-                                   stop=stop)
+                                   stop=stop, skip=not args.no_skip)
         except BaseException:
             if args.delete:  # the wall this run made or drove goes, whatever stopped it
                 await asyncio.shield(driver.call("DELETE", f"/walls/{wid}", auth=True))
@@ -375,6 +403,7 @@ def main(argv=None) -> int:
         print(f"clients.driver: error: {exc}", file=sys.stderr)
         return 2
     except (KeyboardInterrupt, asyncio.CancelledError):  # a signal before the frames went
+        print("clients.driver: interrupted", file=sys.stderr)
         return 130
 
 

@@ -22,8 +22,14 @@ posts ``rate x duration`` frames of the camera path. It then writes ``report.jso
   the leaf-id lists alone, and the bytes of the fitted frusta that every packet carries;
 * CPU seconds and percent of the server, the node processes and the driver (psutil), over the
   driving window;
-* frames dropped (tile-frames a node never saw: conflation on the stream, or history loss),
-  errors, barrier timeouts, and the server's own counters (``/metrics``).
+* frames dropped (tile-frames a node never saw: conflation on the stream, or history loss;
+  every measured frame of a tile whose node process left no records), errors, barrier
+  timeouts, frames the driver skipped behind its schedule, and the server's own counters
+  (``/metrics``).
+
+A node process that fails fails the run: the report is written, saying which process and
+tiles, and ``wallcull loadtest`` exits with status 1. Values not measured (the server's CPU
+with ``--server``) are null in the JSON. A wall made on a ``--server`` is deleted at the end.
 
 The first ``--warmup`` seconds of frames (nodes fetching their meshes) are left out of the
 latency and bytes statistics; everything else counts.
@@ -35,7 +41,8 @@ Request mode::
 creates a wall, posts one frame, then a separate process (``python -m wallcull_clients.loadtest``) sends
 ``GET /walls/{wid}/tiles/{t}/packets/latest`` over ``--concurrency`` keep-alive connections
 (tiles spread over the connections; no tile has acknowledged anything, so each answer is a full
-list) and reports requests/s. The load generator is the minimal asyncio HTTP/1.1 client of
+list) and reports requests/s: the 200 answers a second, the others apart; the server's CPU
+is sampled as the generator opens and closes its timed window. The load generator is the minimal asyncio HTTP/1.1 client of
 :mod:`wallcull_clients.rawhttp` (on uvloop when installed): ``httpx`` tops out near the rates measured.
 """
 
@@ -53,6 +60,7 @@ import time
 from collections import Counter
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -239,6 +247,82 @@ def split(tiles: int, parts: int) -> list[tuple[int, int]]:
     return [(int(a), int(b) - 1) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def last_line(err: bytes | str) -> str:
+    """The last non-empty line of a process's stderr (its one-line reason), or ""."""
+    text = err.decode(errors="replace") if isinstance(err, bytes) else err
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+def exit_text(status: int) -> str:
+    """``exited 2``, or ``was killed by SIGKILL``."""
+    import signal
+
+    if status < 0:
+        try:
+            return f"was killed by {signal.Signals(-status).name}"
+        except ValueError:
+            pass
+    return f"exited {status}"
+
+
+def finite(obj):
+    """``obj`` with every NaN or infinite float replaced by None (null in JSON: not measured),
+    so that ``json.dumps(..., allow_nan=False)`` takes it."""
+    if isinstance(obj, float):
+        return obj if obj == obj and abs(obj) != float("inf") else None
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return finite(obj.item())
+    return obj
+
+
+def to_json(report: dict, **kwargs) -> str:
+    return json.dumps(finite(report), allow_nan=False, **kwargs)
+
+
+async def _reach(url: str, progress: bool) -> None:
+    """Wait for the server's kernels (:func:`kernels_loaded`), or refuse in one line a server
+    that cannot be reached."""
+    from wallcull.errors import InputError
+
+    try:
+        await kernels_loaded(url, progress)
+    except (ConnectionError, OSError, asyncio.TimeoutError) as exc:
+        raise InputError(f"cannot reach the server at {url}: {exc}") from None
+    except ValueError as exc:
+        raise InputError(f"--server {url}: {exc}") from None
+
+
+def _refused(exc, url: str, given_token: bool) -> Exception:
+    """The one-line error for a server's refusal of the wall this run makes."""
+    from wallcull.errors import InputError
+
+    if exc.status in (401, 403):
+        if given_token:
+            return InputError(f"the server at {url} refused the token (HTTP {exc.status}: "
+                              f"{exc.detail}): give the server's operator token with --token")
+        return InputError(f"the server at {url} wants a token (HTTP {exc.status}): give it "
+                          "with --token (or $WALLCULL_TOKEN)")
+    return InputError(f"the server refused the wall: HTTP {exc.status}: {exc.detail}")
+
+
+async def delete_wall(url: str, token: str | None, wid: str) -> None:
+    """Delete the wall this run made on a server it did not start (best effort: a server that
+    is gone is told on stderr, in one line)."""
+    from wallcull_clients.rawhttp import Connection, HTTPError
+
+    try:
+        async with Connection(url, token, timeout=10) as conn:
+            await conn.call("DELETE", f"/walls/{wid}", auth=True, expect=(200, 202, 204, 404))
+    except (ConnectionError, OSError, asyncio.TimeoutError, HTTPError) as exc:
+        print(f"wallcull: warning: could not delete wall {wid} on {url}: {exc}",
+              file=sys.stderr)
+
+
 async def _read_json_line(stream, timeout: float, what: str, proc) -> dict:
     deadline = time.monotonic() + timeout
     while True:
@@ -250,8 +334,10 @@ async def _read_json_line(stream, timeout: float, what: str, proc) -> dict:
         except asyncio.TimeoutError:
             raise RuntimeError(f"{what} did not report in {timeout:g} s") from None
         if not line:
-            err = (await proc.stderr.read()).decode(errors="replace")[-2000:]
-            raise RuntimeError(f"{what} exited before reporting: {err}")
+            from wallcull.errors import InputError
+
+            err = last_line(await proc.stderr.read())
+            raise InputError(f"{what} exited before reporting: {err}")
         line = line.strip()
         if line.startswith(b"{"):
             return json.loads(line)
@@ -273,8 +359,23 @@ def dist(values_ms) -> dict:
             "mean": float(v.mean()), "min": float(v.min())}
 
 
-def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
-    """The walkthrough statistics from the driver's log and every node's records."""
+def no_records(tile: int) -> dict:
+    """The records of a tile whose node process left none (it died): nothing received, so
+    every measured frame counts as dropped on it."""
+    return {"tile": tile, "frame": [], "recv": [], "posted": [], "full": [], "bytes": [],
+            "errors": [], "base_misses": 0, "mesh_fetches": 0, "mesh_not_modified": 0,
+            "mesh_bytes": 0, "missing": True}
+
+
+def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0,
+            count: int | None = None) -> dict:
+    """The walkthrough statistics from the driver's log and every node's records. ``count``:
+    the wall's tiles; a tile with no records (its node process died) then counts as dropped
+    on every measured frame, so "all tiles" is every tile of the wall."""
+    if count is not None:
+        held = {t["tile"] for t in tiles}
+        tiles = sorted([*tiles, *(no_records(t) for t in range(count) if t not in held)],
+                       key=lambda t: t["tile"])
     log = driver["log"]
     frames = np.asarray(log["frame"], dtype=np.int64)
     send = np.asarray(log["send"], dtype=float)
@@ -314,7 +415,8 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
                          "p50_ms": pct(lat, 50), "p99_ms": pct(lat, 99),
                          "bytes": int(sum(t["bytes"])), "cache": t.get("cache", {}),
                          "mesh_fetches": t["mesh_fetches"], "base_misses": t["base_misses"],
-                         "errors": len(t["errors"])})
+                         "errors": len(t["errors"]), **({"missing": True} if t.get("missing")
+                                                        else {})})
     complete = ~np.isnan(exact).any(axis=0) & ~np.isnan(server_time)
     all_tiles = (exact.max(axis=0)[complete] - server_time[complete]) * 1e3
     from_send = (exact.max(axis=0)[complete] - sent[complete]) * 1e3
@@ -330,14 +432,15 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
     # bytes, over the measured window; sizes as full lists where a node worked them out (a
     # render node on the frames it samples, NaN on the others: sim.FULL_SIZE_EVERY), each
     # against what the same packets weighed
-    sums, sampled_frames = Counter(), set()
+    sums, sampled_frames, received = Counter(), set(), set()
     for t in tiles:
         frame = np.asarray(t["frame"], dtype=np.int64)
         mask = np.isin(frame, measured)
         full = np.asarray(t["full"], dtype=bool)
         size = np.asarray(t["bytes"], dtype=float)
         sums["bytes"] += size[mask].sum()
-        if len(t.get("full_bytes", ())) == len(mask):
+        received.update(frame[mask].tolist())
+        if len(t.get("full_bytes", ())) == len(mask) and len(mask):
             sampled = mask & ~np.isnan(np.asarray(t["full_bytes"], dtype=float))
             sampled_frames.update(frame[sampled].tolist())
             sums["sampled_bytes"] += size[sampled].sum()
@@ -346,10 +449,12 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
                     sums[key] += np.asarray(t[key], dtype=float)[sampled].sum()
         sums["packets"] += int(mask.sum())
         sums["full_packets"] += int((mask & full).sum())
-    n, m = max(len(measured), 1), max(len(sampled_frames), 1)
+    # per frame received: a frame no tile got weighs nothing, and must not thin the mean
+    n, m = max(len(received), 1), max(len(sampled_frames), 1)
     b = {"packets": sums["packets"], "full_packets": sums["full_packets"],
          "delta_packets": sums["packets"] - sums["full_packets"],
-         "per_frame": sums["bytes"] / n, "sampled_frames": len(sampled_frames),
+         "per_frame": sums["bytes"] / n, "received_frames": len(received),
+         "sampled_frames": len(sampled_frames),
          "sampled_per_frame": sums["sampled_bytes"] / m,
          "per_frame_if_full": sums["full_bytes"] / m,
          "lists_per_frame": sums["list_bytes"] / m,
@@ -367,7 +472,9 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0) -> dict:
                                             - sum(log["barrier_complete"]))}
     out["errors"] = {"node_errors": sum(len(t["errors"]) for t in tiles),
                      "base_misses": sum(t["base_misses"] for t in tiles),
-                     "examples": [e for t in tiles for e in t["errors"]][:5]}
+                     "examples": [e for t in tiles for e in t["errors"]][:5],
+                     "tiles_missing": sum(bool(t.get("missing")) for t in tiles),
+                     "tiles_missing_ids": [t["tile"] for t in tiles if t.get("missing")]}
     out["tiles"] = per_tile
     out["nodes"] = {"mesh_fetches": sum(t["mesh_fetches"] for t in tiles),
                     "mesh_not_modified": sum(t["mesh_not_modified"] for t in tiles),
@@ -402,20 +509,25 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                       settings: dict | None = None, shadow_fit: str = "refined",
                       tiles_per_node: int = 1, transport: str = "ws",
                       nats: str | None = None, prefetch: bool = False,
-                      barrier_timeout: float = 1.0) -> dict:
+                      barrier_timeout: float = 1.0, retry_for: float = 60.0) -> dict:
     """Run one walkthrough load test (see the module docstring) and return its report.
     ``transport`` "nats": the nodes take their messages from a NATS broker (``nats``, or one
     started here), the server publishing there. ``prefetch``: every node fetches the scene's
-    meshes before the first frame, as a render PC loads its scene before it joins a wall."""
+    meshes before the first frame, as a render PC loads its scene before it joins a wall.
+    ``retry_for``: how long the driver and the nodes wait for a server that went away.
+    A wall made on a ``server`` this run did not start is deleted when the run ends, however
+    it ends."""
     import psutil
 
+    from wallcull.errors import InputError
     from wallcull_clients.driver import PATH_FRAMES, Driver
-    from wallcull_clients.rawhttp import HTTPError
+    from wallcull_clients.rawhttp import Connection, HTTPError
     from wallcull.wall import Wall
 
     host = machine()  # before we load it
     wall = _wall_spec(wall) if isinstance(wall, str) else wall
     frames = max(2, int(round(rate * duration))) if rate > 0 else max(2, int(duration * 60))
+    given_token = token is not None
     token = token or secrets.token_hex(8)
     tmp = tempfile.TemporaryDirectory(dir=workdir)
     broker = Broker() if transport == "nats" and nats is None else None
@@ -424,12 +536,14 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     own = Server(token, args=["--nats", nats] if transport == "nats" else ()) \
         if server is None else None
     procs: list = []
+    drv = wid = None
+    url = server
     try:
         if own:
             await own.start()
         url = own.url if own else server
-        await kernels_loaded(url, progress)
-        async with Driver(url, token) as d:
+        await _reach(url, progress)
+        async with Driver(url, token, retry_for=retry_for) as d:
             count = Wall.from_dict(wall).tiles
             groups = [list(range(k, min(k + tiles_per_node, count)))
                       for k in range(0, count, tiles_per_node)]
@@ -437,11 +551,9 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                 info = await d.create_wall(scene, wall, method, "obb", history, settings,
                                            shadow_fit, groups if tiles_per_node > 1 else None)
             except HTTPError as exc:
-                if exc.status not in (404, 409, 422):
+                if exc.status not in (401, 403, 404, 409, 422):
                     raise
-                from wallcull.errors import InputError
-
-                raise InputError(f"the server refused the wall: {exc.detail}") from None
+                raise _refused(exc, url, given_token) from None
         wid, tiles = info["id"], info["tiles"]
         # least privilege, as a lab would run it: each node its own credential, the driver
         # the wall's driver credential; the operator's token only created the wall
@@ -453,7 +565,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                    "--tiles", f"{a}-{b}", "--mode", mode, "--credentials", credentials,
                    "--until-frame", str(frames - 1), "--idle-timeout", "5",
                    "--cache-bytes", str(cache_bytes), "--out", f"{tmp.name}/nodes-{k}.json",
-                   "--quiet", "--draw-time", str(draw_time),
+                   "--quiet", "--draw-time", str(draw_time), "--reconnect-for", f"{retry_for:g}",
                    "--tiles-per-node", str(tiles_per_node)] + (["--render"] if render else []) \
                 + (["--nats", nats] if transport == "nats" else []) \
                 + (["--prefetch"] if prefetch else [])
@@ -462,17 +574,17 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                 cwd=str(ROOT)))
         for k, p in enumerate(procs):
             await _read_json_line(p.stdout, 120, f"render node process {k}", p)
-        async with Driver(url, token) as d:
+        async with Driver(url, token, retry_for=retry_for) as d:
             if mode == "ws" and transport == "ws":  # NATS nodes said they subscribed
                 got = await d.wait_clients(wid, len(groups), 30)
                 if got < len(groups):
-                    raise RuntimeError(f"only {got} of {len(groups)} nodes subscribed")
+                    raise InputError(f"only {got} of {len(groups)} nodes subscribed in 30 s")
         server_ps = own.ps if own else None
         broker_ps = psutil.Process(broker.proc.pid) if broker is not None else None
         client_ps = [psutil.Process(p.pid) for p in procs]
         cmd = [sys.executable, "-m", "wallcull_clients.driver", "--server", url, "--wall-id", wid,
                "--rate", str(rate), "--frames", str(frames), "--path", path,
-               "--path-frames", str(path_frames or PATH_FRAMES),
+               "--path-frames", str(path_frames or PATH_FRAMES), "--retry-for", f"{retry_for:g}",
                "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
         if barrier:
             cmd += ["--barrier", "--barrier-timeout", str(barrier_timeout)]
@@ -493,8 +605,18 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         clients_at_end = [cpu_seconds(p) for p in client_ps]  # nan for those already gone
         drv_out, drv_err = await drv.communicate()
         if drv.returncode != 0:
-            raise RuntimeError(f"the driver failed ({drv.returncode}): "
-                               f"{drv_err.decode(errors='replace')[-2000:]}")
+            raise InputError(f"the driver {exit_text(drv.returncode)}: {last_line(drv_err)}")
+        driver = json.loads(Path(f"{tmp.name}/driver.json").read_text())
+        last = driver["log"]["frame"][-1] if driver["log"]["frame"] else -1
+        if last < frames - 1:  # the driver skipped late frames: the nodes wait for no more
+            try:
+                async with Connection(url, timeout=15) as conn:
+                    await conn.call("GET", f"/walls/{wid}/barrier/{last}?timeout=5")
+            except (ConnectionError, OSError, asyncio.TimeoutError, HTTPError):
+                pass
+            for p in procs:
+                if p.returncode is None:
+                    p.terminate()  # a node told to stop writes its records and exits 0
         node_errors = []
         for k, p in enumerate(procs):
             try:
@@ -503,11 +625,11 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                 p.terminate()
                 _, err = await p.communicate()
             if p.returncode not in (0, 1):
-                node_errors.append(f"node process {k} exited {p.returncode}: "
-                                   f"{err.decode(errors='replace')[-1000:]}")
+                why = last_line(err)
+                node_errors.append(f"node process {k} (tiles {ranges[k][0]}-{ranges[k][1]}) "
+                                   f"{exit_text(p.returncode)}{': ' + why if why else ''}")
         # the processes report their own CPU time when they finish (they may exit before
         # anyone could sample them); less what they had used when the driver started
-        driver = json.loads(Path(f"{tmp.name}/driver.json").read_text())
         drv_cpu = driver["cpu_seconds"] - (drv_cpu0 if drv_cpu0 == drv_cpu0 else 0.0)
         nodes, cpu1["clients"] = [], 0.0
         for k in range(len(procs)):
@@ -519,10 +641,18 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                 cpu1["clients"] += part["cpu_seconds"] if alive != alive else alive
         server_metrics = await metrics(url)
     finally:
-        for p in procs:
+        if drv is not None and drv.returncode is None:
+            drv.terminate()  # a driver told to stop ends its run, retrying or not
+        for p in [*procs, *([drv] if drv is not None else [])]:
             if p.returncode is None:
                 p.terminate()
-                await p.wait()
+                try:
+                    await asyncio.wait_for(p.wait(), 10)
+                except asyncio.TimeoutError:
+                    p.kill()
+                    await p.wait()
+        if wid is not None and own is None:  # the user's server keeps no wall of ours
+            await delete_wall(url, token, wid)
         if own:
             await own.stop()
         if broker is not None:
@@ -539,25 +669,28 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                          "draw_time": draw_time, "tiles_per_node": tiles_per_node,
                          "nodes": len(groups), "transport": transport, "prefetch": prefetch},
               "machine": host}
-    report.update(analyze(driver, sorted(nodes, key=lambda t: t["tile"]), warm))
+    report.update(analyze(driver, nodes, warm, count=tiles))
     report["driver"] = driver["summary"]
     report["cpu"] = {name: {"seconds": cpu1[name] - cpu0[name],
                             "percent": 100 * (cpu1[name] - cpu0[name]) / wall_s}
                      for name in cpu0}
     report["cpu"]["driver"] = {"seconds": drv_cpu, "percent": 100 * drv_cpu / wall_s}
+    # everything else the machine did meanwhile (with --server, the server among it: its CPU
+    # is not sampled)
     ours = sum(report["cpu"][k]["seconds"] for k in ("server", "broker", "clients", "driver",
-                                                     "loadtest"))
+                                                     "loadtest")
+               if report["cpu"][k]["seconds"] == report["cpu"][k]["seconds"])
     others = report["cpu"]["machine"]["seconds"] - ours
-    report["cpu"]["others"] = {"seconds": others, "percent": 100 * others / wall_s}
+    report["cpu"]["others"] = {"seconds": others, "percent": 100 * others / wall_s,
+                               "server_included": own is None}
     report["cpu"]["window_s"] = wall_s
     # the server's CPU per tile-frame posted meanwhile: culling, fitting, encoding, sending
     report["cpu"]["server_us_per_tile_frame"] = \
         1e6 * report["cpu"]["server"]["seconds"] / max(report["frames_posted"] * tiles, 1)
     report["server_metrics"] = server_metrics
-    report["targets"] = walkthrough_targets(report)
     report["errors"]["process_errors"] = node_errors
-    report["errors"]["tiles_missing"] = tiles - len(nodes)
-    return report
+    report["targets"] = walkthrough_targets(report)
+    return finite(report)
 
 
 #: The issues' targets: 60 frames/s sustained, frame-to-all-tiles p99 under 50 ms, deltas at
@@ -569,18 +702,23 @@ TARGETS = {"p99_all_tiles_ms": 50.0, "bytes_reduction_lists": 10.0,
 
 
 def walkthrough_targets(report: dict) -> dict:
-    """The targets, met or not, for this run's configuration (the rate is the one asked)."""
+    """The targets, met or not, for this run's configuration (the rate is the one asked).
+    ``met`` is None for a target this run could not measure (the server's CPU, with
+    ``--server``)."""
     rate, achieved = report["config"]["rate"], report.get("frames_per_s") or 0.0
-    us = report["cpu"]["server_us_per_tile_frame"]
+    us = finite(report["cpu"]["server_us_per_tile_frame"])
     p99 = report["latency_ms"]["all_tiles"].get("p99")
     b = report["bytes"]
+    errors = report["errors"]
+    whole = report["dropped"]["tile_frames"] == 0 and not errors.get("tiles_missing") \
+        and not errors.get("process_errors")
     return {
         "rate": {"target": rate, "value": achieved, "met": bool(achieved >= 0.99 * rate)},
         # met only with nothing dropped: a frame a tile never got has no latency to count
         "p99_all_tiles_ms": {"target": TARGETS["p99_all_tiles_ms"], "value": p99,
                              "met": bool(p99 is not None and p99 < TARGETS["p99_all_tiles_ms"]
-                                         and report["dropped"]["tile_frames"] == 0),
-                             "and": "no tile-frame dropped"},
+                                         and whole),
+                             "and": "no tile-frame dropped, every node process to its end"},
         "bytes_reduction_lists": {"target": TARGETS["bytes_reduction_lists"],
                                   "value": b["lists_reduction"],
                                   "met": bool((b["lists_reduction"] or 0)
@@ -591,7 +729,8 @@ def walkthrough_targets(report: dict) -> dict:
                                                 >= TARGETS["bytes_reduction_packets"])},
         "server_us_per_tile_frame": {"target": TARGETS["server_us_per_tile_frame"],
                                      "value": us,
-                                     "met": bool(us <= TARGETS["server_us_per_tile_frame"])},
+                                     "met": None if us is None else
+                                     bool(us <= TARGETS["server_us_per_tile_frame"])},
     }
 
 
@@ -671,10 +810,12 @@ def machine() -> dict:
 
 async def hammer(server: str, targets: list[str], total: int, concurrency: int,
                  accept: str = "application/msgpack", duration: float | None = None,
-                 token: str | None = None) -> dict:
+                 token: str | None = None, mark: Callable[[str], None] | None = None) -> dict:
     """``total`` GETs (or as many as fit in ``duration`` seconds) over ``concurrency``
     keep-alive connections, connection ``i`` asking for ``targets[i % len(targets)]``
-    (with ``token`` as a bearer token: packets need a credential)."""
+    (with ``token`` as a bearer token: packets need a credential). ``requests_per_s`` counts
+    the 200 answers alone; the others are ``not_ok`` (and by status in ``status``).
+    ``mark("start")`` and ``mark("end")`` are called as the timed window opens and closes."""
     from wallcull_clients.rawhttp import Connection
 
     issued = 0
@@ -698,47 +839,70 @@ async def hammer(server: str, targets: list[str], total: int, concurrency: int,
         finally:
             await conn.close()
 
+    if mark:
+        mark("start")
     t0, cpu0 = time.perf_counter(), time.process_time()
     if duration:
         stop_at = t0 + duration
     await asyncio.gather(*(worker(i) for i in range(concurrency)))
     elapsed = time.perf_counter() - t0
     cpu = time.process_time() - cpu0
+    if mark:
+        mark("end")
     lat = np.asarray(latencies) * 1e3
     done = len(latencies)
-    return {"requests": done, "seconds": elapsed, "requests_per_s": done / elapsed,
-            "generator_cpu_seconds": cpu,
+    ok = statuses.get(200, 0)
+    return {"requests": done, "ok": ok, "not_ok": done - ok, "seconds": elapsed,
+            "requests_per_s": ok / elapsed, "generator_cpu_seconds": cpu,
             "concurrency": concurrency, "status": {str(k): v for k, v in statuses.items()},
             "bytes_per_response": received / done if done else 0,
             "latency_ms": {"p50": pct(lat, 50), "p99": pct(lat, 99), "max": float(lat.max())
                            if len(lat) else None}}
 
 
+def requests_targets(result: dict) -> dict:
+    """The request target: 200 answers a second, and no answer but 200."""
+    return {"requests_per_s": {
+        "target": TARGETS["requests_per_s"], "value": result["requests_per_s"],
+        "met": bool(result["requests_per_s"] >= TARGETS["requests_per_s"]
+                    and result["not_ok"] == 0),
+        "and": "every answer 200"}}
+
+
 async def requests_test(requests: int = 20000, concurrency: int = 64,
                         scene: str = "powerplant", wall: dict | str = DEFAULT_WALL,
                         server: str | None = None, token: str | None = None,
                         progress: bool = True) -> dict:
-    """Single-packet request throughput of one server (see the module docstring)."""
-
+    """Single-packet request throughput of one server (see the module docstring). The
+    server's CPU is sampled as the generator opens and closes its timed window. A wall made
+    on a ``server`` this run did not start is deleted when the run ends, however it ends."""
+    from wallcull.errors import InputError
     from wallcull_clients.driver import Driver
+    from wallcull_clients.rawhttp import HTTPError
 
     wall = _wall_spec(wall) if isinstance(wall, str) else wall
+    given_token = token is not None
     token = token or secrets.token_hex(8)
     own = Server(token) if server is None else None
+    url, wid, gen = server, None, None
     try:
         if own:
             await own.start()
         url = own.url if own else server
-        await kernels_loaded(url, progress)
+        await _reach(url, progress)
         async with Driver(url, token) as d:
-            info = await d.create_wall(scene, wall)
+            try:
+                info = await d.create_wall(scene, wall)
+            except HTTPError as exc:
+                if exc.status not in (401, 403, 404, 409, 422):
+                    raise
+                raise _refused(exc, url, given_token) from None
+            wid = info["id"]
             frames = await d.frames(scene, info["wall"], "orbit", 1)
-            await d.post(info["id"], frames[0])
+            await d.post(wid, frames[0])
         cmd = [sys.executable, "-m", "wallcull_clients.loadtest", "--server", url, "--wall-id",
-               info["id"], "--tiles", str(info["tiles"]), "--requests", str(requests),
+               wid, "--tiles", str(info["tiles"]), "--requests", str(requests),
                "--concurrency", str(concurrency)]
-        cpu0 = cpu_seconds(own.ps) if own else float("nan")
-        t0 = time.monotonic()
         gen = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
                                                    stderr=asyncio.subprocess.PIPE,
                                                    cwd=str(ROOT),
@@ -746,42 +910,54 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
         from rich.console import Console
         from rich.progress import Progress
 
+        marks, result = {}, None
         with Progress(console=Console(stderr=True), disable=not progress,
                       transient=True) as bar:
             bar.add_task(f"{requests} requests, {concurrency} connections", total=None)
-            while gen.returncode is None:
-                try:
-                    await asyncio.wait_for(gen.wait(), 0.25)
-                except asyncio.TimeoutError:
-                    pass
-        wall_s = time.monotonic() - t0
-        cpu1 = cpu_seconds(own.ps) if own else float("nan")
-        out, err = await gen.communicate()
-        if gen.returncode != 0:
-            raise RuntimeError(f"the load generator failed: {err.decode(errors='replace')}")
-        result = json.loads(out)
+            while True:
+                line = await gen.stdout.readline()
+                if not line:
+                    break
+                data = json.loads(line)
+                if "mark" in data:  # the generator's timed window opens or closes
+                    marks[data["mark"]] = (time.monotonic(),
+                                           cpu_seconds(own.ps) if own else float("nan"))
+                else:
+                    result = data
+        err = await gen.stderr.read()
+        await gen.wait()
+        if gen.returncode != 0 or result is None or len(marks) != 2:
+            raise InputError(f"the load generator {exit_text(gen.returncode)}: "
+                             f"{last_line(err)}")
         gen_cpu = result.pop("generator_cpu_seconds")
-        wall_s = result["seconds"]  # the server's CPU is over a slightly longer window
+        window = marks["end"][0] - marks["start"][0]
+        server_s = marks["end"][1] - marks["start"][1]
         server_metrics = await metrics(url)
     finally:
+        if gen is not None and gen.returncode is None:
+            gen.kill()
+            await gen.wait()
+        if wid is not None and own is None:  # the user's server keeps no wall of ours
+            await delete_wall(url, token, wid)
         if own:
             await own.stop()
-    return {"kind": "requests",
-            "config": {"scene": scene, "wall": wall, "tiles": info["tiles"],
-                       "requests": requests, "concurrency": concurrency,
-                       "target": "/walls/{wid}/tiles/{t}/packets/latest (full packets)"},
-            "machine": machine(), **result,
-            "targets": {"requests_per_s": {
-                "target": TARGETS["requests_per_s"], "value": result["requests_per_s"],
-                "met": bool(result["requests_per_s"] >= TARGETS["requests_per_s"])}},
-            "cpu": {"server": {"seconds": cpu1 - cpu0, "percent": 100 * (cpu1 - cpu0) / wall_s},
-                    "generator": {"seconds": gen_cpu, "percent": 100 * gen_cpu / wall_s},
-                    "window_s": wall_s},
-            "server_metrics": server_metrics}
+    return finite({
+        "kind": "requests",
+        "config": {"scene": scene, "wall": wall, "tiles": info["tiles"],
+                   "requests": requests, "concurrency": concurrency,
+                   "target": "/walls/{wid}/tiles/{t}/packets/latest (full packets)"},
+        "machine": machine(), **result,
+        "targets": requests_targets(result),
+        "cpu": {"server": {"seconds": server_s, "percent": 100 * server_s / window},
+                "generator": {"seconds": gen_cpu, "percent": 100 * gen_cpu / result["seconds"]},
+                "window_s": window},
+        "server_metrics": server_metrics})
 
 
 def _hammer_main(argv=None) -> int:
-    """``python -m wallcull_clients.loadtest``: the request-mode load generator (prints JSON)."""
+    """``python -m wallcull_clients.loadtest``: the request-mode load generator. It prints
+    ``{"mark": "start"}`` and ``{"mark": "end"}`` as its timed window opens and closes (the
+    caller samples the server's CPU then), then the result, each a JSON line."""
     p = argparse.ArgumentParser(prog="python -m wallcull_clients.loadtest")
     p.add_argument("--server", required=True)
     p.add_argument("--wall-id", required=True)
@@ -796,11 +972,15 @@ def _hammer_main(argv=None) -> int:
         import uvloop
     except ImportError:
         uvloop = None
+
+    def mark(kind: str) -> None:
+        print(json.dumps({"mark": kind}), flush=True)
+
     targets = [f"/walls/{args.wall_id}/tiles/{t}/packets/latest" for t in range(args.tiles)]
     coro = hammer(args.server, targets, args.requests, args.concurrency,
-                  duration=args.duration, token=args.token)
+                  duration=args.duration, token=args.token, mark=mark)
     result = uvloop.run(coro) if uvloop else asyncio.run(coro)
-    print(json.dumps(result))
+    print(to_json(result), flush=True)
     return 0
 
 
@@ -808,7 +988,18 @@ def _hammer_main(argv=None) -> int:
 
 
 def _f(v, fmt="{:.1f}") -> str:
-    return "-" if v is None else fmt.format(v)
+    return "-" if v is None or v != v else fmt.format(v)
+
+
+def _pc(v) -> str:
+    """A CPU percentage, or "not measured"."""
+    return "not measured" if v is None or v != v else f"{v:.0f}%"
+
+
+def tiles_text(tiles) -> str:
+    from wallcull.validate import tiles_text as text
+
+    return text(sorted(tiles))
 
 
 def markdown(report: dict) -> str:
@@ -820,13 +1011,14 @@ def markdown(report: dict) -> str:
                   f"keep-alive connections; scene {c['scene']}, {c['tiles']} tiles; "
                   f"{m['cores']} cores.", "",
                   "| metric | value |", "|---|---|",
-                  f"| requests/s | {report['requests_per_s']:.0f} |",
+                  f"| requests/s (200 answers) | {report['requests_per_s']:.0f} |",
+                  f"| answers not 200 | {report['not_ok']} of {report['requests']} |",
                   f"| latency p50 / p99 ms | {_f(report['latency_ms']['p50'], '{:.2f}')} / "
                   f"{_f(report['latency_ms']['p99'], '{:.2f}')} |",
                   f"| statuses | {report['status']} |",
                   f"| bytes per response | {report['bytes_per_response']:.0f} |",
-                  f"| server CPU | {report['cpu']['server']['percent']:.0f}% |",
-                  f"| generator CPU | {report['cpu']['generator']['percent']:.0f}% |", ""]
+                  f"| server CPU | {_pc(report['cpu']['server']['percent'])} |",
+                  f"| generator CPU | {_pc(report['cpu']['generator']['percent'])} |", ""]
         return "\n".join(lines + _targets_md(report))
     lat, b = report["latency_ms"], report["bytes"]
     w = c["wall"]
@@ -852,7 +1044,8 @@ def markdown(report: dict) -> str:
               f"{_f(lat['display'].get('p99'), '{:.2f}')} |",
               f"| per-tile latency p50 / p99 ms | {_f(lat['per_tile'].get('p50'), '{:.2f}')} / "
               f"{_f(lat['per_tile'].get('p99'), '{:.2f}')} |",
-              f"| bytes/frame received (deltas) | {b['per_frame']:.0f} |",
+              f"| bytes/frame received (deltas, over the {b['received_frames']} frames some "
+              f"tile received) | {b['per_frame']:.0f} |",
               f"| bytes/frame as full lists (on {b['sampled_frames']} frames sized so) | "
               f"{b['per_frame_if_full']:.0f} |",
               f"| reduction, whole packets (the same frames' deltas: "
@@ -862,23 +1055,36 @@ def markdown(report: dict) -> str:
               f"| fitted-frusta bytes/frame (in every packet) | {b['fits_per_frame']:.0f} |",
               f"| packets full / delta | {b['full_packets']} / {b['delta_packets']} |",
               f"| tile-frames dropped | {report['dropped']['tile_frames']} "
-              f"({report['dropped']['frames_not_on_every_tile']} frames not on every tile) |"]
+              f"({report['dropped']['frames_not_on_every_tile']} frames not on every tile) |",
+              f"| frames the driver skipped (behind its schedule) | "
+              f"{report.get('driver', {}).get('skipped', 0)} |"]
     if "barrier" in report:
         bl = report["barrier"]["latency_ms"]
         lines.append(f"| barrier latency p50 / p99 ms (incomplete) | {_f(bl.get('p50'), '{:.2f}')}"
                      f" / {_f(bl.get('p99'), '{:.2f}')} ({report['barrier']['incomplete']}) |")
-    cpu = report["cpu"]
-    lines += [f"| CPU server / nodes / driver (% of one core) | {cpu['server']['percent']:.0f}% / "
-              f"{cpu['clients']['percent']:.0f}% / {cpu['driver']['percent']:.0f}% |",
-              f"| server CPU per tile-frame | {cpu['server_us_per_tile_frame']:.1f} us |",
-              *([f"| NATS broker CPU (% of one core) | {cpu['broker']['percent']:.0f}% |"]
+    cpu, errors = report["cpu"], report["errors"]
+    lines += [f"| CPU server / nodes / driver (% of one core) | {_pc(cpu['server']['percent'])} / "
+              f"{_pc(cpu['clients']['percent'])} / {_pc(cpu['driver']['percent'])} |",
+              f"| server CPU per tile-frame | "
+              f"{_f(cpu['server_us_per_tile_frame'], '{:.1f} us')} |",
+              *([f"| NATS broker CPU (% of one core) | {_pc(cpu['broker']['percent'])} |"]
                 if c["transport"] == "nats" else []),
-              f"| CPU of other processes on the machine meanwhile | "
-              f"{cpu['others']['percent']:.0f}% |",
-              f"| errors | {report['errors']['node_errors']} node, "
-              f"{report['errors']['base_misses']} base misses, "
-              f"{len(report['errors']['process_errors'])} process |", "",
-              *_targets_md(report),
+              f"| CPU of other processes on the machine meanwhile"
+              f"{' (the server among them)' if cpu['others'].get('server_included') else ''} | "
+              f"{_pc(cpu['others']['percent'])} |",
+              f"| errors | {errors['node_errors']} node, "
+              f"{errors['base_misses']} base misses, "
+              f"{len(errors['process_errors'])} process |",
+              f"| tiles with no records (dropped on every frame) | "
+              f"{errors.get('tiles_missing', 0)}"
+              f"{': ' + tiles_text(errors['tiles_missing_ids']) if errors.get('tiles_missing') else ''}"
+              f" |", ""]
+    if errors["process_errors"] or errors.get("tiles_missing"):
+        lines += ["**The run failed.** " + " ".join(
+            f"{e[0].upper()}{e[1:]}." for e in errors["process_errors"]) +
+            (f" Tiles {tiles_text(errors['tiles_missing_ids'])} left no records: each counts "
+             "as dropped on every measured frame." if errors.get("tiles_missing") else ""), ""]
+    lines += [*_targets_md(report),
               "| tile | packets | full | dropped | p50 ms | p99 ms | mesh fetches | evictions |",
               "|---|---|---|---|---|---|---|---|"]
     for t in report["tiles"]:
@@ -891,10 +1097,10 @@ def markdown(report: dict) -> str:
 def _targets_md(report: dict) -> list[str]:
     lines = ["| target | wanted | measured | |", "|---|---|---|---|"]
     for name, t in report.get("targets", {}).items():
-        value = "-" if t["value"] is None else f"{t['value']:.1f}"
+        value = _f(t["value"])
         wanted = f"{t['target']:g}" + (f", {t['and']}" if "and" in t else "")
-        lines.append(f"| {name} | {wanted} | {value} | "
-                     f"{'met' if t['met'] else '**missed**'} |")
+        verdict = "not measured" if t["met"] is None else "met" if t["met"] else "**missed**"
+        lines.append(f"| {name} | {wanted} | {value} | {verdict} |")
     return lines + [""]
 
 
@@ -903,7 +1109,7 @@ def write(report: dict, out: str | None) -> None:
         return
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "report.json").write_text(json.dumps(report, indent=1))
+    (folder / "report.json").write_text(to_json(report, indent=1))
     (folder / "report.md").write_text(markdown(report))
 
 
@@ -951,7 +1157,11 @@ def register(sub) -> None:
                    help="instead: N single-packet GETs from a separate process; requests/s")
     q.add_argument("--concurrency", type=int, default=64,
                    help="--requests: keep-alive connections")
-    q.add_argument("--server", help="use this running server instead of starting one")
+    q.add_argument("--retry-for", type=float, default=60.0, metavar="SECONDS",
+                   help="how long the driver and the nodes wait for a server that went away "
+                        "before the run fails")
+    q.add_argument("--server", help="use this running server instead of starting one (the "
+                                    "wall the run makes there is deleted when it ends)")
     q.add_argument("--token", default=os.environ.get("WALLCULL_TOKEN") or None,
                    help="the running server's token (default: $WALLCULL_TOKEN)")
     q.add_argument("--out", help="folder for report.json and report.md")
@@ -969,6 +1179,11 @@ def cmd_loadtest(args) -> int:
         raise InputError("nodes of several tiles, and NATS, take node messages: --mode ws")
     if args.duration <= 0 or args.rate < 0:
         raise InputError("--duration must be positive and --rate at least 0")
+    if args.requests is None and not 0 <= args.warmup < args.duration:
+        raise InputError(f"--warmup must be 0 or more and less than --duration "
+                         f"({args.duration:g} s), got {args.warmup:g}")
+    if not 0 < args.retry_for < float("inf"):
+        raise InputError("--retry-for must be a positive number of seconds")
     if args.requests is not None and (args.requests < 1 or args.concurrency < 1):
         raise InputError("--requests and --concurrency must be at least 1")
     if not 0 < args.barrier_timeout <= 10:
@@ -993,10 +1208,10 @@ def cmd_loadtest(args) -> int:
             render=args.render, draw_time=args.draw_time,
             settings=settings, shadow_fit=args.shadow_fit, tiles_per_node=args.tiles_per_node,
             transport=args.transport, nats=args.nats, prefetch=args.prefetch,
-            barrier_timeout=args.barrier_timeout))
+            barrier_timeout=args.barrier_timeout, retry_for=args.retry_for))
     write(report, args.out)
     if args.json:
-        print(json.dumps(report))
+        print(to_json(report))
     else:
         from rich.console import Console
         from rich.markdown import Markdown
@@ -1005,6 +1220,15 @@ def cmd_loadtest(args) -> int:
         if report["kind"] == "walkthrough":  # the per-tile table is in the file
             text = text.split("\n| tile |")[0]
         Console().print(Markdown(text))
+    errors = report.get("errors", {})
+    if errors.get("process_errors") or errors.get("tiles_missing"):
+        # measured, but not the whole wall: the report says what is missing, and so does this
+        first = (errors["process_errors"] or ["a node process left no records"])[0]
+        missing = errors.get("tiles_missing", 0)
+        print(f"wallcull: error: {first}" + (f"; {missing} tiles left no records and count as "
+                                               "dropped on every frame" if missing else ""),
+              file=sys.stderr)
+        return 1
     return 0
 
 

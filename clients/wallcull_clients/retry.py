@@ -31,6 +31,10 @@ class ClientFailure(RuntimeError):
     """A node or driver cannot go on; the message says why."""
 
 
+class Stopped(ClientFailure):
+    """A retry given up because the tool was told to stop (its ``stop`` event: a signal)."""
+
+
 def stop_on_signals(stop: asyncio.Event, graceful: Callable[[], bool]) -> None:
     """SIGTERM and SIGINT set ``stop`` (the tool winds down and writes what it has). While
     ``graceful()`` is False, where the tool still waits (for its server, its wall, its nodes)
@@ -48,8 +52,13 @@ def stop_on_signals(stop: asyncio.Event, graceful: Callable[[], bool]) -> None:
 
 
 class Backoff:
-    def __init__(self, give_up: float = 60.0, first: float = 0.05, cap: float = 0.5):
-        self.give_up, self.first, self.cap = give_up, first, cap
+    """The waits between tries (see the module docstring). With ``stop`` (an event a signal
+    sets), a wait ends as soon as it is set, with :class:`Stopped`: a tool told to stop does
+    not go on retrying a server for ``give_up`` seconds."""
+
+    def __init__(self, give_up: float = 60.0, first: float = 0.05, cap: float = 0.5,
+                 stop: asyncio.Event | None = None):
+        self.give_up, self.first, self.cap, self.stop = give_up, first, cap, stop
         self.total = 0  # waits over this object's life: how often the server was away
         self.reset()
 
@@ -63,9 +72,20 @@ class Backoff:
         now = time.monotonic()
         self.since = now if self.since is None else self.since
         self.total += 1
+        if self.stop is not None and self.stop.is_set():
+            raise Stopped(f"stopped while retrying: {error}")
         if now - self.since > self.give_up:
             raise ClientFailure(f"gave up after {self.give_up:g} s of retrying: {error}")
-        await asyncio.sleep(self.delay * random.uniform(0.5, 1.0))
+        delay = self.delay * random.uniform(0.5, 1.0)
+        if self.stop is None:
+            await asyncio.sleep(delay)
+        else:
+            try:
+                await asyncio.wait_for(self.stop.wait(), delay)
+            except asyncio.TimeoutError:
+                pass
+            else:
+                raise Stopped(f"stopped while retrying: {error}")
         self.delay = min(2 * self.delay, self.cap)
 
 

@@ -355,6 +355,7 @@ class TileClient:
         self.images = {}  # the last frame drawn per tile, with a renderer
         self._counted = {}  # tile -> (its list, triangles, cache evictions) when last counted
         self.connected = asyncio.Event()
+        self.idle_stop = False  # it stopped because no packet came for idle_timeout seconds
         self._ws = None
         self._accept = MSGPACK if binary else "application/json"
         self._base = f"/walls/{wall_id}/tiles/{tile}"
@@ -650,6 +651,7 @@ class TileClient:
                     try:
                         message = await _next(ws, timeout)
                     except asyncio.TimeoutError:
+                        self.idle_stop = True
                         return True
                     recv = time.time()
                     data = message if isinstance(message, bytes) else message.encode()
@@ -688,6 +690,7 @@ class TileClient:
             elif r.status == 404 and r.detail().startswith(("frame", "no frame")):
                 if (idle_timeout is not None and self.last_frame >= 0
                         and time.monotonic() - idle_since > idle_timeout):
+                    self.idle_stop = True
                     return
             elif r.status in (410, 404) and r.detail().startswith(("frame", "there is no")):
                 number = None  # fell out of the history, or a number never posted: the newest
@@ -886,6 +889,7 @@ class NodeClient(TileClient):
                 if idle_timeout and self.last_frame >= 0:  # idle for good after that long
                     wait = min(wait, heard + idle_timeout - time.monotonic())
                     if wait <= 0:
+                        self.idle_stop = True
                         return
                 try:
                     msg = await _next(inbox, wait)
@@ -988,14 +992,15 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
                    stop: asyncio.Event | None = None,
                    reconnect_for: float = 60.0, tiles_per_node: int = 1,
                    prefetch: bool = False,
-                   nats: str | None = None) -> list[TileClient]:
+                   nats: str | None = None, made: list | None = None) -> list[TileClient]:
     """Run the nodes of ``tiles`` on wall ``wall`` (an id, or ``"auto"``) until they stop
     (see :meth:`TileClient.run`) or ``stop`` is set; returns the clients with their stats.
     With ``tiles_per_node`` above 1, each node drives that many consecutive tiles over the
     node stream (:class:`NodeClient`); with ``nats`` (a broker's URL), the nodes are the
     wall's own (its ``nodes``) among ``tiles`` and take their messages from the broker. Each
     node sends ``tokens[tile]`` (its node credential, of its first tile) when given, else
-    ``token``."""
+    ``token``. ``made``: a list the clients are added to as soon as they exist, so that a
+    caller still has what they recorded when the run ends on an error."""
     info = await find_wall(server, wall, reconnect_for)
     ids = parse_tiles(tiles, info["tiles"]) if isinstance(tiles, str) else list(tiles)
     bad = [t for t in ids if not 0 <= t < info["tiles"]]
@@ -1019,6 +1024,8 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
     else:
         clients = [TileClient(server, info["id"], t, scene, token=(tokens or {}).get(t, token),
                               renderer=renderers.get(t), **common) for t in ids]
+    if made is not None:
+        made.extend(clients)
     tasks = [asyncio.create_task(c.run(until, idle_timeout, start)) for c in clients]
     waits = [asyncio.ensure_future(c.connected.wait()) for c in clients]
     connected = asyncio.gather(*waits)
@@ -1046,10 +1053,22 @@ async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mo
     return clients
 
 
-def wall_report(clients: list[TileClient]) -> dict:
-    """Everything the nodes recorded, JSON-ready (what ``--out`` writes)."""
-    return {"tiles": [record for c in clients for record in c.records()],
-            "cpu_seconds": time.process_time()}  # this process's, since it started
+def wall_report(clients: list[TileClient], failure: str | None = None) -> dict:
+    """Everything the nodes recorded, JSON-ready (what ``--out`` writes). ``failure``: why the
+    run ended early (then ``complete`` is false: the records stop where the run did)."""
+    out = {"complete": failure is None, "tiles": [record for c in clients
+                                                  for record in c.records()],
+           "cpu_seconds": time.process_time()}  # this process's, since it started
+    if failure is not None:
+        out["reason"] = failure
+    return out
+
+
+def write_report(path: str, report: dict) -> None:
+    tmp = f"{path}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(report, f)
+    os.replace(tmp, path)
 
 
 def summary_rows(clients: list[TileClient]) -> list[dict]:
@@ -1149,7 +1168,9 @@ async def _main(args) -> int:
 
     start = args.start if args.start == "latest" else int(args.start)
     tokens = node_tokens(args.credentials) if args.credentials else None
-    clients = await run_wall(args.server, args.wall, args.tiles, mode=args.mode,
+    made: list[TileClient] = []
+    try:
+        clients = await run_wall(args.server, args.wall, args.tiles, mode=args.mode,
                              token=args.token, tokens=tokens, binary=args.format == "msgpack",
                              cache_bytes=args.cache_bytes, render=args.render,
                              render_size=args.render_size, until=args.until_frame,
@@ -1157,12 +1178,19 @@ async def _main(args) -> int:
                              measure_full=not args.no_full_size, draw_time=args.draw_time,
                              ready=ready, stop=stop, reconnect_for=args.reconnect_for,
                              tiles_per_node=args.tiles_per_node, nats=args.nats,
-                             prefetch=args.prefetch)
+                             prefetch=args.prefetch, made=made)
+    except Exception as exc:
+        if args.out and made:  # what was drawn before the failure, marked incomplete
+            write_report(args.out, wall_report(made, failure=str(exc)))
+        raise
     if args.out:
-        tmp = f"{args.out}.tmp"
-        with open(tmp, "w") as f:
-            json.dump(wall_report(clients), f)
-        os.replace(tmp, args.out)
+        write_report(args.out, wall_report(clients))
+    idle = [c for c in clients if c.idle_stop]
+    if idle:  # never a silent stop: the frames may still have been coming
+        last = max(c.last_frame for c in clients)
+        print(f"clients.sim: stopped: no packet for {args.idle_timeout:g} s (--idle-timeout) "
+              f"on {len(idle)} of {len(clients)} nodes; last frame taken {last}",
+              file=sys.stderr)
     if not args.quiet:
         from rich.console import Console
         from rich.table import Table
@@ -1200,6 +1228,7 @@ def main(argv=None) -> int:
         print(f"clients.sim: error: {exc}", file=sys.stderr)
         return 2
     except (KeyboardInterrupt, asyncio.CancelledError):  # a signal before the nodes streamed
+        print("clients.sim: interrupted", file=sys.stderr)
         return 130
 
 
