@@ -60,6 +60,7 @@ DEPTH_SLACK = 2.0 ** -10
 #: turns float32's rounding of a node's matrices into whole metres, clipping the surface.
 MIN_DEPTH_SPAN = 2.0 ** -6
 
+
 @dataclass(frozen=True)
 class FitOptions:
     depth: str = "tight"  # "tight": fitted to the visible bounds; "wall": the wall's near/far

@@ -21,8 +21,9 @@ Conservative on both sides, so that dropping never removes a pixel:
   fill the texel. A texel claimed keeps the nearest of the *farthest* depths of what claimed
   it (depth's reciprocal is affine on each face, so the farthest is at a corner of the face's
   part in the texel): everything beyond it, over the whole texel, is hidden. Faces before the
-  near plane are cut off; a closed mesh's back faces are skipped where the mesh lies wholly
-  beyond the near plane (its front faces hide them; from inside it they are what is seen);
+  near plane are cut off; a closed mesh's back faces are skipped where its box lies clear of
+  the eye and the near plane (its front faces hide them; from inside it they are what is
+  seen);
   two faces across a side that make a convex quadrilateral are drawn as one polygon (a
   wall's, a pipe's sides), each keeping its own depths;
 * a node's bound is projected whole (its box's eight corners, grown by its ball): the texels
@@ -766,11 +767,11 @@ def _clear_of_near(box, i, a, rect, cut):
     tangents ``rect``): the eye is outside it and the near plane cuts nothing of it in view."""
     cx, cy, cz = _to_view(a, box[i, 0], box[i, 1], box[i, 2])
     gap = 0.0
-    for k in range(3):
-        ax = a[0, 0] * box[i, 4 + 3 * k] + a[0, 1] * box[i, 5 + 3 * k] + a[0, 2] * box[i, 6 + 3 * k]
-        ay = a[1, 0] * box[i, 4 + 3 * k] + a[1, 1] * box[i, 5 + 3 * k] + a[1, 2] * box[i, 6 + 3 * k]
-        az = a[2, 0] * box[i, 4 + 3 * k] + a[2, 1] * box[i, 5 + 3 * k] + a[2, 2] * box[i, 6 + 3 * k]
-        half = math.sqrt(ax * ax + ay * ay + az * az)  # the axis premultiplied by its half
+    for k in range(4, 13, 3):  # the axes, each premultiplied by its half extent, in the view
+        ax = a[0, 0] * box[i, k] + a[0, 1] * box[i, k + 1] + a[0, 2] * box[i, k + 2]
+        ay = a[1, 0] * box[i, k] + a[1, 1] * box[i, k + 1] + a[1, 2] * box[i, k + 2]
+        az = a[2, 0] * box[i, k] + a[2, 1] * box[i, k + 1] + a[2, 2] * box[i, k + 2]
+        half = math.sqrt(ax * ax + ay * ay + az * az)
         if half > 0:
             out = abs(cx * ax + cy * ay + cz * az) / half - half  # the eye beyond this slab
             if out > 0:
@@ -795,8 +796,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
     when it is closed and its faces wind counter-clockwise (clockwise) seen from outside, 0
     when it is not closed: a closed mesh's back faces lie behind its front faces and are
     skipped where its box lies clear of the eye and the near plane (from inside it, or with
-    the near plane through it, they are what is seen). The rest: scratch kept between frames (see :func:`_scratch`), marked with the
-    ``stamps`` of leaves (updated).
+    the near plane through it, they are what is seen). The rest: scratch kept between frames
+    (see :func:`_scratch`), marked with the ``stamps`` of leaves (updated).
 
     Writes from row ``start`` on (room for every face in every view) the patches' polygons
     ``polys (P, 4, 3)`` (each face's part beyond the near plane, or two whole faces across a
