@@ -315,7 +315,7 @@ def test_every_primitive_of_a_mesh_is_loaded_however_the_random_names_fall(monke
     ({"nodes": [{"name": "box", "mesh": 0, "scale": [1e300, 1, 1]}]}, "cannot be bounded|not "
                                                                       "finite|too large"),
     ({"nodes": [{"name": "a", "children": [1]}, {"name": "b", "children": [0], "mesh": 0}]},
-     "no node that carries geometry"),
+     "hang from no root of the scene as read"),
 ], ids=["huge-scale", "cycle"])
 def test_a_command_refuses_a_file_an_upload_refuses(tmp_path, capsys, change, detail):
     """The command line reads files through the same checks as uploads: one line, status 2
@@ -349,3 +349,116 @@ def test_a_node_tree_deeper_than_a_thousand_is_refused(tmp_path):
         check_glb(path.read_bytes(), Limits())
     with pytest.raises(InputError, match="over 1,000 deep"):
         load(str(path), cache="off")
+
+
+def _doc_with(edit) -> bytes:
+    doc, binary = box_doc()
+    edit(doc)
+    return glb(doc, binary)
+
+
+CAMERA = [{"type": "perspective", "perspective": {"yfov": 1.0, "znear": 0.1}}]
+FEATURES = [  # (id, GLB, detail): what trimesh's reader would read as other geometry
+    ("camera-parent", _doc_with(lambda d: d.update(
+        nodes=[{"name": "rig", "camera": 0, "children": [1]}, {"name": "box", "mesh": 0}],
+        cameras=CAMERA)), "node 0 carries a camera and a mesh or children"),
+    ("camera-mesh", _doc_with(lambda d: d.update(
+        nodes=[{"name": "box", "mesh": 0, "camera": 0}], cameras=CAMERA)), "carries a camera"),
+    ("fan", _doc_with(lambda d: d["meshes"][0]["primitives"][0].update(mode=6)),
+     "mesh 0 primitive 0 is a triangle fan"),
+    ("no-primitives", _doc_with(lambda d: d["meshes"].append({"primitives": []})),
+     "mesh 1 has no primitives"),
+    ("gpu-instancing", _doc_with(lambda d: d.update(
+        extensionsUsed=["EXT_mesh_gpu_instancing"],
+        nodes=[{"name": "box", "mesh": 0, "extensions": {"EXT_mesh_gpu_instancing": {
+            "attributes": {"TRANSLATION": 0}}}}])), "uses EXT_mesh_gpu_instancing"),
+    ("sparse-positions", _doc_with(lambda d: d["accessors"][0].update(sparse=SPARSE)),
+     "sparse positions"),
+    ("normalized", _doc_with(lambda d: d["accessors"][0].update(normalized=True)),
+     "normalized integer positions"),
+    ("skin", _doc_with(lambda d: d.update(nodes=[{"name": "box", "mesh": 0, "skin": 0}],
+                                           skins=[{"joints": [0]}])), "node 0 is skinned"),
+    ("morph", _doc_with(lambda d: (d["meshes"][0].update(weights=[1.0]),
+                                   d["meshes"][0]["primitives"][0].update(
+                                       targets=[{"POSITION": 0}]))), "morph targets"),
+    ("draco", _doc_with(lambda d: d.update(extensionsUsed=["KHR_draco_mesh_compression"],
+                                           extensionsRequired=["KHR_draco_mesh_compression"])),
+     "requires extensions"),
+]
+
+
+@pytest.mark.parametrize("data,detail", [f[1:] for f in FEATURES], ids=[f[0] for f in FEATURES])
+def test_glTF_read_as_other_geometry_is_refused_on_every_path(tmp_path, data, detail):
+    """A glTF feature trimesh's reader gets wrong (it dropped nodes and whole subtrees, left
+    instances and sparse values out, read quantized positions 32767 times too large, placed
+    skins by their node) is refused in one line on upload, by a command and in a zip, where
+    the command line and the scene folder loaded the file as other geometry, exit 0."""
+    import zipfile
+
+    from wallcull.scene import load
+
+    with pytest.raises(InputError, match=detail):
+        check_glb(data, Limits())
+    path = tmp_path / "odd.glb"
+    path.write_bytes(data)
+    with pytest.raises(InputError, match=detail):
+        load(str(path), cache="off")
+    with zipfile.ZipFile(tmp_path / "odd.zip", "w") as z:
+        z.writestr("inside/odd.glb", data)
+    with pytest.raises(InputError, match=detail):
+        load(str(tmp_path / "odd.zip"), cache="off")
+
+
+def test_what_glTF_wallcull_reads_as_it_is_still_loads(tmp_path):
+    """A camera on a node of its own, morph targets weighted zero, a sparse accessor that is
+    no position: loaded, every triangle there."""
+    from wallcull.scene import load
+
+    def edit(d):
+        d["nodes"] = [{"name": "box", "mesh": 0}, {"name": "eye", "camera": 0}]
+        d["scenes"] = [{"nodes": [0, 1]}]
+        d["cameras"] = CAMERA
+        d["meshes"][0]["weights"] = [0.0]
+        d["meshes"][0]["primitives"][0]["targets"] = [{"POSITION": 0}]
+        d["accessors"].append({"componentType": 5126, "type": "VEC3", "count": 8,
+                               "sparse": SPARSE})
+    path = tmp_path / "fine.glb"
+    path.write_bytes(_doc_with(edit))
+    check_glb(path.read_bytes(), Limits())
+    assert load(str(path), cache="off").stats["triangles"] == 4
+
+
+def test_geometry_a_reader_leaves_hanging_is_refused():
+    """Nodes whose parent a reader dropped hang from no root: refused, never lost in
+    silence (the last guard behind the glTF checks)."""
+    from wallcull.scene import Scene
+
+    s = trimesh.Scene()
+    s.add_geometry(trimesh.creation.box(), node_name="kept", geom_name="kept")
+    s.graph.update(frame_from="dropped", frame_to="orphan", geometry="lost",
+                   matrix=np.eye(4))
+    s.geometry["lost"] = trimesh.creation.box()
+    with pytest.raises(InputError, match="1 node.* with geometry .*'orphan'.* hang from no root"):
+        Scene.from_trimesh(s, hierarchy="file")
+
+
+def test_a_prepared_key_follows_the_files_a_scene_names(tmp_path):
+    """A GLB's external buffer and an OBJ's material library are in the prepared file's key:
+    changed, the scene is read again (the old geometry, and an old opaque material that now
+    is glass, were served from the prepared file)."""
+    from wallcull.scene import _file_hash
+
+    doc, binary = box_doc()
+    doc["buffers"][0]["uri"] = "data.bin"
+    (tmp_path / "data.bin").write_bytes(binary)
+    path = tmp_path / "ext.glb"
+    path.write_bytes(glb(doc, b""))
+    before = _file_hash(path)
+    (tmp_path / "data.bin").write_bytes(binary[:-4] + b"\1\0\0\0")
+    assert _file_hash(path) != before
+    obj = tmp_path / "room.obj"
+    obj.write_text("mtllib room.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl glass\nf 1 2 3\n")
+    (tmp_path / "room.mtl").write_text("newmtl glass\nd 1.0\n")
+    before = _file_hash(obj)
+    (tmp_path / "room.mtl").write_text("newmtl glass\nd 0.3\n")
+    assert _file_hash(obj) != before

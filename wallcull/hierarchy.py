@@ -72,8 +72,10 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     eye = np.eye(4)
     names, parent, local, mesh = [], [], [], []
     stack = [(scene.graph.base_frame, -1, 0)]
+    reached = set()
     while stack:
         node, up, depth = stack.pop()
+        reached.add(node)
         if depth > MAX_DEPTH + 1:  # (below the base frame)
             raise InputError(f"the scene's nodes are over {MAX_DEPTH:,} deep; a scene's may be "
                              f"at most {MAX_DEPTH:,}")
@@ -91,6 +93,11 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
         local.append(matrix)
         mesh.append(index.get(geom, -1))
         stack.extend((child, at, depth + 1) for child in reversed(children.get(node, ())))
+    lost = [n for n in scene.graph.nodes_geometry if n not in reached]
+    if lost:  # a reader left them hanging from a parent it dropped: geometry lost in silence
+        raise InputError(f"{len(lost)} node(s) with geometry ({_text(str(lost[0]), 'node')!r}"
+                         f"{', ...' if len(lost) > 1 else ''}) hang from no root of the scene "
+                         "as read (their nodes form a cycle, or the reader dropped a parent)")
     return (NodeTable(names, np.array(parent, dtype=np.int64),
                       np.array(local, dtype=np.float64).reshape(-1, 4, 4),
                       np.array(mesh, dtype=np.int64)),

@@ -44,6 +44,7 @@ from . import clusters as clusters_mod
 from . import hierarchy as tree
 from . import prepared
 from . import bundled
+from . import gltf
 from .errors import InputError
 from .hierarchy import spatial_groups  # noqa: F401 - part of this module's interface
 from .instances import MeshTable, instance_extremes, instance_points, leaf_bounds
@@ -578,6 +579,7 @@ def load_trimesh(path: str | os.PathLike):
     path = Path(path)
     if not path.is_file():
         raise InputError(f"scene file not found: {path}")
+    gltf.check_file(path)
     kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
     try:
         loaded = _trimesh_load(str(path), **kwargs)
@@ -808,18 +810,25 @@ def _code_version() -> str:
 
 
 def _file_hash(path: Path) -> str:
-    """SHA-256 of a scene file, and of the buffers a ``.gltf`` names beside it."""
+    """SHA-256 of a scene file, and of the files it names beside it: the buffers of a glTF
+    (``.gltf`` or ``.glb``), the material libraries of an OBJ (whose transparency decides
+    what occludes)."""
     h = hashlib.sha256()
     files = [path]
-    if path.suffix.lower() == ".gltf":
-        import json
-
-        try:
-            doc = json.loads(path.read_text())
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".gltf", ".glb"):
+            doc = gltf.read_document(path) or {}
             files += [path.parent / b["uri"] for b in doc.get("buffers", [])
                       if not str(b.get("uri", "data:")).startswith("data:")]
-        except (ValueError, TypeError, AttributeError, KeyError, OSError):
-            pass  # trimesh will say what is wrong with it
+        elif suffix == ".obj":
+            with open(path, "rb") as f:
+                for line in f:
+                    if line.startswith(b"mtllib"):
+                        files += [path.parent / name.decode(errors="replace")
+                                  for name in line.split()[1:]]
+    except (ValueError, TypeError, AttributeError, KeyError, OSError):
+        pass  # the reader will say what is wrong with it
     for f in files:
         try:
             with open(f, "rb") as stream:

@@ -13,9 +13,10 @@ turns into gigabytes of zeros (and trimesh into more). So before any reader sees
   with a known component type and element type; a primitive's positions are float triples
   and its indices unsigned integers;
 * nodes form a forest (no node with two parents, no cycle, no index out of range);
+* it uses no glTF feature that the reader would read as other geometry (:mod:`wallcull.gltf`);
 * the totals stay within :class:`wallcull.limits.Limits`: nodes (each primitive of a mesh of
-  several becomes one), vertices and triangles (a strip or fan of n indices draws
-  n - 2, points and lines none) counted once per node that draws them, and the bytes every
+  several becomes one), vertices and triangles (a strip of n indices draws n - 2,
+  points and lines none) counted once per node that draws them, and the bytes every
   accessor declares.
 
 Whatever a check misses, the parse itself (trimesh, then :meth:`Scene.from_trimesh` and the
@@ -32,6 +33,7 @@ import os
 import struct
 from pathlib import Path
 
+from . import gltf
 from .errors import InputError
 from .limits import Limits
 from .validate import MAX_DEPTH
@@ -138,10 +140,6 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
         raise InputError(f"cannot read the uploaded GLB: its JSON is malformed: {exc}") from None
     if not isinstance(doc, dict):
         raise InputError("cannot read the uploaded GLB: its JSON is not an object")
-    required = doc.get("extensionsRequired") or []
-    if required:
-        raise InputError(f"cannot use the uploaded GLB: it requires extensions "
-                         f"{required!r}, which wallcull does not read")
     buffers, views = _list(doc, "buffers"), _list(doc, "bufferViews")
     accessors, meshes, nodes = _list(doc, "accessors"), _list(doc, "meshes"), _list(doc, "nodes")
     sizes = []
@@ -237,6 +235,7 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
         raise InputError(f"the uploaded GLB draws {vertices:,} vertices and {faces:,} triangles "
                          f"(once per node); a scene may draw at most {limits.vertices:,} and "
                          f"{limits.faces:,}")
+    gltf.check(doc, "the uploaded GLB")
     return doc, binary
 
 
