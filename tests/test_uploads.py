@@ -462,3 +462,20 @@ def test_a_prepared_key_follows_the_files_a_scene_names(tmp_path):
     before = _file_hash(obj)
     (tmp_path / "room.mtl").write_text("newmtl glass\nd 0.3\n")
     assert _file_hash(obj) != before
+
+
+def test_a_gltf_naming_its_buffer_percent_encoded_loads(tmp_path):
+    """glTF URIs are percent-encoded: a buffer ``my%20data.bin`` is the file ``my data.bin``
+    (a Blender export of a model with a space in its name). trimesh looked for the name as
+    written and the scene was refused; the prepared key follows the file too."""
+    from wallcull.scene import _file_hash, load
+
+    doc, binary = box_doc()
+    doc["buffers"][0]["uri"] = "my%20data.bin"
+    (tmp_path / "my data.bin").write_bytes(binary)
+    path = tmp_path / "spaced.gltf"
+    path.write_text(json.dumps(doc))
+    assert load(str(path), cache="off").stats["triangles"] == 4
+    before = _file_hash(path)
+    (tmp_path / "my data.bin").write_bytes(binary[:-4] + b"\1\0\0\0")
+    assert _file_hash(path) != before

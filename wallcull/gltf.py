@@ -110,6 +110,27 @@ def document(data: bytes, suffix: str) -> dict | None:
     return doc if isinstance(doc, dict) else None
 
 
+def beside(path: Path, uri: str) -> Path:
+    """The file a glTF at ``path`` names by ``uri``: URIs are percent-encoded (a Blender export
+    of "my model" names ``my%20model.bin``), but a file named as written is taken first."""
+    from urllib.parse import unquote
+
+    plain = path.parent / uri
+    return plain if plain.exists() else path.parent / unquote(uri)
+
+
+def resolver(path: Path):
+    """trimesh's resolver of the files beside ``path``, decoding percent-encoded names
+    (:func:`beside`): trimesh reads them as written, and refused such a file."""
+    from trimesh.resolvers import FilePathResolver
+
+    class Decoding(FilePathResolver):
+        def get(self, name):
+            return super().get(str(beside(path, name).relative_to(path.parent)))
+
+    return Decoding(str(path))
+
+
 def read_document(path: Path) -> dict | None:
     """:func:`document` of a file, reading a ``.glb``'s JSON chunk alone."""
     try:

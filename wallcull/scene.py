@@ -581,6 +581,8 @@ def load_trimesh(path: str | os.PathLike):
         raise InputError(f"scene file not found: {path}")
     gltf.check_file(path)
     kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
+    if path.suffix.lower() == ".gltf":
+        kwargs["resolver"] = gltf.resolver(path)
     try:
         loaded = _trimesh_load(str(path), **kwargs)
     except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
@@ -819,7 +821,7 @@ def _file_hash(path: Path) -> str:
     try:
         if suffix in (".gltf", ".glb"):
             doc = gltf.read_document(path) or {}
-            files += [path.parent / b["uri"] for b in doc.get("buffers", [])
+            files += [gltf.beside(path, b["uri"]) for b in doc.get("buffers", [])
                       if not str(b.get("uri", "data:")).startswith("data:")]
         elif suffix == ".obj":
             with open(path, "rb") as f:
