@@ -411,7 +411,8 @@ def test_glTF_read_as_other_geometry_is_refused_on_every_path(tmp_path, data, de
 
 def test_what_glTF_wallcull_reads_as_it_is_still_loads(tmp_path):
     """A camera on a node of its own, morph targets weighted zero, a sparse accessor that is
-    no position: loaded, every triangle there."""
+    no position, required extensions that change no geometry (materials, texture transforms):
+    loaded, every triangle there, on upload and by a command."""
     from wallcull.scene import load
 
     def edit(d):
@@ -422,6 +423,10 @@ def test_what_glTF_wallcull_reads_as_it_is_still_loads(tmp_path):
         d["meshes"][0]["primitives"][0]["targets"] = [{"POSITION": 0}]
         d["accessors"].append({"componentType": 5126, "type": "VEC3", "count": 8,
                                "sparse": SPARSE})
+        d["extensionsUsed"] = d["extensionsRequired"] = ["KHR_materials_unlit",
+                                                         "KHR_texture_transform"]
+        d["materials"] = [{"extensions": {"KHR_materials_unlit": {}}}]
+        d["meshes"][0]["primitives"][0]["material"] = 0
     path = tmp_path / "fine.glb"
     path.write_bytes(_doc_with(edit))
     check_glb(path.read_bytes(), Limits())

@@ -5,7 +5,8 @@ command line, one in the server's scene folder or in a zip).
 Read as other geometry than the file means, each of these lost or misplaced what a tile shows:
 
 * any extension the file *requires* (Draco, meshopt, quantized positions: decoded as zeros,
-  32767 times too large, or not at all);
+  32767 times too large, or not at all), but those that change no geometry
+  (:data:`GEOMETRY_FREE`: materials, texture transforms, lights);
 * ``EXT_mesh_gpu_instancing`` (only the node itself was drawn, not its instances);
 * a sparse accessor for positions or indices (its values were never applied);
 * normalized integer positions (read without the normalization);
@@ -30,6 +31,10 @@ from .errors import InputError
 TRIANGLE_FAN = 6
 INSTANCING = "EXT_mesh_gpu_instancing"
 
+#: Required extensions that change no geometry (materials, texture coordinates, lights): a
+#: file requiring them is culled as it is drawn. Culling decodes no texture.
+GEOMETRY_FREE = ("KHR_materials_", "KHR_texture_transform", "KHR_lights_punctual")
+
 
 def check(doc: dict, what: str) -> None:
     """Refuse the glTF document ``doc`` (of ``what``: "the uploaded GLB", "scene x.glb") when
@@ -42,7 +47,8 @@ def check(doc: dict, what: str) -> None:
 
 
 def _check(doc: dict, what: str) -> None:
-    required = doc.get("extensionsRequired") or []
+    required = [e for e in doc.get("extensionsRequired") or []
+                if not str(e).startswith(GEOMETRY_FREE)]
     if required:
         raise InputError(f"cannot use {what}: it requires extensions {required!r}, which "
                          "wallcull does not read")
