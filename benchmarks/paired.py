@@ -28,6 +28,7 @@ from io import BytesIO
 from pathlib import Path
 
 import numpy as np
+from _cli import count  # beside this file
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -75,14 +76,12 @@ def main() -> None:
     p.add_argument("rev")
     p.add_argument("--settings")
     p.add_argument("--path", choices=("orbit", "fly"), default="orbit")
-    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--frames", type=count(1), default=200)
     p.add_argument("--stage", choices=("fit", "cull", "occlude", "total"), default="fit")
     p.add_argument("--occlusion", choices=("on", "auto"))
     p.add_argument("--wall", default=str(ROOT / "examples" / "wall-8x8.json"))
     p.add_argument("--scene", default="powerplant")
     args = p.parse_args()
-    if args.frames < 1:
-        p.error(f"--frames must be at least 1, got {args.frames}")
     if args.stage == "occlude" and not args.occlusion:
         p.error("--stage occlude needs --occlusion on or auto (without it nothing is timed)")
     settings = None

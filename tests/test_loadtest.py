@@ -509,6 +509,24 @@ def start_loadtest(tmp_path, *args) -> subprocess.Popen:
                             start_new_session=True)
 
 
+def stopped_while_driving(tmp_path, stop, *args, timeout: float = 180):
+    """``wallcull loadtest *args`` (:func:`start_loadtest`), with ``stop(proc)`` called once
+    its driver runs; ``(status, stdout, stderr, driver process)``."""
+    proc = start_loadtest(tmp_path, *args)
+    try:
+        driver = child(proc, "wallcull_clients.driver")
+        stop(proc)
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        proc.kill()
+    return proc.returncode, out, err, driver
+
+
+def interrupt(proc: subprocess.Popen) -> None:
+    """Ctrl-C at a terminal: SIGINT to the whole process group."""
+    os.killpg(proc.pid, signal.SIGINT)
+
+
 def child(proc: subprocess.Popen, *words: str):
     """The first process under ``proc`` whose command line holds ``words``, once it runs."""
     import time
@@ -538,15 +556,10 @@ def test_loadtest_a_node_process_that_dies_fails_the_run(tmp_path):
     """Two node processes, one SIGKILLed once the driver runs: its tiles count as dropped on
     every measured frame, the report names them and the process, the latency target is
     missed, and the run ends with status 1 and one line."""
-    proc = start_loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "30",
-                          "--duration", "3", "--clients-procs", "2")
-    try:
-        child(proc, "wallcull_clients.driver")
-        child(proc, "wallcull_clients.sim", "0-1").kill()
-        out, err = proc.communicate(timeout=180)
-    finally:
-        proc.kill()
-    assert proc.returncode == 1, err
+    status, out, err, _ = stopped_while_driving(
+        tmp_path, lambda proc: child(proc, "wallcull_clients.sim", "0-1").kill(),
+        "--wall", json.dumps(WALL_2x2), "--rate", "30", "--duration", "3", "--clients-procs", "2")
+    assert status == 1, err
     assert err.count("\n") == 1 and err.startswith("wallcull: error: node process 0 (tiles "
                                                    "0-1) was killed by SIGKILL"), err
     report = strict_json(out)
@@ -596,15 +609,10 @@ def test_loadtest_against_a_running_server_writes_json_and_leaves_no_wall(server
 
 def test_loadtest_interrupted_against_a_running_server_leaves_no_wall(server, tmp_path):
     before = walls(server)
-    proc = start_loadtest(tmp_path, "--server", server, "--token", TOKEN, "--wall",
-                          json.dumps(WALL_2x2), "--rate", "30", "--duration", "30")
-    try:
-        child(proc, "wallcull_clients.driver")
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        proc.kill()
-    assert proc.returncode == 130 and err == "wallcull: interrupted\n", err
+    status, _, err, _ = stopped_while_driving(
+        tmp_path, interrupt, "--server", server, "--token", TOKEN, "--wall",
+        json.dumps(WALL_2x2), "--rate", "30", "--duration", "30", timeout=120)
+    assert status == 130 and err == "wallcull: interrupted\n", err
     assert walls(server) == before
 
 
@@ -614,15 +622,10 @@ def test_loadtest_interrupted_stops_its_driver_too(tmp_path):
     the load test waits for it; one line says why the run ended."""
     import psutil
 
-    proc = start_loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "30",
-                          "--duration", "30")
-    try:
-        driver = child(proc, "wallcull_clients.driver")
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
-    finally:
-        proc.kill()
-    assert proc.returncode == 130 and err == "wallcull: interrupted\n", err
+    status, _, err, driver = stopped_while_driving(
+        tmp_path, interrupt, "--wall", json.dumps(WALL_2x2), "--rate", "30", "--duration", "30",
+        timeout=120)
+    assert status == 130 and err == "wallcull: interrupted\n", err
     try:
         assert driver.wait(timeout=5) is not None or not driver.is_running()
     except psutil.NoSuchProcess:
@@ -630,15 +633,11 @@ def test_loadtest_interrupted_stops_its_driver_too(tmp_path):
 
 
 def test_loadtest_whose_server_dies_fails_in_one_line(tmp_path):
-    proc = start_loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "30",
-                          "--duration", "30", "--retry-for", "1")
-    try:
-        child(proc, "wallcull_clients.driver")
-        child(proc, "wallcull.cli", "serve").kill()
-        _, err = proc.communicate(timeout=120)
-    finally:
-        proc.kill()
-    assert proc.returncode == 2, err
+    status, _, err, _ = stopped_while_driving(
+        tmp_path, lambda proc: child(proc, "wallcull.cli", "serve").kill(),
+        "--wall", json.dumps(WALL_2x2), "--rate", "30", "--duration", "30", "--retry-for", "1",
+        timeout=120)
+    assert status == 2, err
     # (gave up after 1 s of retrying; or, killed as it opened its frame stream, refused)
     assert err.count("\n") == 1 and err.startswith("wallcull: error: the driver exited 2: "
                                                    "clients.driver: error: "), err
