@@ -25,6 +25,7 @@ The arrays are built by :mod:`wallcull.hierarchy`; leaves are instances of mesh 
 from __future__ import annotations
 
 import functools
+import io
 import hashlib
 import itertools
 import logging
@@ -567,9 +568,14 @@ def _trimesh_load(source, **kwargs):
             trimesh.util.unique_id = random_id
 
 
-def read_glb(data):
-    """A GLB (a file object) read as :func:`load_trimesh` reads files."""
-    return _trimesh_load(data, file_type="glb")
+def read_glb(data: bytes):
+    """A GLB's bytes read as :func:`load_trimesh` reads files (made plain first: :mod:`.gltf`)."""
+    made = gltf.plain_bytes(data, ".glb", _no_file, "the uploaded GLB")
+    return _trimesh_load(io.BytesIO(made or data), file_type="glb")
+
+
+def _no_file(uri: str) -> bytes:
+    raise KeyError(f"an upload names no file beside it ({uri!r})")
 
 
 def load_trimesh(path: str | os.PathLike):
@@ -583,8 +589,14 @@ def load_trimesh(path: str | os.PathLike):
     kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
     if path.suffix.lower() == ".gltf":
         kwargs["resolver"] = gltf.resolver(path)
+    made = gltf.plain_file(path)
     try:
-        loaded = _trimesh_load(str(path), **kwargs)
+        if made is not None:  # the same reader on the file made plain (:mod:`.gltf`)
+            suffix = "zip" if path.suffix.lower() == ".zip" else "glb"
+            kwargs["resolver"] = None if suffix == "zip" else gltf.resolver(path)
+            loaded = _trimesh_load(io.BytesIO(made), file_type=suffix, **kwargs)
+        else:
+            loaded = _trimesh_load(str(path), **kwargs)
     except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
         # (trimesh re-raises a reader's import error from its message alone: no name)
         needs = exc.name or next(iter(re.findall(r"named '([\w.]+)'", str(exc))), None)

@@ -220,7 +220,9 @@ def check_glb(data: bytes, limits: Limits) -> tuple[dict, bytes]:
             parents[c] = i
         if "mesh" in node:
             v, f, p = per_mesh[_index(node["mesh"], meshes, f"node {i} mesh")]
-            vertices, faces, built = vertices + v, faces + f, built + (p if p > 1 else 0)
+            n, own = _copies(node, accessors, i)  # a node of instances: a child each
+            vertices, faces = vertices + v * n, faces + f * n
+            built += ((p if p > 1 else 0) + own) * n
     if built > limits.nodes:
         raise InputError(f"the uploaded GLB makes {built:,} nodes (each primitive of a mesh of "
                          f"several is one); a scene may have at most {limits.nodes:,}")
@@ -273,6 +275,19 @@ def _mesh_size(mesh: dict, k: int, accessors: list) -> tuple[int, int, int]:
     return vertices, faces, len(prims)
 
 
+def _copies(node: dict, accessors: list, i: int) -> tuple[int, int]:
+    """How many times node ``i`` draws its mesh, and whether each is a node of its own
+    (``EXT_mesh_gpu_instancing``: its instances, each made a child)."""
+    ext = (node.get("extensions") or {}).get(gltf.INSTANCING)
+    if ext is None:
+        return 1, 0
+    attributes = ext.get("attributes") if isinstance(ext, dict) else None
+    if not isinstance(attributes, dict) or not attributes:
+        raise InputError(f"the uploaded GLB's node {i} {gltf.INSTANCING} has no attributes")
+    return max(accessors[_index(a, accessors, f"node {i} instances' {name}")]["count"]
+               for name, a in attributes.items()), 1
+
+
 def _rooted(parents: list[int]) -> None:
     """Every node's chain of parents reaches a root (each node has one parent at most, so a
     chain that comes back to itself is the only way not to), in at most ``MAX_DEPTH`` steps."""
@@ -307,10 +322,8 @@ def parse_glb(path: str, name: str, limits: Limits):
 
     data = Path(path).read_bytes()
     doc, binary = check_glb(data, limits)
-    import io
-
     try:  # its materials without their images: what occludes needs their alphaMode alone
-        loaded = read_glb(io.BytesIO(_without_images(doc, binary)))
+        loaded = read_glb(_without_images(doc, binary))
     except MemoryError:
         raise
     except Exception as exc:  # noqa: BLE001 - a parser failure is bad input
