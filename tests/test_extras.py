@@ -18,7 +18,7 @@ from wallcull_clients.loadtest import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 #: What only the extras (and the clients' distribution, and the tests) install.
-EXTRAS = ("scipy", "matplotlib", "psutil", "nats", "networkx", "lxml", "moderngl", "PIL",
+EXTRAS = ("scipy", "matplotlib", "psutil", "nats", "networkx", "lxml", "DracoPy", "moderngl", "PIL",
           "httpx", "wallcull_clients", "pytest", "hypothesis", "jsonschema", "playwright",
           "schemathesis", "openapi_spec_validator", "mkdocs")
 BLOCK = f"""

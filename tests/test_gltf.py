@@ -4,7 +4,7 @@
 
 The expected triangles are worked out here from how each file was built (glTF's own rules:
 a fan's ``v0 vi vi+1``, an instance's transform within its node's, ``q / 32767`` for a
-normalized short), never by the code under test."""
+normalized short; Draco's encoder given the mesh), never by the code under test."""
 
 from __future__ import annotations
 
@@ -142,12 +142,34 @@ def sparse():
     return d, np.array([v[[0, 1, 2]], v[[7, 6, 4]]])
 
 
+def draco():
+    DracoPy = pytest.importorskip("DracoPy", reason="Draco needs the formats extra")
+    d = Doc()
+    v = BOX_V * [1, 2, 3]
+    encoded = DracoPy.encode(v, BOX_F, quantization_bits=16)
+    decoded = len(np.asarray(DracoPy.decode(encoded).points).reshape(-1, 3))
+    d.doc["accessors"] += [{"componentType": 5126, "type": "VEC3", "count": decoded,
+                            "min": [0, 0, 0], "max": [1, 2, 3]},
+                           {"componentType": 5125, "type": "SCALAR", "count": BOX_F.size}]
+    view = d.view(np.frombuffer(encoded, "u1"))
+    d.doc["meshes"] = [{"primitives": [{
+        "attributes": {"POSITION": 0}, "indices": 1,
+        "extensions": {"KHR_draco_mesh_compression": {"bufferView": view,
+                                                      "attributes": {"POSITION": 0}}}}]}]
+    d.doc["nodes"] = [{"name": "d", "mesh": 0, "translation": [0, 0, -4]}]
+    d.doc["extensionsUsed"] = d.doc["extensionsRequired"] = ["KHR_draco_mesh_compression"]
+    return d, v[BOX_F] + [0, 0, -4]
+
+
 CASES = {"fan": fan_indexed, "fan-without-indices": fan_plain, "instancing": instanced,
-         "quantized": quantized, "sparse": sparse}
+         "quantized": quantized, "sparse": sparse, "draco": draco}
 
 
 def canonical(triangles: np.ndarray) -> np.ndarray:
-    t = np.round(np.asarray(triangles, float).reshape(-1, 9), 4)
+    """Triangles as rows, each turned to start at its least vertex (winding kept), sorted."""
+    t = np.round(np.asarray(triangles, float).reshape(-1, 3, 3), 3)
+    first = np.array([min(range(3), key=lambda k: tuple(tri[k])) for tri in t], int)
+    t = np.stack([np.roll(tri, -k, axis=0) for tri, k in zip(t, first)]).reshape(-1, 9)
     return t[np.lexsort(t.T[::-1])]
 
 
@@ -211,3 +233,28 @@ def test_instances_that_cannot_be_placed_are_refused(tmp_path, edit, detail):
     (tmp_path / "bad.glb").write_bytes(d.glb())
     with pytest.raises(InputError, match="node 0 .*" + detail):
         load(str(tmp_path / "bad.glb"), cache="off")
+
+
+def test_draco_that_cannot_be_decoded_is_refused_in_one_line(tmp_path, monkeypatch):
+    """Draco data that does not decode, or decodes to other than its accessors declare (an
+    upload's limits count the declared), and Draco without DracoPy: one line each."""
+    d, _ = draco()
+    path = tmp_path / "d.glb"
+    view = d.doc["meshes"][0]["primitives"][0]["extensions"][
+        "KHR_draco_mesh_compression"]["bufferView"]
+    good = d.data
+    start = d.doc["bufferViews"][view]["byteOffset"]
+    d.data = good[:start] + b"\x07" * (len(good) - start)
+    path.write_bytes(d.glb())
+    with pytest.raises(InputError, match="Draco data cannot be decoded"):
+        load(str(path), cache="off")
+    d.data = good
+    d.doc["accessors"][0]["count"] = 3
+    path.write_bytes(d.glb())
+    with pytest.raises(InputError, match="decodes to 8 vertices and 4 triangles"):
+        load(str(path), cache="off")
+    d.doc["accessors"][0]["count"] = 8
+    path.write_bytes(d.glb())
+    monkeypatch.setitem(__import__("sys").modules, "DracoPy", None)
+    with pytest.raises(InputError, match=r"needs DracoPy: pip install 'wallcull\[formats\]'"):
+        load(str(path), cache="off")

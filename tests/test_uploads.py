@@ -90,7 +90,7 @@ REFUSED = [  # (id, GLB, detail)
     ("child-index", changed("nodes.0.children", [5]), "child"),
     ("own-child", changed("nodes.0.children", [0]), "tree"),
     ("scene-root", changed("scenes.0.nodes", [3]), "scene 0 node"),
-    ("required-extension", changed("extensionsRequired", ["KHR_draco_mesh_compression"]),
+    ("required-extension", changed("extensionsRequired", ["EXT_meshopt_compression"]),
      "extensions"),
     ("children-not-a-list", changed("nodes.0.children", 5), "node 0 children must be a list"),
     ("roots-not-a-list", changed("scenes.0.nodes", 0), "scene 0 nodes must be a list"),
@@ -369,8 +369,8 @@ FEATURES = [  # (id, GLB, detail): what trimesh's reader would read as other geo
     ("morph", _doc_with(lambda d: (d["meshes"][0].update(weights=[1.0]),
                                    d["meshes"][0]["primitives"][0].update(
                                        targets=[{"POSITION": 0}]))), "morph targets"),
-    ("draco", _doc_with(lambda d: d.update(extensionsUsed=["KHR_draco_mesh_compression"],
-                                           extensionsRequired=["KHR_draco_mesh_compression"])),
+    ("meshopt", _doc_with(lambda d: d.update(extensionsUsed=["EXT_meshopt_compression"],
+                                             extensionsRequired=["EXT_meshopt_compression"])),
      "requires extensions"),
 ]
 
@@ -378,7 +378,7 @@ FEATURES = [  # (id, GLB, detail): what trimesh's reader would read as other geo
 @pytest.mark.parametrize("data,detail", [f[1:] for f in FEATURES], ids=[f[0] for f in FEATURES])
 def test_glTF_read_as_other_geometry_is_refused_on_every_path(tmp_path, data, detail):
     """A glTF feature trimesh's reader gets wrong and wallcull does not make plain (it dropped
-    nodes and whole subtrees, placed skins by their node, decoded Draco as zeros) is refused
+    nodes and whole subtrees, placed skins by their node, left meshopt's data undecoded) is refused
     in one line on upload, by a command and in a zip, where the command line and the scene
     folder loaded the file as other geometry, exit 0 (what is made plain: test_gltf.py)."""
     import zipfile

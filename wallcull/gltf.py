@@ -8,11 +8,13 @@ Made plain (trimesh alone dropped, left out or misplaced them):
 * a triangle fan (dropped, with every node below it), as triangles;
 * ``EXT_mesh_gpu_instancing`` (only the node itself was drawn), as a child node per instance;
 * normalized integer positions (``KHR_mesh_quantization``: read 32767 times too large) and
-  sparse positions or indices (their values never applied), as plain arrays.
+  sparse positions or indices (their values never applied), as plain arrays;
+* Draco-compressed primitives (``KHR_draco_mesh_compression``: read as zeros), decoded by
+  DracoPy (the ``formats`` extra), positions and triangles alone.
 
 Refused, each having lost or misplaced what a tile shows:
 
-* any extension the file *requires* (Draco, meshopt: decoded as zeros or not at all), but
+* any extension the file *requires* (meshopt: not decoded at all), but
   those made plain (:data:`MADE_PLAIN`) and those that change no geometry
   (:data:`GEOMETRY_FREE`: materials, texture transforms, lights);
 * a mesh without primitives (dropped, with every node below it);
@@ -37,6 +39,7 @@ from .errors import InputError
 
 TRIANGLE_FAN = 6
 INSTANCING = "EXT_mesh_gpu_instancing"
+DRACO = "KHR_draco_mesh_compression"
 
 #: Required extensions that change no geometry (materials, texture coordinates, lights): a
 #: file requiring them is culled as it is drawn. Culling decodes no texture.
@@ -164,7 +167,7 @@ def check_file(path: Path) -> None:
 #: Required extensions whose files are read once made plain (:func:`plain`): instances
 #: expanded into nodes, quantized positions dequantized (others of its integer attributes are
 #: read as they are: trimesh reads integers, and a node's scale dequantizes positions).
-MADE_PLAIN = (INSTANCING, "KHR_mesh_quantization")
+MADE_PLAIN = (INSTANCING, "KHR_mesh_quantization", DRACO)
 
 _DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
@@ -190,7 +193,8 @@ def needs_plain(doc: dict) -> bool:
         for mesh in doc.get("meshes") or []:
             for p in mesh.get("primitives") or []:
                 if p.get("mode") == TRIANGLE_FAN or odd((p.get("attributes") or {}).get(
-                        "POSITION")) or odd(p.get("indices")):
+                        "POSITION")) or odd(p.get("indices")) or \
+                        DRACO in (p.get("extensions") or {}):
                     return True
         return any(INSTANCING in (n.get("extensions") or {}) for n in doc.get("nodes") or [])
     except (TypeError, AttributeError):
@@ -219,6 +223,8 @@ def plain(doc: dict, buffers: list[bytes], what: str) -> bytes:
 
     for mesh in doc.get("meshes") or []:
         for p in mesh.get("primitives") or []:
+            if DRACO in (p.get("extensions") or {}):
+                _draco(p, out)
             attributes = p.get("attributes") or {}
             position = attributes.get("POSITION")
             if position is not None and out.odd(position):
@@ -230,7 +236,7 @@ def plain(doc: dict, buffers: list[bytes], what: str) -> bytes:
     _instances(doc, out, what)
     for key in ("extensionsRequired", "extensionsUsed"):
         if key in doc:
-            doc[key] = [e for e in doc[key] if e != INSTANCING]
+            doc[key] = [e for e in doc[key] if e not in (INSTANCING, DRACO)]
             if not doc[key]:
                 del doc[key]
     return out.glb()
@@ -249,6 +255,41 @@ def _fan(p: dict, out: "_Buffers") -> None:
     triangles[:, 0], triangles[:, 1], triangles[:, 2] = fan[0], fan[1:-1], fan[2:]
     p["indices"] = out.add(triangles.reshape(-1, 1), "SCALAR", 5125)
     p["mode"] = 4
+
+
+def _draco(p: dict, out: "_Buffers") -> None:
+    """Primitive ``p``, compressed by Draco, as its decoded positions and triangles (its other
+    attributes left out: culling needs none, and their accessors hold no data)."""
+    try:
+        import DracoPy
+    except ImportError:
+        raise InputError(f"cannot use {out.what}: it is compressed by Draco, which needs "
+                         "DracoPy: pip install 'wallcull[formats]'") from None
+    ext = p["extensions"].pop(DRACO)
+    if not p["extensions"]:
+        del p["extensions"]
+    try:
+        mesh = DracoPy.decode(out.view_bytes(ext["bufferView"]))
+    except Exception as exc:  # noqa: BLE001 - the decoder's own errors: bad input
+        raise InputError(f"cannot use {out.what}: its Draco data cannot be decoded "
+                         f"({exc})") from None
+    points = np.asarray(mesh.points, "<f4").reshape(-1, 3)
+    faces = np.asarray(getattr(mesh, "faces", None) if getattr(mesh, "faces", None) is not None
+                       else np.zeros((0, 3)), "<u4").reshape(-1, 3)
+    attributes = p.get("attributes") or {}
+    declared = out.count(attributes["POSITION"]) if "POSITION" in attributes else None
+    indices = out.count(p["indices"]) if p.get("indices") is not None else None
+    if declared != len(points) or (indices is not None and indices != faces.size):
+        raise InputError(f"cannot use {out.what}: its Draco data decodes to {len(points):,} "
+                         f"vertices and {len(faces):,} triangles, not what its accessors "
+                         "declare")
+    p["attributes"] = {"POSITION": out.add(points, "VEC3", 5126, bounds=True)}
+    if len(faces):
+        p["indices"] = out.add(faces.reshape(-1, 1), "SCALAR", 5125)
+        p["mode"] = 4
+    else:
+        p.pop("indices", None)
+        p["mode"] = 0
 
 
 def _instances(doc: dict, out: "_Buffers", what: str) -> None:
@@ -323,6 +364,11 @@ class _Buffers:
         if count and (start < 0 or end > len(data)):
             raise InputError(f"cannot use {self.what}: bufferView {view} reads past its buffer")
         return np.ndarray((count, width), dtype, data, start, (stride, itemsize)).copy()
+
+    def view_bytes(self, view: int) -> bytes:
+        v = self.doc["bufferViews"][view]
+        start = int(v.get("byteOffset", 0))
+        return self.buffers[v["buffer"]][start:start + int(v["byteLength"])]
 
     def read(self, i: int) -> np.ndarray:
         """Accessor ``i``'s elements as rows: sparse values applied, normalized integers as
