@@ -60,8 +60,10 @@ def _check(doc: dict, what: str) -> None:
     required = [e for e in doc.get("extensionsRequired") or []
                 if not str(e).startswith(GEOMETRY_FREE) and e not in MADE_PLAIN]
     if required:
+        hint = "; write it without compression (gltfpack: leave out -c)" if any(
+            "meshopt" in str(e) for e in required) else ""
         raise InputError(f"cannot use {what}: it requires extensions {required!r}, which "
-                         "wallcull does not read")
+                         f"wallcull does not read{hint}")
     meshes = doc.get("meshes") or []
     morphed = set()
     for k, mesh in enumerate(meshes):
