@@ -167,8 +167,9 @@ def check_file(path: Path) -> None:
 # --------------------------------------------------------------------------- made plain
 
 #: Required extensions whose files are read once made plain (:func:`plain`): instances
-#: expanded into nodes, quantized positions dequantized (others of its integer attributes are
-#: read as they are: trimesh reads integers, and a node's scale dequantizes positions).
+#: expanded into nodes, quantized positions dequantized (its other integer attributes are read
+#: as they are: trimesh reads integers, and a node's scale dequantizes positions), Draco
+#: decoded.
 MADE_PLAIN = (INSTANCING, "KHR_mesh_quantization", DRACO)
 
 _DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
@@ -184,7 +185,7 @@ MAX_INSTANCES = 4_000_000
 def needs_plain(doc: dict) -> bool:
     """Whether ``doc`` uses something :func:`plain` rewrites (trimesh would read it as other
     geometry: fans dropped, instances left out, quantized positions 32767 times too large,
-    sparse values never applied)."""
+    sparse values never applied, Draco as zeros)."""
     try:
         accessors = doc.get("accessors") or []
 
@@ -205,9 +206,9 @@ def needs_plain(doc: dict) -> bool:
 
 def plain(doc: dict, buffers: list[bytes], what: str) -> bytes:
     """A GLB of ``doc`` (whose buffers' bytes are ``buffers``, in order) that trimesh reads as
-    the file means: each triangle fan as triangles, normalized or sparse positions and sparse
-    indices as plain arrays, each node of ``EXT_mesh_gpu_instancing`` as a node with a child
-    per instance (the instance's transform within the node's: glTF's order). Every buffer
+    the file means: each triangle fan as triangles, normalized or sparse positions, sparse
+    indices and Draco-compressed primitives as plain arrays, each node of
+    ``EXT_mesh_gpu_instancing`` as a node with a child per instance (the instance's transform within the node's: glTF's order). Every buffer
     becomes the GLB's one binary chunk; images named by URI stay named (culling decodes
     none)."""
     doc = json.loads(json.dumps(doc))  # a copy to edit
@@ -276,8 +277,8 @@ def _draco(p: dict, out: "_Buffers") -> None:
         raise InputError(f"cannot use {out.what}: its Draco data cannot be decoded "
                          f"({exc})") from None
     points = np.asarray(mesh.points, "<f4").reshape(-1, 3)
-    faces = np.asarray(getattr(mesh, "faces", None) if getattr(mesh, "faces", None) is not None
-                       else np.zeros((0, 3)), "<u4").reshape(-1, 3)
+    faces = getattr(mesh, "faces", None)  # none: a point cloud
+    faces = np.asarray(np.zeros((0, 3)) if faces is None else faces, "<u4").reshape(-1, 3)
     attributes = p.get("attributes") or {}
     declared = out.count(attributes["POSITION"]) if "POSITION" in attributes else None
     indices = out.count(p["indices"]) if p.get("indices") is not None else None
