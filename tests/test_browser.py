@@ -5,7 +5,12 @@ on loopback with a token:
   after frame (full lists, then deltas), and acknowledges each (the barrier counts them); its
   id buffer agrees on >= 99.7 % of pixels with ``clients.render`` drawing the same tile (the
   server's matrices and list, same size), on grid tiles and on CAVE screens; a stereo frame
-  draws each eye in its half of the tile;
+  draws each eye in its half of the tile; screens of different aspect keep their own, grid
+  tiles apart are packed side by side, and reversed-Z clips at the far plane without
+  EXT_clip_control too;
+* across a restart of its server (same port, state and scene folders): the page says it
+  reconnects (no error), draws leaves the driver had moved at rest again, and takes a scene
+  file replaced meanwhile anew; a page refused for too many streams on its tile says so;
 * the scene of those comparisons is ``blocks``, made here: 1,330 boxes and spheres on a
   lattice around the viewer, none touching. On the power plant, whose beams meet and overlap
   everywhere, which of two coincident faces wins a pixel is the rasterizer's own precision
@@ -29,6 +34,9 @@ import json
 import os
 import secrets
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 from urllib.parse import quote
 
@@ -53,7 +61,7 @@ if not Path(CHROMIUM).exists():
 import httpx  # noqa: E402
 import jsonschema  # noqa: E402
 
-from wallcull_clients.loadtest import running_server  # noqa: E402
+from wallcull_clients.loadtest import free_port, running_server  # noqa: E402
 from wallcull_clients.sim import decode_mesh  # noqa: E402
 from wallcull.server.asyncapi import schema  # noqa: E402
 
@@ -103,15 +111,19 @@ def renderer_available():
         pytest.skip(f"no headless OpenGL (EGL) context for clients.render: {exc}")
 
 
-def blocks_glb() -> bytes:
-    """Boxes and spheres on a 4 m lattice around the origin (the viewer), none touching."""
+def blocks_glb(size: float = 1.0, more: int = 0) -> bytes:
+    """Boxes and spheres on a 4 m lattice around the origin (the viewer), none touching; their
+    meshes named by their order whatever their ``size``; ``more`` blocks on a wall behind them
+    (z = -32 m)."""
     import trimesh
 
     rng = np.random.default_rng(7)
     scene, k = trimesh.Scene(), 0
-    shapes = [trimesh.creation.icosphere(1, 0.5), trimesh.creation.box([1, 1, 1])]
+    shapes = [trimesh.creation.icosphere(1, 0.5 * size), trimesh.creation.box([size] * 3)]
     lattice = range(-20, 21, 4)
-    for p in np.array(np.meshgrid(lattice, lattice, lattice, indexing="ij")).reshape(3, -1).T:
+    behind = [(-20 + 4 * (i % 11), -20 + 4 * (i // 11), -32) for i in range(more)]
+    for p in [*np.array(np.meshgrid(lattice, lattice, lattice, indexing="ij")).reshape(3, -1).T,
+              *np.array(behind, float).reshape(-1, 3)]:
         if np.abs(p).max() < 4:
             continue
         m = trimesh.transformations.random_rotation_matrix(rng.random(3))
@@ -131,8 +143,9 @@ def blocks(http) -> str:
     return r.json()["name"]
 
 
-def create_wall(http, wall: dict, nodes=None, scene: str = SCENE) -> dict:
-    r = http.post("/walls", json={"wall": wall, "scene": scene, "nodes": nodes}, headers=AUTH)
+def create_wall(http, wall: dict, nodes=None, scene: str = SCENE, **options) -> dict:
+    r = http.post("/walls", json={"wall": wall, "scene": scene, "nodes": nodes, **options},
+                  headers=AUTH)
     assert r.status_code == 201, r.text
     return r.json()
 
@@ -146,8 +159,11 @@ def post(http, wid: str, frame: dict) -> int:
     return r.json()["frame"]
 
 
-def open_page(browser, url: str, width=1280, height=720):
+def open_page(browser, url: str, width=1280, height=720, init: str | None = None):
+    """A page at ``url``, its errors kept; ``init``: a script run before the page's own."""
     page = browser.new_page(viewport={"width": width, "height": height})
+    if init is not None:
+        page.add_init_script(init)
     errors = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -190,7 +206,8 @@ class Reference:
         assert r.status_code == 200, r.text
         return r.json()
 
-    def ids(self, pkt: dict, width: int, height: int, eye: str | None = None) -> np.ndarray:
+    def ids(self, pkt: dict, width: int, height: int, eye: str | None = None,
+            reversed_z: bool = False) -> np.ndarray:
         if (width, height) not in self.renderers:
             renderer = self.renderers[width, height] = self.TileRenderer(width, height)
             for key, mesh in self.meshes.items():
@@ -202,8 +219,9 @@ class Reference:
             world[moved["ids"]] = np.asarray(moved["matrices"], np.float64).reshape(-1, 4, 4)
         draws = [(self.mesh[leaf], world[leaf], leaf + 1) for leaf in pkt["visible"]
                  if self.mesh[leaf] is not None]
-        return self.renderers[width, height].render(draws, part["view"],
-                                                    part["projection"]).ids
+        return self.renderers[width, height].render(
+            draws, part["view"], part["projection"],
+            reversed_z=reversed_z).ids
 
     def release(self):
         for r in self.renderers.values():
@@ -425,6 +443,109 @@ def test_stereo_eyes_side_by_side(server, http, browser, references, blocks):
         http.delete(f"/walls/{wid}", headers=AUTH)
 
 
+#: Two screens of different aspect, side by side in front of the viewer.
+SCREENS = {"screens": [
+    {"bottom_left": [-1.6, -0.9, -2], "bottom_right": [1.6, -0.9, -2],
+     "top_left": [-1.6, 0.9, -2], "resolution": [1920, 1080]},
+    {"bottom_left": [1.6, -0.9, -2], "bottom_right": [1.6, -0.9, -1.0],
+     "top_left": [1.6, 0.9, -2], "resolution": [600, 1080]}]}
+
+
+def test_screens_of_different_aspect_keep_their_own(server, http, browser, references, blocks):
+    """Each screen at its own resolution, one scale for all (they were all drawn at the first
+    screen's size, the second one squashed 3.2 times)."""
+    wid = create_wall(http, SCREENS, scene=blocks)["id"]
+    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=0,1&token={TOKEN}&ids=1",
+                     1400, 700)
+    try:
+        number = post(http, wid, BLOCK_FRAMES[0])
+        wait_acked(page, number)
+        sizes = [page.evaluate(f"(({{width, height}}) => [width, height])"
+                               f"(window.wallcull.readIds({t}, true))") for t in (0, 1)]
+        for (w, h), screen in zip(sizes, SCREENS["screens"]):
+            aspect = screen["resolution"][0] / screen["resolution"][1]
+            assert abs(w / h - aspect) < 0.01 * aspect, (sizes, aspect)
+        assert sizes[0][1] == sizes[1][1]
+        canvas = page.evaluate("[document.getElementById('wall').width, "
+                               "document.getElementById('wall').height]")
+        assert canvas == [sizes[0][0] + sizes[1][0], sizes[0][1]]
+        assert 1398 <= canvas[0] <= 1400  # as wide as the window holds
+        ref = references(blocks)
+        for t, (w, h) in zip((0, 1), sizes):
+            check_tile(browser_ids(page, t), ref.ids(ref.packet(wid, t, number), w, h),
+                       f"screen {t} at {w} x {h}")
+        assert page.wallcull_errors == []
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_tiles_apart_on_the_grid_are_drawn_side_by_side(server, http, browser, blocks):
+    """A node of tiles 0 and 3 of a row: two tiles side by side, filling the canvas (they were
+    at their grid cells, two empty cells between them)."""
+    info = create_wall(http, GRID, nodes=[[0, 3]], scene=blocks)
+    wid = info["id"]
+    token = next(n["token"] for n in info["credentials"]["nodes"] if n["tiles"] == [0, 3])
+    page = open_page(browser, f"{server}/walls/{wid}/view?token={token}&ids=1", 1000, 300)
+    try:
+        wait_acked(page, post(http, wid, BLOCK_FRAMES[0]))
+        w, h = page.evaluate("(({width, height}) => [width, height])"
+                             "(window.wallcull.readIds(0, true))")
+        assert abs(w / h - 1920 / 1080) < 0.02 and w in (499, 500)  # the window's half
+        assert page.evaluate("[document.getElementById('wall').width, "
+                             "document.getElementById('wall').height]") == [2 * w, h]
+        # no pixel left black (the canvas's background): both tiles fill it
+        black = page.evaluate("""() => {
+            const wall = document.getElementById('wall'), c = document.createElement('canvas');
+            [c.width, c.height] = [wall.width, wall.height];
+            const g = c.getContext('2d');
+            g.drawImage(wall, 0, 0);
+            const px = g.getImageData(0, 0, c.width, c.height).data;
+            let n = 0;
+            for (let i = 0; i < px.length; i += 4) if (!px[i] && !px[i + 1] && !px[i + 2]) n++;
+            return n / (c.width * c.height); }""")
+        assert black == 0, f"{black:.1%} of the canvas is black"
+        assert page.wallcull_errors == []
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+#: An init script that hides EXT_clip_control from WebGL2, as on browsers without it.
+NO_CLIP_CONTROL = """(() => { const get = WebGL2RenderingContext.prototype.getExtension;
+  WebGL2RenderingContext.prototype.getExtension = function (name) {
+    return name === 'EXT_clip_control' ? null : get.call(this, name); }; })();"""
+
+
+def test_reversed_z_without_clip_control_still_clips_at_the_far_plane(server, http, browser,
+                                                                       references, blocks):
+    """Without EXT_clip_control the page's reversed-Z projection is made to fill GL's [-w, w]
+    clip depth: the block that straddles the far plane (9 m; the server lists no block beyond
+    it) is cut by it as the reference's glClipControl cuts it (it was drawn whole: 94 % of
+    pixels agreed)."""
+    wid = create_wall(http, {**GRID, "far": 9.0}, scene=blocks, reversed_z=True,
+                      depth="wall")["id"]
+    w, h = 320, 180
+    page = open_page(browser, f"{server}/walls/{wid}/view?tiles=5&token={TOKEN}&ids=1"
+                              f"&size={w}x{h}", init=NO_CLIP_CONTROL)
+    try:
+        assert page.evaluate("document.createElement('canvas').getContext('webgl2')"
+                             ".getExtension('EXT_clip_control')") is None
+        number = post(http, wid, BLOCK_FRAMES[0])
+        wait_acked(page, number)
+        ref = references(blocks)
+        pkt = ref.packet(wid, 5, number)
+        assert pkt["projection"][2][2] > 0  # reversed: near -> 1, far -> 0
+        ids, want = browser_ids(page, 5), ref.ids(pkt, w, h, reversed_z=True)
+        assert (want > 0).mean() > 0.05  # the block, as far as the far plane
+        share = agreement(ids, want)
+        assert share >= AGREE, f"the page's ids agree on {share:.4%} of pixels only"
+        assert page.wallcull_errors == []
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
 @pytest.mark.parametrize("query, status, why", [
     ("tiles=5", 401, "token"),  # no credential
     ("tiles=5&token=wrong", 401, "token"),
@@ -449,6 +570,169 @@ def test_a_page_refused_its_stream_says_why_and_stops(server, http, browser, que
         assert barrier(http, wid, 0)["acked"] == 0
     finally:
         page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+class Restartable:
+    """``wallcull serve`` that a test stops and starts again on the same port, state folder
+    and scene folder (``--scenes``), as an operator restarts it: its pages reconnect."""
+
+    def __init__(self, folder: Path, args=()):
+        self.state, self.scenes = folder / "state", folder / "scenes"
+        self.scenes.mkdir(parents=True)
+        self.port, self.args, self.proc = free_port(), list(args), None
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = folder / "server.log"
+
+    def start(self, timeout: float = 120.0) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1", "--port",
+             str(self.port), "--log-level", "warning", "--state", str(self.state), "--scenes",
+             str(self.scenes), "--token", TOKEN, *self.args],
+            stdout=self.log.open("ab"), stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                [str(ROOT), os.environ.get("PYTHONPATH", "")])})
+        deadline = time.monotonic() + timeout
+        while True:
+            assert self.proc.poll() is None, self.log.read_text()[-2000:]
+            try:
+                if httpx.get(f"{self.url}/health", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "the server did not answer /health"
+            time.sleep(0.1)
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def restart(self, then=None) -> None:
+        """Stop, do ``then()`` (change its files) while it is down, start again."""
+        self.stop()
+        if then is not None:
+            then()
+        self.start()
+
+
+@pytest.fixture(scope="module")
+def restartable(tmp_path_factory):
+    """A server of its own, one stream a tile (``streams_per_tile=1``), on ``blocks.glb`` in
+    its scene folder."""
+    srv = Restartable(tmp_path_factory.mktemp("restartable"), ["--limit", "streams_per_tile=1"])
+    (srv.scenes / "blocks.glb").write_bytes(blocks_glb())
+    srv.start()
+    yield srv
+    srv.stop()
+
+
+@pytest.fixture
+def restartable_http(restartable):
+    with httpx.Client(base_url=restartable.url, timeout=60) as client:
+        yield client
+
+
+def test_a_restart_puts_moved_leaves_back_at_rest(restartable, restartable_http, browser,
+                                                 renderer_available):
+    """A restarted server has forgotten moved leaves: its full lists carry none, and the page
+    draws each leaf at rest again (a leaf the driver had moved stayed where it was moved).
+    The restart's closes are a plain note, not errors."""
+    http, url = restartable_http, restartable.url
+    wid = create_wall(http, GRID, scene="blocks.glb")["id"]
+    w, h = 160, 90
+    page = open_page(browser, f"{url}/walls/{wid}/view?tiles=5&token={TOKEN}&ids=1"
+                              f"&size={w}x{h}")
+    ref = Reference(http, "blocks.glb")
+    try:
+        number = post(http, wid, BLOCK_FRAMES[0])
+        wait_acked(page, number)
+        at_rest = ref.ids(ref.packet(wid, 5, number), w, h)
+        leaf = int(np.bincount(at_rest.ravel())[1:].argmax())  # the largest leaf in view
+        moved = ref.world[leaf].copy()
+        moved[0, 3] += 1.5  # aside, still listed
+        number = post(http, wid, {**BLOCK_FRAMES[0],
+                                  "updates": {ref.names[leaf]: {"matrix": moved.tolist()}}})
+        wait_acked(page, number)
+        check_tile(browser_ids(page, 5), ref.ids(ref.packet(wid, 5, number), w, h),
+                   f"tile 5, leaf {leaf} moved")
+        restartable.restart()
+        number = post(http, wid, BLOCK_FRAMES[0])  # the first frame again: all at rest
+        wait_acked(page, number)
+        pkt = ref.packet(wid, 5, number)
+        assert leaf in pkt["visible"] and "transforms" not in pkt
+        check_tile(browser_ids(page, 5), at_rest, "tile 5 after a restart")
+        # the stream lost, refused while the server was down, then back: no error said
+        assert page.evaluate("window.wallcull.errors") == []
+        assert page.evaluate("document.getElementById('status').className") == ""
+    finally:
+        ref.release()
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_scene_file_replaced_across_a_restart_is_fetched_again(restartable,
+                                                                restartable_http, browser,
+                                                                renderer_available):
+    """The wall's scene file is replaced while the server is down (more leaves, smaller shapes
+    under the same mesh names): once its stream is back, the page fetches the scene's nodes
+    and its meshes again (past the browser's cache, which keeps a mesh by its name) and draws
+    the new scene (it read the new leaf ids against the old table and drew old meshes: other
+    blocks in other places, or, for a leaf past the table's end, a TypeError every frame and
+    no acknowledgement)."""
+    http, url = restartable_http, restartable.url
+    (restartable.scenes / "swap.glb").write_bytes(blocks_glb())
+    wid = create_wall(http, GRID, scene="swap.glb")["id"]
+    w, h = 160, 90
+    page = open_page(browser, f"{url}/walls/{wid}/view?tiles=5&token={TOKEN}&ids=1"
+                              f"&size={w}x{h}")
+    try:
+        wait_acked(page, post(http, wid, BLOCK_FRAMES[0]))
+        before = len(http.get("/scenes/swap.glb?nodes=true").json()["nodes"]["mesh"])
+        restartable.restart(lambda: (restartable.scenes / "swap.glb").write_bytes(
+            blocks_glb(size=0.6, more=121)))
+        ref = Reference(http, "swap.glb")
+        try:
+            assert len(ref.mesh) > before
+            number = post(http, wid, BLOCK_FRAMES[0])
+            wait_acked(page, number)
+            check_tile(browser_ids(page, 5), ref.ids(ref.packet(wid, 5, number), w, h),
+                       "tile 5 of the new scene")
+        finally:
+            ref.release()
+        assert page.evaluate("window.wallcull.errors") == []
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_page_refused_for_too_many_streams_says_so(restartable, restartable_http, browser):
+    """A second page on a tile that already has its one stream (``streams_per_tile=1``): the
+    probe finds no reason (the wall is there, the credential good), and the page says what it
+    may be and that it tries again (it said "stream closed (1006)")."""
+    http, url = restartable_http, restartable.url
+    wid = create_wall(http, GRID, scene="blocks.glb")["id"]
+    pages = []
+    try:
+        for _ in range(2):
+            pages.append(open_page(browser, f"{url}/walls/{wid}/view?tiles=6&token={TOKEN}"
+                                            "&size=64x36"))
+            if len(pages) == 1:
+                wait_acked(pages[0], post(http, wid, BLOCK_FRAMES[0]))
+        second = pages[1]
+        second.wait_for_function("document.getElementById('status').textContent"
+                                 ".includes('too many streams')", timeout=60_000)
+        note = second.locator("#status").text_content()
+        assert note.startswith("refused by the server") and "retrying every 2 s" in note, note
+        assert second.evaluate("window.wallcull.refused") is None
+        assert second.evaluate("window.wallcull.acked") == -1
+    finally:
+        for page in pages:
+            page.close()
         http.delete(f"/walls/{wid}", headers=AUTH)
 
 

@@ -4,9 +4,13 @@ the API's own interactive documents.
 * ``GET /``: the walls the server holds, each with links to its console and view pages (and
   the node credentials' tiles), and links to the API's documents.
 * ``GET /walls/{wid}/view?tiles=3,4``: the page a render PC opens full-screen, one browser
-  window per output. It draws its tiles side by side in one WebGL2 canvas (``static/view.js``):
-  the node stream in JSON, lists and matrices rebuilt as :mod:`wallcull_clients.node` does,
-  meshes fetched once, one acknowledgement per frame drawn.
+  window per output. It draws its tiles in one WebGL2 canvas (``static/view.js``), a grid's
+  tiles as on the wall when they fill a rectangle, else side by side: the node stream in JSON,
+  lists and matrices rebuilt as :mod:`wallcull_clients.node` does, meshes fetched once (again
+  when a restarted server culls a replaced scene file), one acknowledgement per frame drawn.
+  It draws each tile's primary view (both eyes in stereo), not the shadow maps or mirror
+  passes of the messages' ``shadows`` and ``mirrors``, as the Python clients; a render node of
+  its own draws those from their frusta and lists.
 * ``GET /walls/{wid}/console``: the wall drawn to scale (front view of a flat wall, top view
   of screens around the viewer), each tile's list size, latency and state, live
   (``static/console.js``), from ``WS /walls/{wid}/console/stream``.
@@ -185,9 +189,11 @@ async def view_page(request: Request, state: State, wid: WallId,
                     ids: bool = False,
                     size: Annotated[str | None, Query(pattern=SIZE)] = None):
     """A render node's page: open it full-screen on each render PC, one window per output.
-    It draws ``tiles`` (default: those of the node credential ``token``, else every tile)
-    side by side, each at ``size`` pixels (``WxH``; default: as large as the window holds),
-    a stereo frame's eyes side by side in each tile (half width each). ``ids=true`` also
+    It draws ``tiles`` (default: those of the node credential ``token``, else every tile),
+    a grid's as on the wall when they fill a rectangle, else side by side, each at ``size``
+    pixels (``WxH``; default: its own resolution, all scaled by one factor to as large as the
+    window holds), a stereo frame's eyes side by side in each tile (half width each); the
+    primary views only, not the shadow and mirror passes. ``ids=true`` also
     draws every leaf's draw id (leaf id + 1, 0 for background) into an integer target that
     ``window.wallcull.readIds(tile)`` reads back."""
     try:

@@ -9,6 +9,15 @@
 // is also drawn into an R32UI target holding each leaf's draw id (leaf id + 1, 0 for the
 // background), read back by window.wallcull.readIds(tile), row 0 at the top, as
 // clients/wallcull_clients/render.py's Image.ids.
+//
+// Each tile's primary view only (both eyes in stereo), from its list, ranges and frusta: the
+// message's shadows and mirrors are not drawn (no shadow maps, no mirror passes), as in the
+// Python clients; a render node of its own draws those passes from their frusta and lists.
+//
+// A stream lost (a server restart) is opened again every 2 s; once it is, the wall and the
+// scene's nodes are fetched again, and a scene that changed (its file replaced) is taken
+// anew, its meshes fetched again. A full message (no base) puts every leaf back at rest
+// before its own transforms move some, as a restarted server has forgotten moved leaves.
 
 const cfg = JSON.parse(document.getElementById("wallcull-config").textContent);
 const status = document.getElementById("status");
@@ -145,7 +154,7 @@ class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
     for (const map of [this.lists, this.parts, this.frusta]) {  // what no delta can be based on now
       for (const k of map.keys()) if ((base !== null && k < base) || map.size > KEEP) map.delete(k);
     }
-    return { number, reversed: !!msg.reversed_z, tiles, transforms: msg.transforms };
+    return { number, full: base === null, reversed: !!msg.reversed_z, tiles, transforms: msg.transforms };
   }
 }
 
@@ -153,6 +162,16 @@ class NodeState {  // clients/node.py NodeState + clients/frusta.py Frusta
 
 const gl = canvas.getContext("webgl2", { antialias: false, preserveDrawingBuffer: true });
 const clipControl = gl && gl.getExtension("EXT_clip_control");
+
+function clipped(p, reversed) {
+  // reversed-Z without EXT_clip_control: GL clips depth to [-w, w], not [0, w], so row 2
+  // becomes 2 * row 2 - row 3: clip depth [0, w] maps to [-w, w] (the far plane clips again),
+  // and the window depth, (z / w + 1) / 2, is the reversed matrix's z / w (GREATER, clear to 0)
+  if (!reversed || clipControl) return p;
+  const out = Float64Array.from(p);
+  for (let c = 0; c < 4; c++) out[8 + c] = 2 * p[8 + c] - p[12 + c];
+  return out;
+}
 
 const VERTEX = `#version 300 es
 uniform mat4 mvp; uniform mat4 mv;
@@ -198,10 +217,10 @@ function drawColor(id) {  // render.draw_color: hues by the golden ratio, s 0.55
 // ------------------------------------------------------------------ the scene and its meshes
 
 const headers = cfg.token ? { Authorization: `Bearer ${cfg.token}` } : {};
-const scene = { meshOf: null, keys: [], world: null, meshes: new Map() };
+let scene = null;  // the wall's scene: its node table, rest and current transforms, meshes
 
-async function getJSON(url) {
-  const r = await fetch(url, { headers });
+async function getJSON(url, cache = "default") {
+  const r = await fetch(url, { headers, cache });
   if (!r.ok) throw new Error(`${url}: HTTP ${r.status} ${await r.text()}`);
   return r.json();
 }
@@ -212,35 +231,78 @@ function bytes(b64) {
   return out.buffer;
 }
 
-function mesh(m) {  // a mesh by number: fetched once (the HTTP cache keeps it by its ETag)
-  if (!scene.meshes.has(m)) {
-    const key = scene.keys[m];
-    const url = `${cfg.root}/scenes/${encodeURIComponent(scene.name)}/meshes/${encodeURIComponent(key)}`;
-    scene.meshes.set(m, getJSON(url).then((body) => {
-      const v = new Float32Array(bytes(body.vertices.data)), faces = new Uint32Array(bytes(body.faces.data));
-      const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-      for (let i = 0; i < v.length; i++) {
-        lo[i % 3] = Math.min(lo[i % 3], v[i]);
-        hi[i % 3] = Math.max(hi[i % 3], v[i]);
-      }
-      const center = v.length ? lo.map((x, k) => (x + hi[k]) / 2) : [0, 0, 0];
-      for (let i = 0; i < v.length; i++) v[i] -= center[i % 3];  // as render.py: float32 about the centre
-      const vao = gl.createVertexArray();
-      gl.bindVertexArray(vao);
-      gl.bindBuffer(gl.ARRAY_BUFFER, gl.createBuffer());
-      gl.bufferData(gl.ARRAY_BUFFER, v, gl.STATIC_DRAW);
-      gl.enableVertexAttribArray(0);
-      gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
-      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, gl.createBuffer());
-      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, faces, gl.STATIC_DRAW);
-      gl.bindVertexArray(null);
-      const shift = new Float64Array(16);
-      shift[0] = shift[5] = shift[10] = shift[15] = 1;
-      [shift[3], shift[7], shift[11]] = center;
-      return { vao, count: faces.length, shift };
-    }).catch((e) => { scene.meshes.delete(m); throw e; }));  // asked again next frame
+function sceneOf(name, about, nodes, replaced) {
+  // GET /scenes/{name}?nodes=true as the page holds it; meshes numbered by their sorted keys,
+  // uploaded as frames need them (ready: number -> {vao, buffers, count, shift}); a scene
+  // that replaced another fetches its meshes past the browser's cache (a key keeps its name
+  // when the file changes, not its shape)
+  const keys = [...new Set(nodes.mesh.filter((k) => k !== null))].sort();
+  const number = new Map(keys.map((k, i) => [k, i]));
+  const rest = Float64Array.from(nodes.world.flat());
+  return { name, about, keys, mesh: nodes.mesh, rest, world: rest.slice(), ready: new Map(),
+           meshOf: Int32Array.from(nodes.mesh, (k) => (k === null ? -1 : number.get(k))),
+           cache: replaced ? "no-cache" : "default" };
+}
+
+function sameScene(s, name, about, nodes) {  // the scene the page holds, or was it replaced?
+  const world = nodes.world.flat();
+  return s.name === name && s.about === about && s.mesh.length === nodes.mesh.length &&
+    nodes.mesh.every((k, i) => k === s.mesh[i]) && world.every((v, i) => v === s.rest[i]);
+}
+
+function dropScene(s) {  // its meshes off the GPU
+  for (const g of s.ready.values()) {
+    gl.deleteVertexArray(g.vao);
+    g.buffers.forEach((b) => gl.deleteBuffer(b));
   }
-  return scene.meshes.get(m);
+  s.ready.clear();
+}
+
+async function fetchMesh(s, m) {  // a mesh by number, as float32 about its centre (as render.py)
+  const key = s.keys[m];
+  const url = `${cfg.root}/scenes/${encodeURIComponent(s.name)}/meshes/${encodeURIComponent(key)}`;
+  const body = await getJSON(url, s.cache);
+  const v = new Float32Array(bytes(body.vertices.data)), faces = new Uint32Array(bytes(body.faces.data));
+  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < v.length; i++) {
+    lo[i % 3] = Math.min(lo[i % 3], v[i]);
+    hi[i % 3] = Math.max(hi[i % 3], v[i]);
+  }
+  const center = v.length ? lo.map((x, k) => (x + hi[k]) / 2) : [0, 0, 0];
+  for (let i = 0; i < v.length; i++) v[i] -= center[i % 3];
+  return { v, faces, center };
+}
+
+function upload({ v, faces, center }) {
+  const vao = gl.createVertexArray(), buffers = [gl.createBuffer(), gl.createBuffer()];
+  gl.bindVertexArray(vao);
+  gl.bindBuffer(gl.ARRAY_BUFFER, buffers[0]);
+  gl.bufferData(gl.ARRAY_BUFFER, v, gl.STATIC_DRAW);
+  gl.enableVertexAttribArray(0);
+  gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+  gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, buffers[1]);
+  gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, faces, gl.STATIC_DRAW);
+  gl.bindVertexArray(null);
+  const shift = new Float64Array(16);
+  shift[0] = shift[5] = shift[10] = shift[15] = 1;
+  [shift[3], shift[7], shift[11]] = center;
+  return { vao, buffers, count: faces.length, shift };
+}
+
+async function load() {
+  // the wall and its scene's nodes: at the start, and again on each stream opened after one
+  // was lost; a scene replaced (another file, other nodes) drops what the page held of it
+  const info = await getJSON(`${cfg.root}/walls/${cfg.wall}`, "no-cache");
+  const body = await getJSON(`${cfg.root}/scenes/${encodeURIComponent(info.scene)}?nodes=true`, "no-cache");
+  const about = JSON.stringify([body.stats, body.bounds]);
+  if (!scene || !sameScene(scene, info.scene, about, body.nodes)) {
+    if (scene) { dropScene(scene); pending = last = null; }
+    scene = sceneOf(info.scene, about, body.nodes, scene !== null);
+  }
+  if (JSON.stringify(info.wall) !== JSON.stringify(wall)) {
+    wall = info.wall;
+    layout();
+  }
 }
 
 // ------------------------------------------------------------------ layout and drawing
@@ -248,43 +310,71 @@ function mesh(m) {  // a mesh by number: fetched once (the HTTP cache keeps it b
 const tiles = new Map();  // tile -> {x, y, w, h, ids: framebuffer?}
 let wall = null, last = null;
 
-function layout() {
-  const chosen = cfg.tiles, res = (t) => wall.screens ? wall.screens[t].resolution : wall.resolution;
-  const place = new Map(chosen.map((t, k) => [t, wall.cols ? [t % wall.cols, Math.floor(t / wall.cols)] : [k, 0]]));
-  const cols = [...place.values()].map((p) => p[0]), rows = [...place.values()].map((p) => p[1]);
+function cells() {
+  // tile -> [column, row] in the canvas, row 0 on top: a grid's tiles at their own cells when
+  // they fill a rectangle; else (screens, or grid tiles such as 0 and 3 of a row) side by side
+  // in their order
+  const side = new Map(cfg.tiles.map((t, k) => [t, [k, 0]]));
+  if (!wall.cols) return side;
+  const grid = cfg.tiles.map((t) => [t % wall.cols, Math.floor(t / wall.cols)]);
+  const cols = grid.map((p) => p[0]), rows = grid.map((p) => p[1]);
   const c0 = Math.min(...cols), r0 = Math.min(...rows);
-  const nc = Math.max(...cols) - c0 + 1, nr = Math.max(...rows) - r0 + 1;
-  let [w, h] = cfg.size || res(chosen[0]);
-  if (!cfg.size) {  // as large as the window holds, the tiles' aspect kept
-    const dpr = window.devicePixelRatio || 1;
-    const scale = Math.min(window.innerWidth * dpr / (nc * w), window.innerHeight * dpr / (nr * h));
-    [w, h] = [Math.max(1, Math.floor(w * scale)), Math.max(1, Math.floor(h * scale))];
-  }
-  canvas.width = nc * w;
-  canvas.height = nr * h;
-  canvas.style.width = `${canvas.width / (cfg.size ? 1 : window.devicePixelRatio || 1)}px`;
+  const area = (Math.max(...cols) - c0 + 1) * (Math.max(...rows) - r0 + 1);
+  if (area !== cfg.tiles.length) return side;
+  return new Map(cfg.tiles.map((t, k) => [t, [grid[k][0] - c0, grid[k][1] - r0]]));
+}
+
+const sum = (list) => list.reduce((a, b) => a + b, 0);
+
+function spans(place, size) {  // the columns' widths and the rows' heights: their largest tile's
+  const cols = [], rows = [];
   for (const [t, [c, r]] of place) {
-    const old = tiles.get(t);
+    const [w, h] = size(t);
+    cols[c] = Math.max(cols[c] || 0, w);
+    rows[r] = Math.max(rows[r] || 0, h);
+  }
+  return [cols, rows];
+}
+
+function idTarget(w, h) {  // an R32UI target and its depth, for ?ids=1
+  const fbo = gl.createFramebuffer(), rbs = [gl.createRenderbuffer(), gl.createRenderbuffer()];
+  gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+  const parts = [[rbs[0], gl.R32UI, gl.COLOR_ATTACHMENT0], [rbs[1], gl.DEPTH_COMPONENT24, gl.DEPTH_ATTACHMENT]];
+  for (const [rb, format, at] of parts) {
+    gl.bindRenderbuffer(gl.RENDERBUFFER, rb);
+    gl.renderbufferStorage(gl.RENDERBUFFER, format, w, h);
+    gl.framebufferRenderbuffer(gl.FRAMEBUFFER, at, gl.RENDERBUFFER, rb);
+  }
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  return { fbo, rbs };
+}
+
+function layout() {
+  // each tile at its own resolution (a screen's, or the grid's), all scaled by one factor: as
+  // large as the window holds, each tile's aspect kept; ?size= fixes every tile's pixels
+  const place = cells(), dpr = window.devicePixelRatio || 1;
+  const res = (t) => cfg.size || (wall.screens ? wall.screens[t].resolution : wall.resolution);
+  let scale = 1;
+  if (!cfg.size) {
+    const [cols, rows] = spans(place, res);
+    scale = Math.min(window.innerWidth * dpr / sum(cols), window.innerHeight * dpr / sum(rows));
+  }
+  const size = (t) => res(t).map((v) => Math.max(1, Math.floor(v * scale)));
+  const [cols, rows] = spans(place, size);
+  canvas.width = sum(cols);
+  canvas.height = sum(rows);
+  canvas.style.width = `${canvas.width / (cfg.size ? 1 : dpr)}px`;
+  for (const [t, [c, r]] of place) {
+    const old = tiles.get(t), [w, h] = size(t);
     if (old && old.ids) { gl.deleteFramebuffer(old.ids.fbo); old.ids.rbs.forEach((b) => gl.deleteRenderbuffer(b)); }
-    const tile = { x: (c - c0) * w, y: (nr - 1 - (r - r0)) * h, w, h, ids: null };
-    if (cfg.ids) {
-      const fbo = gl.createFramebuffer(), rbs = [gl.createRenderbuffer(), gl.createRenderbuffer()];
-      gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
-      const parts = [[rbs[0], gl.R32UI, gl.COLOR_ATTACHMENT0], [rbs[1], gl.DEPTH_COMPONENT24, gl.DEPTH_ATTACHMENT]];
-      for (const [rb, format, at] of parts) {
-        gl.bindRenderbuffer(gl.RENDERBUFFER, rb);
-        gl.renderbufferStorage(gl.RENDERBUFFER, format, w, h);
-        gl.framebufferRenderbuffer(gl.FRAMEBUFFER, at, gl.RENDERBUFFER, rb);
-      }
-      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-      tile.ids = { fbo, rbs };
-    }
-    tiles.set(t, tile);
+    // GL's rows count from the bottom: a tile at the top left of its cell
+    const y = canvas.height - sum(rows.slice(0, r)) - h;
+    tiles.set(t, { x: sum(cols.slice(0, c)), y, w, h, ids: cfg.ids ? idTarget(w, h) : null });
   }
 }
 
 function drawTile(prog, frame, entry, x, y, w, h) {
-  const reversed = frame.reversed;
+  const reversed = frame.reversed, s = frame.scene;
   if (clipControl) {  // reversed-Z: clip depth in [0, 1], as render.py's glClipControl
     const c = clipControl;
     c.clipControlEXT(c.LOWER_LEFT_EXT, reversed ? c.ZERO_TO_ONE_EXT : c.NEGATIVE_ONE_TO_ONE_EXT);
@@ -294,13 +384,14 @@ function drawTile(prog, frame, entry, x, y, w, h) {
   const eyes = entry.eyes, ew = Math.floor(w / eyes.length);
   eyes.forEach((eye, k) => {
     gl.viewport(x + k * ew, y, eyes.length > 1 && k === 1 ? w - ew : ew, h);
+    const projection = clipped(eye.projection, reversed);
     for (const leaf of entry.leaves) {
-      const m = scene.meshOf[leaf];
+      const m = s.meshOf[leaf];
       if (m < 0) continue;
-      const g = scene.ready.get(m);
+      const g = s.ready.get(m);
       if (!g.count) continue;
-      const mv = mul(eye.view, mul(scene.world.subarray(16 * leaf, 16 * leaf + 16), g.shift));
-      gl.uniformMatrix4fv(prog.u.mvp, true, Float32Array.from(mul(eye.projection, mv)));
+      const mv = mul(eye.view, mul(s.world.subarray(16 * leaf, 16 * leaf + 16), g.shift));
+      gl.uniformMatrix4fv(prog.u.mvp, true, Float32Array.from(mul(projection, mv)));
       if (prog.u.mv) gl.uniformMatrix4fv(prog.u.mv, true, Float32Array.from(mv));
       if (prog.u.color) gl.uniform3fv(prog.u.color, drawColor(leaf + 1));
       if (prog.u.draw_id) gl.uniform1ui(prog.u.draw_id, leaf + 1);
@@ -367,23 +458,37 @@ function readIds(tile, base64 = false) {
 // ------------------------------------------------------------------ the stream
 
 const node = new NodeState();
-let socket = null, pending = null, drawing = false, programs = null;
+let socket = null, pending = null, drawing = false, programs = null, lost = false;
 
-function moveLeaves(transforms) {
-  if (!transforms) return;
-  transforms.ids.forEach((leaf, k) => scene.world.set(transforms.matrices[k], 16 * leaf));
+function strayLeaf(frame) {  // a leaf listed or moved that the scene the page holds lacks
+  const n = frame.scene.meshOf.length;
+  for (const e of frame.tiles) for (const leaf of e.leaves) if (leaf >= n) return leaf;
+  return (frame.transforms?.ids || []).find((leaf) => leaf >= n);
+}
+
+function moveLeaves(frame) {
+  // a full message puts every leaf back at rest, then moves those it carries (every moved leaf
+  // of its lists, protocol.transforms), as node.py's reset; a delta moves those it names
+  const s = frame.scene, moved = frame.transforms;
+  if (frame.full) s.world.set(s.rest);
+  if (moved) moved.ids.forEach((leaf, k) => s.world.set(moved.matrices[k], 16 * leaf));
 }
 
 async function drawPending() {
   while (pending) {
-    const frame = pending;
+    const frame = pending, s = frame.scene;
     pending = null;
     const needed = new Set();
     for (const e of frame.tiles) {
-      for (const leaf of e.leaves) if (scene.meshOf[leaf] >= 0) needed.add(scene.meshOf[leaf]);
+      for (const leaf of e.leaves) if (s.meshOf[leaf] >= 0) needed.add(s.meshOf[leaf]);
     }
-    for (const m of needed) if (!scene.ready.has(m)) scene.ready.set(m, await mesh(m));
-    if (pending && pending.number > frame.number) continue;  // a newer frame came meanwhile
+    for (const m of needed) {
+      if (s.ready.has(m)) continue;
+      const body = await fetchMesh(s, m);
+      if (s !== scene) break;  // the scene was replaced meanwhile
+      s.ready.set(m, upload(body));
+    }
+    if (s !== scene || (pending && pending.number > frame.number)) continue;  // a newer frame came meanwhile
     draw(frame);
     last = frame;
     api.drawn = frame.number;
@@ -403,20 +508,70 @@ function schedule() {
   if (document.hidden) setTimeout(run, 0); else requestAnimationFrame(run);
 }
 
+function take(data) {  // a message of the stream, read against the scene the page holds
+  const msg = JSON.parse(data);
+  if (msg.error) { say(`server: ${msg.error}`, true); return; }
+  try {
+    const frame = node.take(msg);
+    frame.scene = scene;
+    const stray = strayLeaf(frame);
+    if (stray !== undefined) {  // not the scene the server culls: fetched again on a new stream
+      say(`frame ${frame.number} has leaf ${stray}, which scene ${scene.name} as this page holds it ` +
+          `(${scene.meshOf.length} nodes) lacks: the scene changed; fetching it again`, true);
+      socket.close(RELOAD, "the scene changed");
+      return;
+    }
+    moveLeaves(frame);
+    pending = frame;
+    schedule();
+  } catch (e) {  // a delta this page cannot apply: start again from full lists
+    node.reset();
+    api.fulls += 1;
+    say(`${e.message}: asking for full lists`, true);
+    socket.send(JSON.stringify({ full: true }));
+  }
+}
+
 // Why the server refused this page's stream: a browser is not shown a refused handshake's
 // answer, so the page asks the wall, then the packets route of its first tile, which takes the
 // same credential. A refusal retrying cannot mend (401, 403, 404, 422) is said, and the page
 // stops; else (429, a wall waiting for its scene: 503, a restart) it tries again.
 const FINAL = new Set([401, 403, 404, 422]);
+// Closes of an open stream that a server restart brings (1001 going away, 1006 lost, 1012
+// restarting), and the page's own when its scene changed: a plain note, tried again
+const RELOAD = 4000, ROUTINE = new Set([1001, 1006, 1012, RELOAD]);
+const RETRY = 2000;
 
-async function refusal() {
+async function refusal() {  // {status, detail}, null when the server says nothing; throws if it does not answer
   const wallAnswer = await fetch(`${cfg.root}/walls/${cfg.wall}`);
   if (!wallAnswer.ok) return { status: wallAnswer.status, detail: (await wallAnswer.json()).detail };
   if (!cfg.tiles.length) return { status: 422, detail: "this page has no tiles: ?tiles=0-3, or a node's ?token=" };
-  const headers = cfg.token ? { Authorization: `Bearer ${cfg.token}` } : {};
   const r = await fetch(`${cfg.root}/walls/${cfg.wall}/tiles/${cfg.tiles[0]}/packets/latest?wait=0`, { headers });
   if (r.status === 401 || r.status === 403) return { status: r.status, detail: (await r.json()).detail };
   return null;
+}
+
+async function closed(event, opened) {  // say why a stream closed; whether to try again
+  const text = `stream closed (${event.code}${event.reason ? ": " + event.reason : ""})`;
+  if (event.code === 4404) { say(text, true); return false; }  // the wall was deleted
+  if (opened) {
+    if (ROUTINE.has(event.code)) say("reconnecting…"); else say(text, true);
+    return true;
+  }
+  let why;  // refused at the handshake: why, and whether to try again
+  try {
+    why = await refusal();
+  } catch {
+    say("reconnecting…: the server does not answer");
+    return true;
+  }
+  if (!why) {
+    say(`refused by the server (too many streams on these tiles, or it is restarting): retrying every ${RETRY / 1000} s`, true);
+    return true;
+  }
+  say(`refused (${why.status}): ${why.detail}`, true);
+  if (FINAL.has(why.status)) api.refused = why.status;
+  return !FINAL.has(why.status);
 }
 
 function connect() {
@@ -426,53 +581,27 @@ function connect() {
   url.searchParams.set("tiles", cfg.spec);
   if (cfg.token) url.searchParams.set("token", cfg.token);
   node.reset();
-  let opened = false;
+  let opened = false, loaded = Promise.resolve(true);
   socket = new WebSocket(url);
   socket.onopen = () => {  // a note left by a lost stream goes; the first frame's is said
     opened = true;
     if (last) status.hidden = true; else say("connected: waiting for frames");
+    if (!lost) return;
+    const ws = socket;  // after a lost stream, the wall and scene again: messages wait for them
+    loaded = load().then(() => { lost = false; return true; },
+                         (e) => { say(String(e), true); ws.close(RELOAD, "the scene could not be fetched"); return false; });
   };
-  socket.onmessage = (event) => {
-    const msg = JSON.parse(event.data);
-    if (msg.error) { say(`server: ${msg.error}`, true); return; }
-    try {
-      const frame = node.take(msg);
-      moveLeaves(frame.transforms);
-      pending = frame;
-      schedule();
-    } catch (e) {  // a delta this page cannot apply: start again from full lists
-      node.reset();
-      api.fulls += 1;
-      say(`${e.message}: asking for full lists`, true);
-      socket.send(JSON.stringify({ full: true }));
-    }
-  };
+  socket.onmessage = (event) => { loaded.then((ok) => ok && take(event.data)); };
   socket.onclose = async (event) => {
-    say(`stream closed (${event.code}${event.reason ? ": " + event.reason : ""})`, event.code !== 4404);
-    if (event.code === 4404) return;  // the wall was deleted
-    if (!opened) {  // refused at the handshake: why, and whether to try again
-      const why = await refusal().catch(() => null);
-      if (why) {
-        say(`refused (${why.status}): ${why.detail}`, true);
-        if (FINAL.has(why.status)) { api.refused = why.status; return; }
-      }
-    }
-    setTimeout(connect, 2000);
+    lost = true;
+    if (await closed(event, opened)) setTimeout(connect, RETRY);
   };
 }
 
 async function start() {
   if (!gl) { say("this browser has no WebGL2", true); return; }
   programs = { color: program(COLOR), ids: program(IDS) };
-  const info = await getJSON(`${cfg.root}/walls/${cfg.wall}`);
-  [wall, scene.name] = [info.wall, info.scene];
-  const nodes = (await getJSON(`${cfg.root}/scenes/${encodeURIComponent(scene.name)}?nodes=true`)).nodes;
-  scene.keys = [...new Set(nodes.mesh.filter((k) => k !== null))].sort();
-  const number = new Map(scene.keys.map((k, i) => [k, i]));
-  scene.meshOf = Int32Array.from(nodes.mesh, (k) => (k === null ? -1 : number.get(k)));
-  scene.world = Float64Array.from(nodes.world.flat());
-  scene.ready = new Map();
-  layout();
+  await load();
   window.addEventListener("resize", () => { if (!cfg.size) { layout(); if (last) draw(last); } });
   connect();
 }
