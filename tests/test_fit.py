@@ -269,13 +269,20 @@ MIRROR = {"name": "pond", "point": [0, 0.01, 0], "normal": [0, 1, 0],
           "polygon": [[-10, 0.01, -10], [10, 0.01, -10], [10, 0.01, 10], [-10, 0.01, 10]]}
 
 
-def test_mirror_lists_everything_seen_in_it():
+ROUND = {**MIRROR, "polygon": [[10 * np.cos(a), 0.01, 10 * np.sin(a)]
+                               for a in np.linspace(0, 2 * np.pi, 300, endpoint=False)]}
+
+
+@pytest.mark.parametrize("spec", [MIRROR, ROUND], ids=["square", "round"])
+def test_mirror_lists_everything_seen_in_it(spec):
     """Oracle: reflect every leaf's triangles through the mirror, clip them against the tile
     frustum, the far side of the mirror and the pyramid through its outline; whatever survives
-    must be in the tile's mirror list."""
+    must be in the tile's mirror list. A round mirror of 300 points (its pyramid past the 63
+    planes a view holds) was refused in every frame that saw it; the planes past them are now
+    left out."""
     scene = lit_scene()
-    _, result = fitted(scene, {"mirrors": [MIRROR]})
-    mirror = parse({"mirrors": [MIRROR]}).mirrors[0]
+    _, result = fitted(scene, {"mirrors": [spec]})
+    mirror = parse({"mirrors": [spec]}).mirrors[0]
     refl = mirror.reflection
     eye = np.array(FRAME["position"])
     from wallcull.fit import _pyramid

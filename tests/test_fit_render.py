@@ -252,14 +252,17 @@ def test_low_ilie_frustum_clips_no_pixel_and_covers_more(seed, capsys):
     assert covered >= sample_covered and covered > 0.5
 
 
-@pytest.mark.parametrize("glass", [False, True])
-def test_a_mirror_shows_what_lies_beyond_the_tiles_own_depth_range(glass):
+@pytest.mark.parametrize("glass, reversed_z", [(False, False), (True, False), (True, True),
+                                               (False, True)])
+def test_a_mirror_shows_what_lies_beyond_the_tiles_own_depth_range(glass, reversed_z):
     """A wall mirror 4 m ahead, facing the viewer, who sees a small box 2.5 m ahead (and, with
     ``glass``, the mirror's own surface just behind its plane): what the mirror shows lies 5 to
     14 m away, beyond the tile's fitted far plane. The mirror's pass keeps every pixel of the
     reflection drawn with the wall's range and a clip plane at the mirror; it lost them all
     when its projection kept the tile's own far plane, and without the glass (the far plane
-    before the mirror) the tile had no mirror pass at all."""
+    before the mirror) the tile had no mirror pass at all. With reversed-Z the oblique near
+    plane was made on the reversed matrix, by the [-1, 1] formula, and no tile ever had a
+    mirror pass."""
     from wallcull import settings as cfg
 
     s = trimesh.Scene()
@@ -276,7 +279,7 @@ def test_a_mirror_shows_what_lies_beyond_the_tiles_own_depth_range(glass):
     wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
                            "resolution": [160, 90]})
     frame = Frame.from_dict({"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}, wall)
-    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    result = Session(scene, wall, fit=FitOptions(reversed_z=reversed_z)).frame(frame)
     assert result.fits[0]["far"] < 5  # the tile's own range ends before the reflection
     (entry,) = result.fits[0]["mirrors"]
     r = renderer_for(160, 90, scene)
@@ -286,7 +289,9 @@ def test_a_mirror_shows_what_lies_beyond_the_tiles_own_depth_range(glass):
     ref = r.render(r.draws.everything(), reflected, wide, clip_plane=list(mirror.plane),
                    front_face_cw=True).ids
     img = r.render(r.draws.leaves(entry["visible"]), np.asarray(entry["view"]),
-                   np.asarray(entry["projection"]), front_face_cw=True).ids
+                   np.asarray(entry["projection"]), front_face_cw=True,
+                   reversed_z=reversed_z).ids
     assert {scene.names[i - 1] for i in np.unique(ref) if i} == {"near_box", "behind"}
     assert int((ref > 0).sum()) > 100
     assert int(((ref > 0) & (img == 0)).sum()) == 0
+    assert set(np.unique(img)) <= set(np.unique(ref))  # the glass, behind the mirror: clipped

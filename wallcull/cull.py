@@ -1220,6 +1220,10 @@ class Culler:
             pitch = wall.pitch
             tile_angle = min(pitch)
         if extra is not None and len(extra):
+            # bounding planes beyond the 63 a view holds are left out, the last first: fewer
+            # planes bound a larger region, so the lists only grow (a mirror's outline: its
+            # plane, then its pyramid's, longest edges first)
+            extra = extra[:max(63 - len(primary), 0)]
             primary = np.concatenate([primary, len(planes) + np.arange(len(extra))])
             planes = np.concatenate([planes, extra])
         if len(primary) > 63:

@@ -42,7 +42,7 @@ from . import lowilie, workers
 from . import settings as cfg
 from .cull import (Culler, Visibility, _Buffers, _depth_ranges, _expand, _farthest, _oh,
                    depth_ranges as node_depths, packed, stack_depth)
-from .projection import look_at, mirrored_views, view_matrix
+from .projection import as_reversed_z, look_at, mirrored_views, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, matrix_quaternions
 
@@ -509,14 +509,15 @@ class MirrorSight:
             outline.append(_pyramid(mirror.reflection @ np.append(eyes[0], 1.0), mirror.polygon))
         return cls(mirror, np.concatenate(outline))
 
-    def matrices(self, views: np.ndarray, projections: np.ndarray
+    def matrices(self, views: np.ndarray, projections: np.ndarray, reversed_z: bool = False
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(views, projections, ok)``: each tile's reflected view (det -1), its projection
-        with the mirror as oblique near plane (in the tile's eye space), and whether it has one
-        (the mirror is behind the tile's camera, or edge-on: it shows nothing)."""
+        (``[-1, 1]`` ones given) with the mirror as oblique near plane (in the tile's eye
+        space), reversed-Z with ``reversed_z``, and whether it has one (the mirror is behind
+        the tile's camera, or edge-on: it shows nothing)."""
         view, oblique, refused = mirrored_views(views, projections, self.mirror.reflection,
                                                 self.mirror.plane)
-        return view, oblique, refused == 0
+        return view, as_reversed_z(oblique) if reversed_z else oblique, refused == 0
 
     def seen(self, culler: Culler, frusta: Frusta) -> tuple[np.ndarray, np.ndarray]:
         """The leaves every tile sees in the mirror, CSR ``(start, leaves)``."""
@@ -527,11 +528,11 @@ class MirrorSight:
         return culler.cull_reflected(frusta, self.mirror.reflection, self.outline).leaf_lists()
 
     def tiles(self, seen: tuple[np.ndarray, np.ndarray], views: np.ndarray,
-              projections: np.ndarray) -> MirrorSet:
+              projections: np.ndarray, reversed_z: bool = False) -> MirrorSet:
         """The reflected view of every tile (its frustum's planes and projection), showing
         the leaves it has ``seen`` (:meth:`seen`)."""
         start, leaves = seen
-        view, oblique, ok = self.matrices(views, projections)
+        view, oblique, ok = self.matrices(views, projections, reversed_z)
         shown = (np.diff(start) > 0) & ok
         counts = np.where(shown, np.diff(start), 0)
         keep = np.repeat(shown, np.diff(start))
@@ -540,10 +541,13 @@ class MirrorSight:
 
 
 def _pyramid(apex: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """Planes through ``apex`` and each edge of a convex polygon, facing its inside."""
+    """Planes through ``apex`` and each edge of a convex polygon, facing its inside, the
+    longest edges' first (a view holds 63 planes: those past them are left out)."""
     apex = apex[:3]
     center = polygon.mean(axis=0)
     edges = np.roll(polygon, -1, axis=0) - polygon
+    longest = np.argsort(-np.linalg.norm(edges, axis=1), kind="stable")
+    polygon, edges = polygon[longest], edges[longest]
     normals = np.cross(polygon - apex, edges)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     d = -np.einsum("ij,ij->i", normals, polygon)
@@ -727,14 +731,16 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
 
         def mirrored():
             # What a mirror shows lies beyond it, past what the tile shows directly: its
-            # projection is the tile's with the wall's depth range, the mirror its near plane.
+            # projection is the tile's with the wall's depth range, the mirror its near plane
+            # (made on the [-1, 1] matrix, then reversed-Z if asked for).
             ranged = [out.projection] + [eye.projection for eye in out.eyes]
-            if tight:
+            if tight or options.reversed_z:
                 near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
-                ranged = [tile_projections(wall, frame, near, far, options.reversed_z, e)
+                ranged = [tile_projections(wall, frame, near, far, False, e)
                           for e in [frame.eye, *([] if frame.stereo is None else frame.eyes)]]
-            return [(s.tiles(s.seen(culler, frusta), out.view, ranged[0]),
-                     [s.matrices(eye.view, p) for eye, p in zip(out.eyes, ranged[1:])])
+            reverse = options.reversed_z
+            return [(s.tiles(s.seen(culler, frusta), out.view, ranged[0], reverse),
+                     [s.matrices(eye.view, p, reverse) for eye, p in zip(out.eyes, ranged[1:])])
                     for s in sights]
 
         made = workers.aside(mirrored)

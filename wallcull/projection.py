@@ -12,6 +12,7 @@ The functions:
 
 * :func:`frustum`, :func:`infinite_frustum`: Lengyel's ``M_frustum`` and eq. (5.53);
 * :func:`reversed_z`: reversed-Z with ``[0, 1]`` depth (near -> 1, far or infinity -> 0);
+  :func:`as_reversed_z` turns any ``[-1, 1]`` matrix (an oblique one) into one;
 * :func:`look_at`, :func:`rigid_inverse`, :func:`tile_view_projection`: view matrices;
 * :func:`frustum_planes`: the six planes of any projection-view matrix (Gribb-Hartmann);
 * :func:`frustum_extents`: ``l, r, b, t, n, f`` back from off-axis projections (the wire's
@@ -31,6 +32,7 @@ __all__ = [
     "frustum",
     "infinite_frustum",
     "reversed_z",
+    "as_reversed_z",
     "look_at",
     "rigid_inverse",
     "tile_view_projection",
@@ -139,6 +141,16 @@ def reversed_z(l: float, r: float, b: float, t: float, n: float,
         # z_ndc = (A z + B) / -z with A = n / (f - n), B = n f / (f - n): 1 at -n, 0 at -f.
         m[2, 2], m[2, 3] = n / (f - n), n * f / (f - n)
     return m
+
+
+def as_reversed_z(projections: np.ndarray) -> np.ndarray:
+    """``[-1, 1]`` projections (``(..., 4, 4)``, oblique ones included) as reversed-Z ones with
+    ``[0, 1]`` clip depth: NDC depth ``z`` becomes ``(1 - z) / 2`` (row 3 becomes half of row
+    4 minus row 3), so near (or the oblique plane) lands on 1 and far on 0, and what was
+    clipped is clipped."""
+    out = np.array(projections, np.float64)
+    out[..., 2, :] = 0.5 * (out[..., 3, :] - out[..., 2, :])
+    return out
 
 
 def frustum_extents(projections: np.ndarray, near: np.ndarray, far: np.ndarray) -> np.ndarray:

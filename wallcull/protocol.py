@@ -36,7 +36,7 @@ tiles share goes once; each tile's projection goes as its frustum's extent and d
 which a node turns back into the exact matrix (:mod:`wallcull_clients.frusta`)::
 
     {"frame": n, "time": t, "base": b,          # one base for every tile: the node's ack
-     "reversed_z": true,                        # only when the projections are reversed-Z
+     "reversed_z": true,                        # when the projections are (shadows' never)
      "view": {"rotation": [w, x, y, z], "translation": [x, y, z]},  # a grid's, shared
      "left": {"view": ...}, "right": {...},     # a grid's eye views, stereo frames
      "transforms": {"ids": [...], "matrices": [...]},   # moved leaves any tile may lack
