@@ -402,3 +402,34 @@ def test_eye_behind_mirror_sees_nothing_in_it():
     below = {"position": [0, -5, 30], "orientation": [1, 0, 0, 0]}
     _, result = fitted(scene, {"mirrors": [MIRROR]}, frame=below)
     assert not any("mirrors" in t for t in result.fits)
+
+
+def test_a_mirror_between_the_eyes_is_seen_by_the_eye_before_it():
+    """A mirror whose plane passes between a stereo frame's eyes (the centre eye 4 mm behind
+    it) shows the right eye a reflection: that eye's record carries the mirror, with its own
+    oblique near plane at the mirror, and the tile the leaves seen in it. No record did, the
+    tile's showing being decided by the centre eye alone."""
+    s = trimesh.Scene()
+    for name, (extents, at) in {"reflected": ([1.0, 1.0, 1.0], [1.2, 0.0, -2.5]),
+                                "floor": ([6, 0.1, 10], [0, -1.0, -5])}.items():
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(at)
+        s.add_geometry(m, node_name=name, geom_name=name)
+    settings = {"mirrors": [{"name": "side", "point": [0.004, 0, -3], "normal": [1, 0, 0],
+                             "polygon": [[0.004, -1, -1.5], [0.004, -1, -8], [0.004, 1, -8],
+                                         [0.004, 1, -1.5]]}]}
+    scene = Scene.from_trimesh(s, hierarchy="file", settings=settings)
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0})
+    frame = Frame.from_dict({"position": [0, 0, 0], "orientation": [1, 0, 0, 0],
+                             "stereo": {"ipd": 0.064}}, wall)
+    record = Session(scene, wall, fit=FitOptions(depth="wall")).frame(frame).fits[0]
+    assert "mirrors" not in record["left"]
+    (right,) = record["right"]["mirrors"]
+    (entry,) = record["mirrors"]
+    assert right["mirror"] == entry["mirror"] == "side"
+    assert scene.names.index("reflected") in entry["visible"]
+    # the right eye's oblique near plane is the mirror: its points land on NDC depth -1
+    on_mirror = np.array([[0.004, 0.3, -3.0], [0.004, -0.5, -6.0]])  # world = display here
+    eye_space = homog(np.asarray(right["view"]), on_mirror)  # the reflection fixes the plane
+    np.testing.assert_allclose(homog(np.asarray(right["projection"]), eye_space)[:, 2], -1,
+                               atol=1e-9)

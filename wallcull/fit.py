@@ -528,12 +528,15 @@ class MirrorSight:
         return culler.cull_reflected(frusta, self.mirror.reflection, self.outline).leaf_lists()
 
     def tiles(self, seen: tuple[np.ndarray, np.ndarray], views: np.ndarray,
-              projections: np.ndarray, reversed_z: bool = False) -> MirrorSet:
+              projections: np.ndarray, reversed_z: bool = False,
+              eyes_see: np.ndarray | None = None) -> MirrorSet:
         """The reflected view of every tile (its frustum's planes and projection), showing
-        the leaves it has ``seen`` (:meth:`seen`)."""
+        the leaves it has ``seen`` (:meth:`seen`): where the tile's camera sees the mirror,
+        or, in a stereo frame, where either eye does (``eyes_see``; the centre's projection
+        then stays the tile's, and each eye's record has its own)."""
         start, leaves = seen
         view, oblique, ok = self.matrices(views, projections, reversed_z)
-        shown = (np.diff(start) > 0) & ok
+        shown = (np.diff(start) > 0) & (ok if eyes_see is None else ok | eyes_see)
         counts = np.where(shown, np.diff(start), 0)
         keep = np.repeat(shown, np.diff(start))
         return MirrorSet(self.mirror, view, shown, oblique,
@@ -738,10 +741,14 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
                 near, far = np.full(wall.tiles, wall.near), np.full(wall.tiles, wall.far)
                 ranged = [tile_projections(wall, frame, near, far, False, e)
                           for e in [frame.eye, *([] if frame.stereo is None else frame.eyes)]]
-            reverse = options.reversed_z
-            return [(s.tiles(s.seen(culler, frusta), out.view, ranged[0], reverse),
-                     [s.matrices(eye.view, p, reverse) for eye, p in zip(out.eyes, ranged[1:])])
-                    for s in sights]
+            reverse, sets = options.reversed_z, []
+            for s in sights:
+                per_eye = [s.matrices(eye.view, p, reverse) for eye, p in zip(out.eyes, ranged[1:])]
+                # a stereo tile shows a mirror either eye sees (the plane between the eyes)
+                either = np.logical_or.reduce([ok for *_, ok in per_eye]) if per_eye else None
+                sets.append((s.tiles(s.seen(culler, frusta), out.view, ranged[0], reverse,
+                                     either), per_eye))
+            return sets
 
         made = workers.aside(mirrored)
     try:
