@@ -256,3 +256,28 @@ def test_bench_times_occlusion_where_it_hides_nothing(capsys, tmp_path):
     assert code == 0, err
     idle = json.loads(out)["methods"]["adaptive"]["nothing_hidden"]
     assert idle["frames"] == 4 and idle["occlude_median_ms"] > 0
+
+
+def test_running_out_of_memory_is_said_as_such(monkeypatch, capsys):
+    """A job the machine cannot hold says so in one line, exit 1: it read as an internal
+    error (a bug) with numpy's allocation message."""
+    import wallcull.scene as scene_mod
+
+    def short(*args, **kwargs):
+        raise MemoryError("Unable to allocate 93.8 MiB for an array")
+
+    monkeypatch.setattr(scene_mod, "prepare", short)
+    assert main(["prepare", "fatehpur"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("wallcull: out of memory")
+    assert "internal error" not in err and "ulimit -v" in err
+
+
+def test_a_tiled_scene_has_one_spelling():
+    """``powerplant*0200`` is ``powerplant*200``: one name, one prepared file (it built a
+    second 1.2 GB file for the same scene)."""
+    from wallcull.scene import Source
+
+    assert Source.of("powerplant*0040") == Source.of("powerplant*40")
+    assert Source.of("powerplant*0040").identity("auto", 8, "auto") == \
+        Source.of("powerplant*40").identity("auto", 8, "auto")

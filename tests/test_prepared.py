@@ -107,6 +107,27 @@ def test_a_prepared_file_of_other_code_is_stale(monkeypatch, caplog):
     assert "is stale" in caplog.text
 
 
+def test_the_code_version_follows_the_file_readers(monkeypatch):
+    """A prepared file holds what trimesh (and DracoPy) read and what ``gltf.py`` made of it:
+    another version of either, or of the module, makes it stale (the readers were left out,
+    and a fix there kept serving the old geometry)."""
+    from importlib import metadata
+
+    assert {"gltf.py", "validate.py"} <= set(S._BUILDERS)
+    S._code_version.cache_clear()
+    before = S._code_version()
+    real = metadata.version
+    monkeypatch.setattr(metadata, "version",
+                        lambda name: "0.0.1" if name == "trimesh" else real(name))
+    S._code_version.cache_clear()
+    try:
+        assert S._code_version() != before
+    finally:
+        monkeypatch.undo()
+        S._code_version.cache_clear()
+    assert S._code_version() == before
+
+
 def flip_a_data_byte(path):
     data = bytearray(path.read_bytes())
     data[-100] ^= 0x10
@@ -127,20 +148,24 @@ def garbage(path):
 
 def bad_header(path):
     data = bytearray(path.read_bytes())
-    data[20:24] = b"{{{{"
+    data[28:32] = b"{{{{"
     path.write_bytes(bytes(data))
 
 
-def rewrite_header(path, change):
-    """The header, parsed, changed by ``change`` and written back in the same length."""
+def rewrite_header(path, change, checksum=True):
+    """The header, parsed, changed by ``change`` and written back in the same length, its
+    CRC-32 made to match (as a faulty writer would), or left as it was (damage)."""
     import json
+    import zlib
 
     data = path.read_bytes()
-    length = int(np.frombuffer(data[8:16], "<u8")[0])
-    header = json.loads(data[16:16 + length])
+    length, crc = (int(v) for v in np.frombuffer(data[8:24], "<u8"))
+    header = json.loads(data[24:24 + length])
     change(header)
     text = json.dumps(header).encode().ljust(length)[:length]
-    path.write_bytes(data[:16] + text + data[16 + length:])
+    crc = zlib.crc32(text) if checksum else crc
+    path.write_bytes(data[:8] + np.array([length, crc], "<u8").tobytes() + text
+                     + data[24 + length:])
 
 
 def bad_table(path):
@@ -157,8 +182,33 @@ def meta_a_list(path):
     rewrite_header(path, lambda h: h.__setitem__("meta", [["key", 1]]))
 
 
+def _moved(h):
+    """The last array's offset 64 bytes back, still within the data: read from the wrong
+    bytes, its table entry alone looks sound."""
+    entry = max(h["arrays"].values(), key=lambda e: e[2])
+    entry[2] -= 64
+
+
+def an_offset_moved(path):
+    """One digit of the header changed (the scene culled with bounds read from the wrong
+    bytes, its shape checks passed): the header's checksum refuses it."""
+    rewrite_header(path, _moved, checksum=False)
+
+
+def arrays_overlap(path):
+    """The same move by a writer that checksummed its header: the arrays overlap."""
+    rewrite_header(path, _moved)
+
+
+def an_older_format(path):
+    data = bytearray(path.read_bytes())
+    data[:8] = b"WCPREP01"
+    path.write_bytes(bytes(data))
+
+
 @pytest.mark.parametrize("damage", [flip_a_data_byte, truncate, extend, garbage, bad_header,
-                                    bad_table, arrays_a_list, meta_a_list])
+                                    bad_table, arrays_a_list, meta_a_list, an_offset_moved,
+                                    arrays_overlap, an_older_format])
 def test_a_corrupt_prepared_file_is_refused_and_rebuilt(damage, caplog):
     path, _ = prepare("fatehpur")
     damage(path)

@@ -314,9 +314,13 @@ def cmd_prepare(args) -> int:
 
     from .scene import prepare
 
+    from rich.console import Console
+
     t0 = time.perf_counter()
-    path, scene = prepare(args.scene, hierarchy=args.hierarchy, branching=args.branching,
-                          force=args.force, clusters=args.clusters)
+    # about 30 s and 3 GB a million nodes: a spinner on a terminal says it is at work
+    with Console(stderr=True).status(f"preparing {args.scene}…"):
+        path, scene = prepare(args.scene, hierarchy=args.hierarchy, branching=args.branching,
+                              force=args.force, clusters=args.clusters)
     if scene is None:
         print(f"{args.scene}: {path} is current (--force writes it again)")
         return 0
@@ -601,6 +605,11 @@ def main(argv=None) -> int:
         return 130
     except BrokenPipeError:
         return 0
+    except MemoryError as exc:
+        print(f"wallcull: out of memory ({exc or 'MemoryError'}): the job needs more than this "
+              "machine or its limit (ulimit -v) leaves; building a scene takes about 3 GB a "
+              "million nodes, mapping a prepared one far less", file=sys.stderr)
+        return 1
     except Exception as exc:  # noqa: BLE001 - never a traceback; WALLCULL_DEBUG=1 shows it
         if os.environ.get("WALLCULL_DEBUG"):
             raise

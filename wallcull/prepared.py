@@ -4,15 +4,18 @@ A scene's hierarchy, names, bounds and meshes take seconds to build from its sou
 a second to map from here (:mod:`wallcull.scene` decides what goes in; this module only stores
 it). The layout, little-endian::
 
-    magic   8 bytes   b"WCPREP01"
+    magic   8 bytes   b"WCPREP02"
     length  8 bytes   uint64, bytes of the header
+    crc     8 bytes   uint64, the CRC-32 of the header's bytes
     header  JSON      {"meta": {...}, "arrays": {name: [dtype, shape, offset, bytes]},
                        "data_bytes": D, "data_crc32": C}
     data    D bytes   from the first multiple of 64 after the header; each array starts on a
-                      multiple of 64 (offsets relative to the data)
+                      multiple of 64 (offsets relative to the data), after the one before
 
-:func:`read` refuses (:class:`Corrupt`) a file whose magic, header, length, array table or CRC-32
-of the data does not hold, so a truncated or damaged file is never used. The data are checked by
+:func:`read` refuses (:class:`Corrupt`) a file whose magic, header (its CRC-32), length, array
+table or CRC-32 of the data does not hold, so a truncated or damaged file is never used (a
+header checked by its shape alone took an offset changed by 64 for a good one, and the scene
+culled with bounds read from the wrong bytes). The data are checked by
 reading them through once (about 0.1 s per 500 MB from the page cache) before they are mapped
 copy-on-write: the arrays are ordinary, writable numpy arrays whose pages are read on first use
 and never written back.
@@ -32,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-MAGIC = b"WCPREP01"
+MAGIC = b"WCPREP02"
+_PREAMBLE = 24  # the magic, the header's length and its CRC-32
 SUFFIX = ".wcprep"
 _ALIGN = 64
 _READ = 16 << 20  # bytes per read while checking the CRC
@@ -72,13 +76,14 @@ def write(path: str | os.PathLike, arrays: dict[str, np.ndarray], meta: dict) ->
         crc = zlib.crc32(bytes(_aligned(a.nbytes) - a.nbytes), crc)
     header = json.dumps({"meta": meta, "arrays": table, "data_bytes": offset,
                          "data_crc32": crc}).encode()
-    start = _aligned(16 + len(header))
+    start = _aligned(_PREAMBLE + len(header))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     try:
         with open(tmp, "wb") as f:
-            f.write(MAGIC + np.uint64(len(header)).tobytes() + header)
-            f.write(bytes(start - 16 - len(header)))
+            f.write(MAGIC + np.array([len(header), zlib.crc32(header)], "<u8").tobytes()
+                    + header)
+            f.write(bytes(start - _PREAMBLE - len(header)))
             for a in arrays.values():
                 f.write(_bytes(a))
                 f.write(bytes(_aligned(a.nbytes) - a.nbytes))
@@ -123,24 +128,30 @@ def read(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict]:
 
 
 def _header(f, size: int) -> tuple[dict, int]:
-    head = f.read(16)
-    if len(head) < 16 or head[:8] != MAGIC:
+    head = f.read(_PREAMBLE)
+    if head[:7] == MAGIC[:7] and head[:8] != MAGIC:
+        raise Corrupt("written by another version of wallcull")
+    if len(head) < _PREAMBLE or head[:8] != MAGIC:
         raise Corrupt("not a prepared scene (bad magic)")
-    length = int(np.frombuffer(head[8:], dtype="<u8")[0])
-    if length > size - 16:
+    length, crc = (int(v) for v in np.frombuffer(head[8:], dtype="<u8"))
+    if length > size - _PREAMBLE:
         raise Corrupt("truncated header")
+    text = f.read(length)
+    if zlib.crc32(text) != crc:
+        raise Corrupt("its header does not match its checksum")
     try:
-        header = json.loads(f.read(length))
+        header = json.loads(text)
         if not (isinstance(header, dict) and isinstance(header.get("arrays"), dict)
                 and isinstance(header.get("meta"), dict)):
             raise Corrupt("a header of the wrong shape")
-        start = _aligned(16 + length)
-        end = start + int(header["data_bytes"])
+        start = _aligned(_PREAMBLE + length)
+        end, after = start + int(header["data_bytes"]), 0
         for name, (dtype, shape, offset, nbytes) in header["arrays"].items():
             dt = np.dtype(dtype)
             if (dt.hasobject or int(np.prod(shape, dtype=np.int64)) * dt.itemsize != nbytes
-                    or offset % _ALIGN or offset < 0 or start + offset + nbytes > end):
+                    or offset % _ALIGN or offset < after or start + offset + nbytes > end):
                 raise Corrupt(f"array {name!r} does not fit its table entry")
+            after = offset + nbytes
         int(header["data_crc32"])
     except Corrupt:
         raise

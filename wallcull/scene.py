@@ -640,8 +640,9 @@ class Source:
     def of(cls, spec: str) -> "Source":
         """The source ``spec`` names (:func:`load`); :class:`InputError` if there is none."""
         try:
-            bundled.parse(spec)
-            return cls(spec, None)
+            base, count = bundled.parse(spec)
+            # one spelling a scene: powerplant*0200 is powerplant*200 (and its prepared file)
+            return cls(base if count is None else f"{base}*{count}", None)
         except KeyError:
             pass  # not a bundled scene: a file
         except ValueError as exc:
@@ -806,15 +807,24 @@ def bounds_of(spec: str, kind: str) -> bnd.Bounds:
 #: Version of what a prepared scene holds: part of its key.
 PREPARED_FORMAT = 2
 
-#: Code whose changes make prepared scenes stale: it decides what they hold.
+#: Code whose changes make prepared scenes stale: it decides what they hold (the readers of
+#: files included: what glTF is made plain, what a file may hold).
 _BUILDERS = ("bounds.py", "clusters.py", "hierarchy.py", "instances.py", "prepared.py", "scene.py",
-             "bundled")
+             "gltf.py", "validate.py", "bundled")
 
 
 @functools.lru_cache(maxsize=None)
 def _code_version() -> str:
-    """A hash of the code in :data:`_BUILDERS` (the files there are missing count as none)."""
+    """A hash of the code in :data:`_BUILDERS` (the files there are missing count as none) and
+    of the versions of the libraries that read scene files (trimesh, DracoPy)."""
+    from importlib import metadata
+
     h = hashlib.sha256()
+    for library in ("trimesh", "DracoPy"):
+        try:
+            h.update(f"{library} {metadata.version(library)}\0".encode())
+        except metadata.PackageNotFoundError:
+            h.update(f"{library} none\0".encode())
     here = Path(__file__).parent
     for name in _BUILDERS:
         path = here / name
