@@ -193,8 +193,11 @@ class Reference:
 
         self.http, self.renderers, self.TileRenderer = http, {}, TileRenderer
         nodes = http.get(f"/scenes/{scene}?nodes=true").json()["nodes"]
-        self.mesh, self.names = nodes["mesh"], nodes["name"]
-        self.world = np.asarray(nodes["world"], np.float64).reshape(-1, 4, 4)
+        self.mesh, self.names = [None] * nodes["count"], [None] * nodes["count"]
+        self.world = np.zeros((nodes["count"], 4, 4))
+        for row, i in enumerate(nodes["id"]):  # rows by node id (clusters have none)
+            self.mesh[i], self.names[i] = nodes["mesh"][row], nodes["name"][row]
+            self.world[i] = np.reshape(nodes["world"][row], (4, 4))
         self.meshes = {}
         for key in sorted({k for k in self.mesh if k is not None}):
             r = http.get(f"/scenes/{scene}/meshes/{quote(key, safe='')}")

@@ -72,8 +72,9 @@ def _setup() -> dict:
         assert c.post(f"http://{asgi.HOST}/walls/{wid}/tiles/0/ack", json={"frame": 1},
                       headers=auth).status_code == 204
         nodes = c.get(f"http://{asgi.HOST}/scenes/tiny.glb?nodes=true").json()["nodes"]
-    leaves = [i for i, leaf in enumerate(nodes["leaf"]) if leaf]
-    return {"wid": wid, "leaves": leaves, "meshes": [nodes["mesh"][i] for i in leaves]}
+    rows = [r for r, leaf in enumerate(nodes["leaf"]) if leaf]
+    return {"wid": wid, "leaves": [nodes["id"][r] for r in rows],
+            "meshes": [nodes["mesh"][r] for r in rows]}
 
 
 REAL = _setup()

@@ -659,15 +659,27 @@ def test_long_walkthrough_with_http_and_websocket_nodes(client, fatehpur):
     assert t0.sizes["delta"] / t0.node.deltas < t0.sizes["full"]  # deltas are smaller
 
 
+def by_id(nodes: dict) -> dict:
+    """A node table (``?nodes=true``) indexed by node id: its rows leave the clusters out,
+    which here have no name, parent -1, ``synthetic`` set and a zero transform."""
+    n, ids = nodes["count"], nodes["id"]
+    out = {"id": ids, "name": [None] * n, "mesh": [None] * n, "parent": [-1] * n,
+           "leaf": [False] * n, "synthetic": [True] * n, "world": [[0.0] * 16] * n}
+    for key in ("name", "mesh", "parent", "leaf", "synthetic", "world"):
+        for row, i in enumerate(ids):
+            out[key][i] = nodes[key][row]
+    return out
+
+
 def test_dynamic_updates_change_lists_and_carry_transforms(client, fatehpur):
     """Frames that move nodes (position/orientation and matrices, some refit as AABBs): lists
     equal an in-process session moved the same way, and every node holds, for each leaf in
     its list, the world transform of that frame."""
-    info = client.get("/scenes/fatehpur", params={"nodes": "true"}).json()["nodes"]
+    info = by_id(client.get("/scenes/fatehpur", params={"nodes": "true"}).json()["nodes"])
     names, parent = info["name"], np.array(info["parent"])
     world_rest = np.array(info["world"]).reshape(-1, 4, 4)
     assert world_rest.shape == fatehpur.world.shape
-    np.testing.assert_array_equal(world_rest, fatehpur.world)
+    np.testing.assert_array_equal(world_rest[info["id"]], fatehpur.world[info["id"]])
     start, count = fatehpur.leaf_range
     # three internal nodes with many leaves, below the top level, and one leaf
     internal = [i for i in range(1, len(names)) if not info["leaf"][i]
@@ -1673,3 +1685,198 @@ def test_a_replacing_upload_waits_for_a_load_of_the_old_file(folder, tmp_path, m
         assert (folder.scenes / name).read_bytes() == new
     finally:
         (folder.scenes / name).unlink()
+
+
+# --------------------------------------------------------------------------- big scenes, small
+
+
+def balls_glb() -> bytes:
+    """Two spheres of 1,280 triangles (each cut into clusters) with a box between them: the
+    first sphere's clusters take ids before the box's and the second sphere's."""
+    s = trimesh.Scene()
+    for k, name in enumerate(("a_ball", "b_box", "c_ball")):
+        m = np.eye(4)
+        m[:3, 3] = [3.0 * (k - 1), 0, -10]
+        mesh = trimesh.creation.box(extents=[1, 1, 1]) if "box" in name else \
+            trimesh.creation.icosphere(subdivisions=3)
+        s.add_geometry(mesh, node_name=name, geom_name=name, transform=m)
+    return s.export(file_type="glb")
+
+
+def test_the_node_table_leaves_clusters_out_and_keeps_the_ids(tmp_path):
+    """``?nodes=true`` has no cluster rows (``#c0``, ...: 60% of a big scene's rows), and
+    each row names its node id: a leaf after some clusters keeps the id frames and the node
+    mesh route use, and the simulated nodes read the table by id."""
+    from wallcull_clients.sim import SceneInfo
+
+    (tmp_path / "balls.glb").write_bytes(balls_glb())
+    scene = load(str(tmp_path / "balls.glb"))
+    clusters = set(scene.clusters.tolist())
+    kept = [i for i in range(len(scene)) if i not in clusters]
+    assert clusters and max(kept) > min(clusters)  # rows after clusters: ids that must hold
+    with TestClient(create_app(tmp_path, token=TOKEN)) as c:
+        body = c.get("/scenes/balls.glb?nodes=true").json()
+    nodes = body["nodes"]
+    assert not any(n.startswith("#c") for n in nodes["name"])
+    assert nodes["count"] == len(scene) and nodes["id"] == kept
+    assert nodes["name"] == [scene.names[i] for i in kept]
+    assert nodes["mesh"] == [scene.geometry[i] for i in kept]
+    np.testing.assert_array_equal(np.reshape(nodes["world"], (-1, 4, 4)), scene.world[kept])
+    info = SceneInfo.from_description(body)
+    assert sorted(info.leaves.tolist()) == scene.leaves.tolist()
+    last = max(scene.leaves.tolist())  # the second sphere, after the first one's clusters
+    assert info.keys[info.mesh_of[last]] == scene.geometry[last]
+    np.testing.assert_array_equal(info.world[last], scene.world[last])
+
+
+def test_the_node_table_is_encoded_once_and_revalidated_by_its_etag(tmp_path, monkeypatch):
+    """A second ``?nodes=true`` is the bytes kept from the first (no new encoding), with the
+    same ``ETag``; ``If-None-Match`` with it is a 304 without a body; msgpack has its own."""
+    from wallcull.server import scenes as routes
+
+    built = []
+    real = routes.describe
+    monkeypatch.setattr(routes, "describe",
+                        lambda scene, nodes=True, arrays=False: (
+                            built.append(nodes), real(scene, nodes, arrays))[1])
+    (tmp_path / "two.glb").write_bytes(boxes_glb())
+    with TestClient(create_app(tmp_path, token=TOKEN)) as c:
+        first = c.get("/scenes/two.glb?nodes=true")
+        second = c.get("/scenes/two.glb?nodes=true")
+        assert first.status_code == second.status_code == 200
+        assert built.count(True) == 1 and second.content == first.content
+        etag = first.headers["etag"]
+        assert second.headers["etag"] == etag
+        held = c.get("/scenes/two.glb?nodes=true", headers={"If-None-Match": etag})
+        assert held.status_code == 304 and held.content == b""
+        packed = c.get("/scenes/two.glb?nodes=true", headers={"Accept": MP})
+        assert packed.headers["etag"] != etag
+        assert msgpack.unpackb(packed.content)["nodes"] == first.json()["nodes"]
+        assert built.count(True) == 2
+
+
+def test_node_tables_being_encoded_leave_the_background_pool_free(tmp_path, monkeypatch):
+    """Node tables of four scenes asked for at once, their encodings held: a wall is still
+    created meanwhile (they used to take all four threads of the background pool, and a wall
+    waited 76 s behind four big scenes' tables)."""
+    import asyncio
+
+    from wallcull.server import deps, scenes as routes
+
+    started, release = threading.Semaphore(0), threading.Event()
+    begun = []
+    real = routes.describe
+
+    def held(scene, nodes=True, arrays=False):
+        if nodes:
+            begun.append(scene.name)
+            started.release()
+            release.wait(120)
+        return real(scene, nodes, arrays)
+
+    monkeypatch.setattr(routes, "describe", held)
+    names = [f"s{k}.glb" for k in range(4)]
+    for name in names + ["wall.glb"]:
+        (tmp_path / name).write_bytes(boxes_glb())
+    app = create_app(tmp_path, token=TOKEN)
+    at_once = min(4, getattr(deps, "NODE_ENCODES", 4))  # 4 before there was a bound
+
+    async def scenario():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://test",
+                                     timeout=180) as c:
+            for name in names + ["wall.glb"]:  # loaded first: only the tables are held
+                assert (await c.get(f"/scenes/{name}")).status_code == 200
+            tables = [asyncio.ensure_future(c.get(f"/scenes/{n}?nodes=true")) for n in names]
+            for _ in range(at_once):
+                assert await asyncio.to_thread(started.acquire, True, 120)
+            try:
+                made = await asyncio.wait_for(c.post("/walls", json={
+                    "wall": WALL, "scene": "wall.glb"}, headers=AUTH), 60)
+            finally:
+                release.set()
+            answers = await asyncio.gather(*tables)
+            return made, answers
+
+    made, answers = asyncio.run(scenario())
+    assert made.status_code == 201, made.text
+    assert [r.status_code for r in answers] == [200] * 4 and sorted(begun) == names
+
+
+def test_a_scene_that_failed_to_prepare_is_refused_at_once_until_it_changes(tmp_path,
+                                                                          monkeypatch):
+    """A folder scene too big for ``parse_memory`` is refused with what to do (prepare it
+    ahead, or raise the limit); asked again, for a wall too, it is refused at once without a
+    new child process, until the file changes or a file is prepared into the cache folder."""
+    from wallcull import sandbox
+    from wallcull.errors import InputError
+
+    children = []
+
+    def too_big(target, args, *, seconds, memory, what):
+        children.append(args)
+        raise InputError(f"{what} needs more than {memory:,} bytes of memory")
+
+    monkeypatch.setattr(sandbox, "run", too_big)
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "cache").mkdir()
+    path = tmp_path / "huge.glb"
+    path.write_bytes(boxes_glb())
+    with TestClient(create_app(tmp_path, token=TOKEN)) as c:
+        first = c.get("/scenes/huge.glb")
+        assert first.status_code == 422 and len(children) == 1
+        detail = first.json()["detail"]
+        assert "wallcull prepare" in detail and "parse_memory" in detail, detail
+        again = c.get("/scenes/huge.glb?nodes=true")
+        wall = c.post("/walls", json={"wall": WALL, "scene": "huge.glb"}, headers=AUTH)
+        assert again.status_code == wall.status_code == 422
+        assert again.json()["detail"] == wall.json()["detail"] == detail
+        assert len(children) == 1
+        stat = path.stat()
+        os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10 ** 9))  # the file changed
+        assert c.get("/scenes/huge.glb").status_code == 422 and len(children) == 2
+        assert c.get("/scenes/huge.glb").status_code == 422 and len(children) == 2
+        (tmp_path / "cache" / "ahead.wcprep").write_bytes(b"")  # `wallcull prepare` ran
+        assert c.get("/scenes/huge.glb").status_code == 422 and len(children) == 3
+
+
+def test_a_full_scene_cache_is_507_and_an_unwritable_one_503(tmp_path, monkeypatch, caplog):
+    """A folder scene whose prepared file the cache folder cannot take is the server's disk
+    problem, as for uploads: 507 when it is full, 503 when it cannot be written, for a wall
+    too, logged once (it used to be a 422, the client's error)."""
+    import errno
+    import pickle
+
+    from wallcull import prepared, sandbox
+
+    (tmp_path / "scenes").mkdir()
+    (tmp_path / "scenes" / "full.glb").write_bytes(boxes_glb())
+    (tmp_path / "scenes" / "ro.glb").write_bytes(boxes_glb(("x", "y", "z")))
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with monkeypatch.context() as patch:  # a full disk, in this process
+        patch.setattr(sandbox, "run", lambda target, args, **limits: target(*args))
+        patch.setattr(prepared, "write", full)
+        with TestClient(create_app(tmp_path / "scenes", token=TOKEN)) as c, \
+                caplog.at_level(logging.ERROR, "wallcull"):
+            r = c.get("/scenes/full.glb")
+            assert r.status_code == 507, r.text
+            assert "No space left on device" in r.json()["detail"]
+            r = c.post("/walls", json={"wall": WALL, "scene": "full.glb"}, headers=AUTH)
+            assert r.status_code == 507, r.text
+        told = [rec for rec in caplog.records if "cache folder cannot be written" in
+                rec.getMessage()]
+        assert len(told) == 1
+    # a cache folder that cannot be made, in the real child process
+    (tmp_path / "plain").write_text("a file, not a folder")
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "plain" / "cache"))
+    with TestClient(create_app(tmp_path / "scenes", token=TOKEN)) as c:
+        r = c.get("/scenes/ro.glb")
+        assert r.status_code == 503, r.text
+        r = c.post("/walls", json={"wall": WALL, "scene": "ro.glb"}, headers=AUTH)
+        assert r.status_code == 503, r.text
+    from wallcull.errors import WriteFailed  # what the child hands back, errno and all
+
+    assert pickle.loads(pickle.dumps(WriteFailed("full", errno.ENOSPC))).errno == errno.ENOSPC

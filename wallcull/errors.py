@@ -11,6 +11,19 @@ class InputError(ValueError):
     """Bad user input: a wall, frame, scene, option or update that violates the contract."""
 
 
+class WriteFailed(InputError):
+    """A file the work needs written could not be (a prepared scene in a full or read-only
+    cache folder): ``errno`` says why. The command line says so in one line like any
+    :class:`InputError`; the server answers 507 or 503, a disk problem of its own."""
+
+    def __init__(self, message: str, errno: int | None = None):
+        super().__init__(message)
+        self.errno = errno
+
+    def __reduce__(self):  # handed back from a child process (:mod:`wallcull.sandbox`)
+        return type(self), (str(self), self.errno)
+
+
 def optional(module: str, extra: str, what: str):
     """``module``, a dependency only some uses need (an extra of the install): imported, or
     refused in one line that names the extra installing it. ``what``: the use that needs it."""

@@ -19,7 +19,7 @@ import threading
 from multiprocessing import spawn
 from typing import Any, Callable
 
-from .errors import InputError
+from .errors import InputError, WriteFailed
 
 _context_lock = threading.Lock()
 _context = None
@@ -70,6 +70,8 @@ def _child(conn, target: Callable, args: tuple, memory: int, seconds: float, wha
     resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 5))
     try:
         answer = ("done", target(*args))
+    except WriteFailed as exc:  # a disk problem, not the input's: its type goes back too
+        answer = ("raised", exc)
     except InputError as exc:
         answer = ("refused", str(exc))
     except MemoryError:
@@ -87,7 +89,8 @@ def run(target: Callable, args: tuple, *, seconds: float, memory: int, what: str
     """``target(*args)`` in a child process with ``memory`` bytes of address space (beyond
     what it starts with) and ``seconds`` of time; ``target`` and its answer must pickle.
     Blocking: call it from a worker thread. Whatever goes wrong in the child is an
-    :class:`InputError` starting with ``what`` (e.g. ``"parsing the uploaded GLB"``)."""
+    :class:`InputError` starting with ``what`` (e.g. ``"parsing the uploaded GLB"``), but a
+    :class:`WriteFailed` (a full or read-only disk), which comes back as it was raised."""
     ctx = _forkserver()
     receive, send = ctx.Pipe(duplex=False)
     env = {k: v for k, v in os.environ.items() if k.startswith(ENV_PREFIX)}
@@ -112,4 +115,6 @@ def run(target: Callable, args: tuple, *, seconds: float, memory: int, what: str
         proc.join(5)
     if kind == "refused":
         raise InputError(value)
+    if kind == "raised":
+        raise value
     return value

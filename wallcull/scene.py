@@ -46,7 +46,7 @@ from . import hierarchy as tree
 from . import prepared
 from . import bundled
 from . import gltf
-from .errors import InputError
+from .errors import InputError, WriteFailed
 from .hierarchy import spatial_groups  # noqa: F401 - part of this module's interface
 from .instances import MeshTable, instance_extremes, instance_points, leaf_bounds
 
@@ -913,7 +913,7 @@ def _write_prepared(scene: Scene, path: Path, key: dict, quiet: bool = True) -> 
         prepared.write(path, arrays, meta)
     except OSError as exc:
         if not quiet:
-            raise InputError(f"cannot write {path}: {exc.strerror or exc}") from None
+            raise WriteFailed(f"cannot write {path}: {exc.strerror or exc}", exc.errno) from None
         log.warning("wallcull: cannot write prepared scene %s: %s", path, exc.strerror or exc)
 
 

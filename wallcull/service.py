@@ -10,6 +10,7 @@ the fitting of bounds other than OBBs in a child process with a time and memory 
 from __future__ import annotations
 
 import asyncio
+import errno
 import gc
 import hashlib
 import logging
@@ -30,11 +31,12 @@ import numpy as np
 from . import bounds as bnd
 from . import credentials, encode, protocol, sandbox
 from .credentials import Grant
-from .errors import InputError
+from .errors import InputError, WriteFailed
 from .fit import FitOptions
 from .limits import Limits
 from .occlude import OcclusionOptions
 from .persist import StateFolder, StateWriteFailed, WallRow
+from .prepared import cache_dir
 from .pipeline import Session
 from .scene import Scene, bounds_of, load, prepare_path, usable
 from .uploads import parse_sandboxed
@@ -52,6 +54,11 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,127}$")
 #: A wall's history holds at most this many tile-frames (frames x tiles): about 150 bytes
 #: each, plus its lists, so a 64 x 64 wall keeps up to 256 frames.
 MAX_TILE_FRAMES = 1 << 20
+
+
+#: Seconds a scene file that failed to prepare (too big for the limits, or broken) is
+#: refused at once with the same answer, unless it changes (its size or modification time).
+FAILED_PREPARE_SECONDS = 600
 
 
 class NotFound(LookupError):
@@ -91,6 +98,8 @@ class SceneStore:
         self.uploaded: dict[str, Scene] = {}  # uploads kept in memory when there is no folder
         self._locks: dict[str, asyncio.Lock] = {}
         self.receiving: set[str] = set()  # names of uploads in progress
+        self.failed: dict[tuple, tuple[float, str]] = {}  # (file, size, mtime) -> (until, why)
+        self.unwritable_told: set[int | None] = set()  # errnos of the cache folder logged
 
     def names(self) -> list[dict]:
         from wallcull import bundled
@@ -132,19 +141,67 @@ class SceneStore:
         async with lock:  # one load per scene, however many ask at once
             if name not in self.cache:
                 spec = self.spec(name)
+                failed = self.failed.get(key := _as_found(spec))
+                if failed is not None and time.monotonic() < failed[0]:
+                    raise InputError(failed[1])  # at once: nothing it depends on has changed
                 # mapped from its prepared file, which a child process writes first when
                 # there is none (building a scene takes seconds to minutes)
                 scene = await background(load, spec, cache="map")
                 if scene is None:
-                    await background(
-                        sandbox.run, prepare_path, (spec,), seconds=self.limits.parse_seconds,
-                        memory=self.limits.parse_memory, what=f"preparing scene {name!r}")
-                    scene = await background(load, spec, cache="write")
+                    await self._prepare(name, spec, key)
+                    try:
+                        scene = await background(load, spec, cache="write")
+                    except WriteFailed as exc:
+                        raise self._unwritable(exc) from None
                 scene = await background(lambda: settled(usable(scene)))
                 scene.name = name
                 self.remember(name, scene)
                 return scene
         return self.cache[name]
+
+    async def _prepare(self, name: str, spec: str, key: tuple) -> None:
+        """Write the prepared file of scene ``name`` in a child process (``parse_memory``,
+        ``parse_seconds``). A failure is remembered under ``key`` (:func:`_as_found`: the
+        file and the cache folder as they are) for :data:`FAILED_PREPARE_SECONDS`, and
+        answered again at once by :meth:`get`: a file too big for the limits would otherwise
+        take a new child and minutes per request. A cache folder that is full or read-only is
+        the server's problem: 507 or 503."""
+        self.failed.pop(key, None)
+        try:
+            await background(
+                sandbox.run, prepare_path, (spec,), seconds=self.limits.parse_seconds,
+                memory=self.limits.parse_memory, what=f"preparing scene {name!r}")
+        except WriteFailed as exc:
+            raise self._unwritable(exc) from None
+        except InputError as exc:
+            message = str(exc)
+            if "bytes of memory" in message or "took over" in message:
+                which = "parse_memory" if "memory" in message else "parse_seconds"
+                message = (f"{message.rstrip('.')}: prepare it ahead with `wallcull prepare "
+                           f"FILE` under the server's WALLCULL_CACHE (the server maps it then), "
+                           f"or raise --limit {which}=...")
+            while len(self.failed) >= 256:  # the oldest first
+                self.failed.pop(next(iter(self.failed)))
+            self.failed[key] = (time.monotonic() + FAILED_PREPARE_SECONDS, message)
+            log.warning("wallcull: %s (answered so for %d s, or until the file or the cache "
+                        "folder changes)", message, FAILED_PREPARE_SECONDS)
+            raise InputError(message) from None
+
+    def _unwritable(self, exc: WriteFailed) -> StateWriteFailed:
+        """The answer to a prepared file the cache folder could not take: 507 for a full disk,
+        503 otherwise (read-only, no permission), logged once per reason."""
+        full = exc.errno in (errno.ENOSPC, errno.EDQUOT)
+        if exc.errno not in self.unwritable_told:
+            self.unwritable_told.add(exc.errno)
+            log.error("wallcull: the scene cache folder cannot be written: %s (scenes without "
+                      "a prepared file are refused with %d until it can)", exc,
+                      507 if full else 503)
+        return StateWriteFailed(507 if full else 503, f"{exc} (the server's scene cache "
+                                "folder, WALLCULL_CACHE; not a problem of the scene)")
+
+    def lock(self, key: str) -> asyncio.Lock:
+        """The lock of ``key`` (a scene's name, or a name and a task on it)."""
+        return self._locks.setdefault(key, asyncio.Lock())
 
     def spec(self, name: str) -> str:
         """What :func:`wallcull.scene.load` takes for scene ``name`` (bundled or a file)."""
@@ -285,6 +342,20 @@ class SceneStore:
         return dropped
 
 
+def _as_found(spec: str) -> tuple:
+    """Scene file ``spec`` and the cache folder as they are now (sizes and modification
+    times): what a remembered failure to prepare it holds for. A new prepared file (the
+    operator ran ``wallcull prepare``) changes the folder's time, a new scene file its own."""
+    def stamp(path) -> tuple:
+        try:
+            st = os.stat(path)
+            return st.st_size, st.st_mtime_ns
+        except OSError:  # a bundled scene, a cache folder not made yet
+            return None, None
+
+    return spec, *stamp(spec), *stamp(cache_dir())
+
+
 def settled(obj=None):
     """``obj``, after moving every object alive now out of the garbage collector's sight
     (``gc.freeze``). A server holds scenes of hundreds of thousands of objects for days; a
@@ -319,16 +390,28 @@ def footprint(obj, _depth: int = 0) -> int:
 
 
 def describe(scene: Scene, nodes: bool = True, arrays: bool = False) -> dict:
-    """A scene's shape: stats, bounds, settings and (optionally) every node. ``arrays``: the
-    per-node columns stay numpy arrays (for an encoder that turns them into lists a piece at
-    a time: a 100,000-node scene is 2.3 million numbers)."""
+    """A scene's shape: stats, bounds, settings and (optionally) its node table. ``arrays``:
+    the per-node columns stay numpy arrays (for an encoder that turns them into lists a piece
+    at a time: a 100,000-node scene is 2.3 million numbers).
+
+    The table has a row per node but the clusters (which lists never name: they are parts of
+    a leaf's triangles, most of a big scene's rows), in id order; ``id`` holds each row's node
+    id, ``count`` the number of ids (clusters included): ids are the culling's, the same in
+    frames, packets and the node mesh route."""
     out = {"name": scene.name, "stats": scene.stats, "settings": scene.settings,
            "bounds": {"min": scene.box[0].tolist(), "max": scene.box[1].tolist()}}
     if nodes:
-        columns = {"parent": scene.parent, "leaf": scene.is_leaf, "synthetic": scene.synthetic,
-                   "world": scene.world.reshape(len(scene), 16)}
-        out["nodes"] = {"name": list(scene.names), "mesh": list(scene.geometry), **{
-            k: v if arrays else v.tolist() for k, v in columns.items()}}
+        keep = np.flatnonzero(np.asarray(scene.cluster_of) < 0)
+        whole = len(keep) == len(scene)
+        names, meshes = list(scene.names), scene.geometry
+        columns = {"id": keep, "parent": np.asarray(scene.parent)[keep],
+                   "leaf": np.asarray(scene.is_leaf)[keep],
+                   "synthetic": np.asarray(scene.synthetic)[keep],
+                   "world": np.asarray(scene.world).reshape(len(scene), 16)[keep]}
+        out["nodes"] = {"count": len(scene),
+                        "name": names if whole else [names[i] for i in keep.tolist()],
+                        "mesh": list(meshes) if whole else [meshes[i] for i in keep.tolist()],
+                        **{k: v if arrays else v.tolist() for k, v in columns.items()}}
     return out
 
 

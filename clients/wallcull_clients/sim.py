@@ -18,12 +18,12 @@ A :class:`TileClient` plays one render node of the wall. Every frame it
    :class:`clients.render.TileRenderer` using the packet's view and projection;
 4. acknowledges the frame (``{"ack": n}`` on the stream, ``POST .../ack`` when pulling).
 
-Geometry: the scene description (``GET /scenes/{name}?nodes=true``: every leaf's mesh key and rest
-world transform) is fetched once per process and shared (:class:`SceneInfo`); each node has its
-own :class:`MeshCache`, an LRU by bytes standing for GPU memory, in front of a host copy. A mesh
-missing from the GPU cache that the host still holds is revalidated with ``If-None-Match`` (a
-scene can be replaced by an upload under the same name, so the ETag is what makes the copy safe);
-a 304 costs a few bytes instead of the mesh.
+Geometry: the scene description (``GET /scenes/{name}?nodes=true``: every leaf's id, mesh key
+and rest world transform) is fetched once per process and shared (:class:`SceneInfo`); each node
+has its own :class:`MeshCache`, an LRU by bytes standing for GPU memory, in front of a host
+copy. A mesh missing from the GPU cache that the host still holds is revalidated with
+``If-None-Match`` (a scene can be replaced by an upload under the same name, so the ETag is what
+makes the copy safe); a 304 costs a few bytes instead of the mesh.
 
 Per packet a node records the receive time, the server's post time (``packet["time"]``: their
 difference is the frame-to-tile latency; both are ``time.time()`` on the same clock when client
@@ -124,9 +124,14 @@ class SceneInfo:
         nodes = data["nodes"]
         keys = sorted({k for k in nodes["mesh"] if k is not None})
         number = {k: i for i, k in enumerate(keys)}
-        mesh_of = np.array([-1 if k is None else number[k] for k in nodes["mesh"]], dtype=np.int64)
-        world = np.asarray(nodes["world"], dtype=np.float64).reshape(-1, 4, 4)
-        leaves = np.flatnonzero(np.asarray(nodes["leaf"], dtype=bool))
+        # rows leave the clusters out: a row's node id is its "id", ids run to "count"
+        count = nodes.get("count", len(nodes["mesh"]))
+        ids = np.asarray(nodes.get("id", range(len(nodes["mesh"]))), dtype=np.int64)
+        mesh_of = np.full(count, -1, dtype=np.int64)
+        mesh_of[ids] = [-1 if k is None else number[k] for k in nodes["mesh"]]
+        world = np.zeros((count, 4, 4))
+        world[ids] = np.asarray(nodes["world"], dtype=np.float64).reshape(-1, 4, 4)
+        leaves = ids[np.asarray(nodes["leaf"], dtype=bool)]
         return cls(data["name"], keys, mesh_of, world, leaves)
 
     @classmethod

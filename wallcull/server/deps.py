@@ -3,6 +3,7 @@ metrics, the limits and who may do what."""
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import InitVar, dataclass, field
 from typing import Annotated, Any
 
@@ -12,6 +13,13 @@ from ..credentials import digest, same_digest
 from ..limits import Limits
 from ..service import SceneStore, Walls
 from .metrics import Metrics
+
+
+#: Node tables (``GET /scenes/{name}?nodes=true``) encoded at once, each in a thread of the
+#: background pool (of 4) for up to 13 s and its body's size in memory at a million nodes:
+#: the pool's other threads stay free for wall creations, scene loads and other answers,
+#: however many pages ask at once.
+NODE_ENCODES = 1
 
 
 @dataclass
@@ -31,6 +39,8 @@ class ServerState:
     #: bytes a second sent to consoles opened without a credential, all together
     open_budget: Any = None
     kernels_ready: bool = False  # every numba kernel loaded (wallcull.warm)
+    #: node tables being encoded (wallcull.server.scenes.NODE_ENCODES at once)
+    node_encodes: Any = None
     operator: str | None = field(init=False, default=None)
 
     def __post_init__(self, token):
@@ -38,6 +48,8 @@ class ServerState:
 
         self.operator = None if token is None else digest(token)
         self.open_budget = Budget(self.limits.open_bytes)
+        if self.node_encodes is None:
+            self.node_encodes = asyncio.Semaphore(NODE_ENCODES)
 
     @property
     def open(self) -> bool:

@@ -247,12 +247,12 @@ def mesh_reply(request: Request, blob) -> Response:
     """A mesh, or 304 when the client holds it: ``If-None-Match`` names its ETag (weakly, in
     a list: RFC 9110, section 13.1.2) or is ``*``."""
     headers = {"ETag": blob.etag, "Cache-Control": "public, max-age=31536000, immutable"}
-    if _holds(request.headers.get("if-none-match"), blob.etag):
+    if holds(request.headers.get("if-none-match"), blob.etag):
         return Response(status_code=304, headers=headers)
     return reply(request, blob.body, headers=headers)
 
 
-def _holds(if_none_match: str | None, etag: str) -> bool:
+def holds(if_none_match: str | None, etag: str) -> bool:
     if not if_none_match:
         return False
     tags = [t.strip() for t in if_none_match.split(",")]

@@ -3,19 +3,23 @@
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 from pathlib import Path as FilePath
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Query, Request
+from fastapi.responses import Response
 
+from .. import protocol
 from ..credentials import OPERATOR
 from ..errors import InputError
 from ..persist import StateWriteFailed
+from ..workers import background
 from ..service import NotFound, describe, mesh_blob
 from .access import needs
 from .deps import State
-from .http import Refused, mesh_reply, reply, reply_large
+from .http import Refused, encode_in_pieces, holds, mesh_reply, reply
 from .models import SCENE_NAME, refusals, worded
 
 router = APIRouter(tags=["scenes"])
@@ -86,14 +90,41 @@ async def _receive(request: Request, state, name: str):
             os.unlink(path)
 
 
-@router.get("/scenes/{name}", operation_id="getScene", responses=refusals(404))
+@router.get("/scenes/{name}", operation_id="getScene", responses=refusals(304, 404))
 async def scene_info(request: Request, state: State, name: SceneName, nodes: bool = False):
-    """A scene's stats, bounds and settings; ``nodes=true`` adds every node: name, parent,
-    leaf flag, mesh key and rest world transform (row by row, flattened)."""
+    """A scene's stats, bounds and settings; ``nodes=true`` adds its node table (every node
+    but the clusters): id, name, parent, leaf flag, mesh key and rest world transform (row by
+    row, flattened). The table is encoded once per scene and format and kept with the scene;
+    send its ETag back in ``If-None-Match`` to get a 304 while the scene is unchanged."""
     scene = await state.store.get(name)
-    if nodes:  # a 100,000-node scene is megabytes of lists: built and encoded off the loop
-        return await reply_large(request, lambda: describe(scene, True, arrays=True))
-    return reply(request, describe(scene, False))
+    if not nodes:
+        return reply(request, describe(scene, False))
+    binary = protocol.wants_msgpack(request.headers.get("accept"))
+    body, etag = await _node_table(state, scene, binary)
+    headers = {"ETag": etag, "Cache-Control": "no-cache", "Vary": "Accept"}
+    if holds(request.headers.get("if-none-match"), etag):
+        return Response(status_code=304, headers=headers)
+    return Response(body, headers=headers,
+                    media_type=protocol.MSGPACK if binary else protocol.JSON)
+
+
+async def _node_table(state, scene, binary: bool) -> tuple[bytes, str]:
+    """A scene's description with its node table, encoded (JSON or msgpack) and its ETag:
+    once per scene and format (the bytes stay with the scene, counted in its cache budget,
+    and go with it), one scene's at a time per format, ``deps.NODE_ENCODES`` at once."""
+    held = scene.__dict__.setdefault("_node_tables", {})
+    if binary in held:
+        return held[binary]
+    async with state.store.lock(f"{scene.name}\0nodes\0{binary}"):
+        if binary not in held:
+            async with state.node_encodes:
+                held[binary] = await background(_encode_table, scene, binary)
+    return held[binary]
+
+
+def _encode_table(scene, binary: bool) -> tuple[bytes, str]:
+    body = encode_in_pieces(describe(scene, True, arrays=True), binary)
+    return body, '"' + hashlib.blake2b(body, digest_size=16).hexdigest() + '"'
 
 
 @router.get("/scenes/{name}/meshes/{key}", operation_id="getMesh", responses=refusals(304, 404))

@@ -231,23 +231,35 @@ function bytes(b64) {
   return out.buffer;
 }
 
-function sceneOf(name, about, nodes, replaced) {
-  // GET /scenes/{name}?nodes=true as the page holds it; meshes numbered by their sorted keys,
+function byId(nodes) {
+  // GET /scenes/{name}?nodes=true's table by node id: its rows leave the clusters out (parts of
+  // a leaf's triangles, never listed), so a row's id is its "id" and ids run to "count"
+  const n = nodes.count ?? nodes.mesh.length, mesh = new Array(n).fill(null);
+  const rest = new Float64Array(16 * n);
+  nodes.mesh.forEach((k, r) => {
+    const id = nodes.id ? nodes.id[r] : r;
+    mesh[id] = k;
+    rest.set(nodes.world[r], 16 * id);
+  });
+  return { mesh, rest };
+}
+
+function sceneOf(name, about, table, replaced) {
+  // the scene's node table (byId) as the page holds it; meshes numbered by their sorted keys,
   // uploaded as frames need them (ready: number -> {vao, buffers, count, shift}); a scene
   // that replaced another fetches its meshes past the browser's cache (a key keeps its name
   // when the file changes, not its shape)
-  const keys = [...new Set(nodes.mesh.filter((k) => k !== null))].sort();
+  const keys = [...new Set(table.mesh.filter((k) => k !== null))].sort();
   const number = new Map(keys.map((k, i) => [k, i]));
-  const rest = Float64Array.from(nodes.world.flat());
-  return { name, about, keys, mesh: nodes.mesh, rest, world: rest.slice(), ready: new Map(),
-           meshOf: Int32Array.from(nodes.mesh, (k) => (k === null ? -1 : number.get(k))),
+  const rest = table.rest;
+  return { name, about, keys, mesh: table.mesh, rest, world: rest.slice(), ready: new Map(),
+           meshOf: Int32Array.from(table.mesh, (k) => (k === null ? -1 : number.get(k))),
            cache: replaced ? "no-cache" : "default" };
 }
 
-function sameScene(s, name, about, nodes) {  // the scene the page holds, or was it replaced?
-  const world = nodes.world.flat();
-  return s.name === name && s.about === about && s.mesh.length === nodes.mesh.length &&
-    nodes.mesh.every((k, i) => k === s.mesh[i]) && world.every((v, i) => v === s.rest[i]);
+function sameScene(s, name, about, table) {  // the scene the page holds, or was it replaced?
+  return s.name === name && s.about === about && s.mesh.length === table.mesh.length &&
+    table.mesh.every((k, i) => k === s.mesh[i]) && table.rest.every((v, i) => v === s.rest[i]);
 }
 
 function dropScene(s) {  // its meshes off the GPU
@@ -294,10 +306,10 @@ async function load() {
   // was lost; a scene replaced (another file, other nodes) drops what the page held of it
   const info = await getJSON(`${cfg.root}/walls/${cfg.wall}`, "no-cache");
   const body = await getJSON(`${cfg.root}/scenes/${encodeURIComponent(info.scene)}?nodes=true`, "no-cache");
-  const about = JSON.stringify([body.stats, body.bounds]);
-  if (!scene || !sameScene(scene, info.scene, about, body.nodes)) {
+  const about = JSON.stringify([body.stats, body.bounds]), table = byId(body.nodes);
+  if (!scene || !sameScene(scene, info.scene, about, table)) {
     if (scene) { dropScene(scene); pending = last = null; }
-    scene = sceneOf(info.scene, about, body.nodes, scene !== null);
+    scene = sceneOf(info.scene, about, table, scene !== null);
   }
   if (JSON.stringify(info.wall) !== JSON.stringify(wall)) {
     wall = info.wall;
