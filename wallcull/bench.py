@@ -144,7 +144,7 @@ def timing(scene: Scene, wall: Wall, frames, method: str, bounds: str,
     for k, frame in enumerate(frames[:WARMUP_FRAMES]):  # every stage once: compiled, cached
         result = session.frame(frame)
         if stages:
-            history.add(FrameRecord(k, 0.0, *result.leaves, result.fits, none, none,
+            history.add(FrameRecord(k, 0.0, *result.leaves, result.fits, none,
                                     np.zeros((0, 4, 4)), result.parts))
             frame_packets(history, k, tiles, k - 1 if k else None)
             node_entries(history, k, k - 1 if k else None)
@@ -168,7 +168,7 @@ def timing(scene: Scene, wall: Wall, frames, method: str, bounds: str,
             fitted = [s.coverage[s.kind == FRUSTUM] for s in result.fits.shadows]
             coverages.extend(np.concatenate(fitted).tolist() if fitted else [])
         if stages:
-            history.add(FrameRecord(k, time.time(), *result.leaves, result.fits, none, none,
+            history.add(FrameRecord(k, time.time(), *result.leaves, result.fits, none,
                                     np.zeros((0, 4, 4)), result.parts))
             t0 = time.perf_counter()
             entries = node_entries(history, k, k - 1 if k else None)

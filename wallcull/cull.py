@@ -54,6 +54,7 @@ allocated, grown or reference-counted inside a traversal loop.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -1045,11 +1046,45 @@ class _Buffers:
 
 
 def packed(state: SceneState) -> np.ndarray:
-    """The state's bounds as packed records, recomputed only when they moved."""
-    cache = state.__dict__.get("_packed")
-    if cache is None or cache[0] != state.version:
-        cache = state.__dict__["_packed"] = (state.version, pack(state.bounds))
-    return cache[1]
+    """The state's bounds as packed records. While the state shares its scene's arrays (nothing
+    moved), these are the scene's records, packed once for every state of the scene (every
+    wall); a state that moved packs its own, copied from the scene's once, then re-packs only
+    the rows each move changed (:meth:`SceneState.changed_rows`)."""
+    cache = state.__dict__.get("_packed")  # (version, records, whether the state's own)
+    if cache is not None and cache[0] == state.version:
+        return cache[1]
+    if state.shared:
+        state.changed_rows()
+        out, own = _scene_packed(state.scene, state.kind), False
+    else:
+        rows = state.changed_rows()
+        if cache is not None and cache[2]:
+            out = cache[1]
+        else:  # the first pack since the state's first move
+            rest = state.scene.__dict__.get("_packed", {}).get(state.kind)
+            out = None if rest is None else rest.copy()
+        if out is None or rows is None:
+            out = pack(state.bounds)
+        elif len(rows):
+            out[rows] = pack(state.bounds.take(rows))
+        own = True
+    state.__dict__["_packed"] = (state.version, out, own)
+    return out
+
+
+_PACKING = threading.Lock()
+
+
+def _scene_packed(scene, kind: str) -> np.ndarray:
+    """The packed records of a scene's rest bounds of ``kind``, packed once per scene."""
+    cache = scene.__dict__.setdefault("_packed", {})
+    out = cache.get(kind)
+    if out is None:
+        with _PACKING:
+            out = cache.get(kind)
+            if out is None:
+                out = cache[kind] = pack(scene.bounds(kind))
+    return out
 
 
 def _fh_table(wall) -> tuple[np.ndarray, np.ndarray]:

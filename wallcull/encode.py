@@ -651,7 +651,7 @@ def frame_packets(history, number: int, tiles, base: int | None = None) -> Encod
     prior = history.get(base) if base is not None and base < number else None
     delta = protocol.tile_deltas(record, prior) if prior is not None else None
     extras = None
-    if len(record.posed):  # a dynamic scene: the moved leaves' transforms, tile by tile
+    if history.dynamic(record):  # a dynamic scene: the moved leaves' transforms, tile by tile
         extras = {}
         for t in tiles.tolist():
             added = delta[0][delta[1][t]:delta[1][t + 1]] if delta is not None else None
@@ -862,7 +862,7 @@ def _node_message(history, record, prior, tiles: np.ndarray) -> bytes:
     base = None if prior is None else prior.number
     parts = entries(record, prior)
     pairs, moved = parts.head_pairs + 1, b""
-    if len(record.posed):  # a dynamic scene: the moved leaves any of the tiles may lack
+    if history.dynamic(record):  # a dynamic scene: the moved leaves any of the tiles may lack
         added = None
         if base is not None:
             d = protocol.tile_deltas(record, prior)

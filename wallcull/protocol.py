@@ -66,6 +66,7 @@ unchanged from one frame to the next; leaving them out took a delta from 16.3 to
 from __future__ import annotations
 
 import json
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
@@ -128,16 +129,20 @@ class FrameRecord:
     """What the server keeps of one frame: per-tile leaf lists, fits, moved leaves, and the
     draw ranges of the leaves each tile shows in part (``parts``: CSR ``(part_start (tiles +
     1,), part_leaf, range_start, ranges (R, 2))`` as :meth:`wallcull.cull.Visibility.
-    draw_ranges` gives them; None: every leaf drawn whole)."""
+    draw_ranges` gives them; None: every leaf drawn whole).
+
+    A record keeps the transforms of the leaves that moved in its frame only; the pose of any
+    other leaf that ever moved is that of the newest frame before that moved it
+    (:meth:`History.poses`), so that a record's size does not grow with every leaf moved
+    before it."""
 
     number: int
     time: float
     start: np.ndarray  # (tiles + 1,) CSR offsets into leaves
     leaves: np.ndarray  # per-tile sorted leaf ids, concatenated
     fits: list[dict]  # per tile, JSON-ready fitted frusta
-    changed: np.ndarray  # leaf ids whose world transform changed in this frame
-    posed: np.ndarray  # sorted ids of every leaf ever moved
-    posed_world: np.ndarray  # (len(posed), 4, 4) their world transforms at this frame
+    changed: np.ndarray  # sorted leaf ids whose world transform changed in this frame
+    changed_world: np.ndarray  # (len(changed), 4, 4) their world transforms at this frame
     parts: tuple | None = None
 
     def __post_init__(self):
@@ -161,15 +166,48 @@ class FrameRecord:
 
 @dataclass
 class History:
-    """The last ``size`` frames, by number."""
+    """The last ``size`` frames, by number, and what it takes to know the pose of every leaf
+    that ever moved at any held frame (:meth:`poses`) while each record keeps only the leaves
+    its frame moved: per leaf, the newest frame that moved it, and the poses the frames that
+    have left gave (each leaf's newest). Frames are added in order of their numbers."""
 
     size: int = 64
     frames: OrderedDict = field(default_factory=OrderedDict)
+    #: the number of the first frame added that moved a leaf (None: none yet)
+    first_moved: int | None = None
+    # by leaf id: the newest frame that moved it (-1: none), and its row in _gone_world, the
+    # poses of the frames that have left the history (-1: none)
+    _last: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    _gone_row: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32), repr=False)
+    _gone_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)), repr=False)
+    _gone_count: int = 0
+    _lock: Any = field(default_factory=threading.Lock, repr=False)
 
     def add(self, record: FrameRecord) -> None:
-        self.frames[record.number] = record
-        while len(self.frames) > self.size:
-            self.frames.popitem(last=False)
+        with self._lock:
+            self.frames[record.number] = record
+            ids = record.changed
+            if len(ids):
+                if self.first_moved is None:
+                    self.first_moved = record.number
+                self._last = _grown(self._last, int(ids.max()) + 1)
+                self._last[ids] = record.number
+            while len(self.frames) > self.size:
+                self._keep_poses(self.frames.popitem(last=False)[1])
+
+    def _keep_poses(self, record: FrameRecord) -> None:
+        ids = record.changed
+        if not len(ids):
+            return
+        self._gone_row = _grown(self._gone_row, int(ids.max()) + 1)
+        new = ids[self._gone_row[ids] < 0]
+        if self._gone_count + len(new) > len(self._gone_world):
+            grown = np.empty((max(self._gone_count + len(new), 2 * len(self._gone_world)), 4, 4))
+            grown[:self._gone_count] = self._gone_world[:self._gone_count]
+            self._gone_world = grown
+        self._gone_row[new] = np.arange(self._gone_count, self._gone_count + len(new))
+        self._gone_count += len(new)
+        self._gone_world[self._gone_row[ids]] = record.changed_world
 
     def get(self, number: int) -> FrameRecord | None:
         return self.frames.get(number)
@@ -188,6 +226,75 @@ class History:
         range (a jump to 2**40 would take forever)."""
         parts = [r.changed for k, r in self.frames.items() if base < k <= number]
         return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+    def dynamic(self, record: FrameRecord) -> bool:
+        """Whether any leaf moved in ``record``'s frame or before."""
+        return bool(len(record.changed)) or (self.first_moved is not None
+                                             and self.first_moved <= record.number)
+
+    def poses(self, record: FrameRecord, leaves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids, world (k, 4, 4))``: of the sorted ``leaves``, those moved in ``record``'s
+        frame or before, with their world transforms at that frame: each from the newest frame
+        up to it that moved the leaf (its record if held, else the poses of the frames that
+        have left)."""
+        leaves = np.asarray(leaves, np.int64)
+        with self._lock:
+            if self.frames.get(record.number) is not record:
+                return self._walk(record, leaves)
+            stamp = np.full(len(leaves), -1, np.int64)
+            inside = leaves < len(self._last)
+            stamp[inside] = self._last[leaves[inside]]
+            world = np.empty((len(leaves), 4, 4))
+            found = (stamp >= 0) & (stamp <= record.number)
+            gone = np.flatnonzero(found & (stamp < self.oldest))
+            world[gone] = self._gone_world[self._gone_row[leaves[gone]]]
+            held = np.flatnonzero(found & (stamp >= self.oldest))
+            held = held[np.argsort(stamp[held], kind="stable")]
+            numbers, first = np.unique(stamp[held], return_index=True)
+            for number, group in zip(numbers.tolist(), np.split(held, first[1:])):
+                r = self.frames[number]
+                world[group] = r.changed_world[np.searchsorted(r.changed, leaves[group])]
+            # moved again since: their pose at this frame is in the frames before it
+            later = np.flatnonzero(stamp > record.number)
+            if len(later):
+                ids, moved = self._walk(record, leaves[later])
+                hit = later[np.isin(leaves[later], ids, assume_unique=True)]
+                world[hit] = moved
+                found[hit] = True
+        return leaves[found], world[found]
+
+    def _walk(self, record: FrameRecord, leaves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`poses` by walking the records from ``record`` back, then the poses of the
+        frames that have left (for a few leaves, or a record not held)."""
+        older = [r for k, r in reversed(self.frames.items())
+                 if k < record.number and len(r.changed)]
+        world = np.empty((len(leaves), 4, 4))
+        found = np.zeros(len(leaves), bool)
+        for r in (record, *older):
+            if found.all():
+                break
+            if not len(r.changed):
+                continue
+            at = np.minimum(np.searchsorted(r.changed, leaves), len(r.changed) - 1)
+            hit = (r.changed[at] == leaves) & ~found
+            world[hit] = r.changed_world[at[hit]]
+            found |= hit
+        rest = np.flatnonzero(~found)
+        rest = rest[leaves[rest] < len(self._gone_row)]
+        row = self._gone_row[leaves[rest]]
+        rest, row = rest[row >= 0], row[row >= 0]
+        world[rest] = self._gone_world[row]
+        found[rest] = True
+        return leaves[found], world[found]
+
+
+def _grown(a: np.ndarray, n: int) -> np.ndarray:
+    """``a`` (by leaf id) long enough for ``n`` ids, doubling, new ids at -1."""
+    if n <= len(a):
+        return a
+    out = np.full(max(n, 2 * len(a)), -1, a.dtype)
+    out[:len(a)] = a
+    return out
 
 
 def tile_deltas(record: FrameRecord, prior: FrameRecord):
@@ -339,7 +446,7 @@ def transforms(history: History, record: FrameRecord, tiles, base: int | None,
     have) for ``tiles`` (a tile or several): every moved leaf of their full lists; in a delta
     against ``base``, the ``added`` leaves and those of the lists that moved since the base.
     None when there are none."""
-    if not len(record.posed):
+    if not history.dynamic(record):
         return None  # nothing ever moved
     tiles = np.atleast_1d(tiles)
     current = record.tile(int(tiles[0])) if len(tiles) == 1 else \
@@ -352,11 +459,10 @@ def transforms(history: History, record: FrameRecord, tiles, base: int | None,
                                                 assume_unique=True))
     if not len(send):
         return None
-    hit = np.isin(record.posed, send, assume_unique=True)
-    if not hit.any():
+    ids, world = history.poses(record, send)
+    if not len(ids):
         return None
-    return {"ids": record.posed[hit].tolist(),
-            "matrices": record.posed_world[hit].reshape(-1, 16).tolist()}
+    return {"ids": ids.tolist(), "matrices": world.reshape(-1, 16).tolist()}
 
 
 def node_head(number: int, time: float, fits, base: int | None) -> dict:

@@ -382,7 +382,10 @@ class SceneState:
     the cheaper refit the paper suggests for dynamic parts, at a cost in false positives.
 
     Until something moves, a state shares its scene's arrays (bounds, local and world
-    transforms: half a gigabyte at a million nodes); the first move copies them.
+    transforms: 1.3 GB at a million nodes with their 1.5 million clusters), and the culler
+    shares the scene's packed records too (:func:`wallcull.cull.packed`); the first move
+    copies them. A move then backs up, checks and re-packs only the rows it changes: the moved
+    subtrees and the refit ancestors.
     """
 
     def __init__(self, scene: Scene, kind: str = "obb"):
@@ -396,6 +399,15 @@ class SceneState:
         self.world = scene.world
         self._shared = True
         self.version = 0  # counts moves: what caches of the bounds key on
+        # rows whose bounds changed since :meth:`changed_rows` last looked (None: too many
+        # to list, take them all)
+        self._changed: list[np.ndarray] | None = []
+        self._changed_count = 0
+
+    @property
+    def shared(self) -> bool:
+        """Whether the state still reads its scene's arrays (nothing moved yet)."""
+        return self._shared
 
     def _own(self) -> None:
         """Copy the scene's arrays before the first change (copy-on-write)."""
@@ -403,6 +415,23 @@ class SceneState:
             self.bounds, self.exact = self.bounds.copy(), self.exact.copy()
             self.local, self.world = self.local.copy(), self.world.copy()
             self._shared = False
+
+    def _note_changed(self, rows: np.ndarray) -> None:
+        if self._changed is not None:
+            self._changed.append(rows)
+            self._changed_count += len(rows)
+            if self._changed_count > len(self.scene) // 2:
+                self._changed = None
+
+    def changed_rows(self) -> np.ndarray | None:
+        """The sorted ids of the rows whose bounds changed since the last call (None: so many
+        that every row should be taken as changed), and forget them: for the one cache that
+        follows the bounds row by row (:func:`wallcull.cull.packed`)."""
+        rows = self._changed
+        self._changed, self._changed_count = [], 0
+        if rows is None:
+            return None
+        return np.unique(np.concatenate(rows)) if rows else np.zeros(0, dtype=np.int64)
 
     def move(self, updates: Mapping[str, Any], refit_mode: str | None = None) -> np.ndarray:
         """Set the local transforms of named nodes; returns the ids of the refit ancestors.
@@ -419,24 +448,63 @@ class SceneState:
             local.append(node_matrix(value, name))
         if not ids:
             return np.zeros(0, dtype=np.int64)
+        nodes = np.array(ids)
+        mode = self._mode(refit_mode)
+        sub, up = self.reach(nodes, mode)
+        rows = np.union1d(sub, up)
         self._own()
         # All or nothing: composed down a chain of nodes, updates that are fine alone can still
-        # collapse or overflow a world transform; then the scene stays as it was.
-        saved = [a.copy() for a in (self.local, self.world)], self.bounds.copy(), self.exact.copy()
+        # collapse or overflow a world transform; then the scene stays as it was. Only the rows
+        # the move changes are backed up and checked (every other row is as the last move,
+        # checked in turn, left it): local transforms of the moved nodes, world transforms
+        # and exact bounds of their subtrees, bounds of those and of the refit ancestors.
+        saved = (self.local[nodes], self.world[sub], self.bounds.take(rows),
+                 self.exact.take(sub))
         try:
             with np.errstate(all="ignore"):
-                up = self.move_nodes(np.array(ids), np.array(local), refit_mode)
-                sound = (np.isfinite(self.world).all() and np.isfinite(self.bounds.center).all()
-                         and np.isfinite(self.bounds.half).all()
-                         and np.isfinite(self.bounds.radius).all()
-                         and (np.abs(np.linalg.det(self.world[:, :3, :3])) > 0).all())
+                self._move(nodes, np.array(local), mode, sub, up)
+                world, b = self.world[sub], self.bounds
+                sound = (np.isfinite(world).all() and np.isfinite(b.center[rows]).all()
+                         and np.isfinite(b.half[rows]).all()
+                         and np.isfinite(b.radius[rows]).all()
+                         and (np.abs(np.linalg.det(world[:, :3, :3])) > 0).all())
         except (np.linalg.LinAlgError, FloatingPointError, ValueError):
             sound = False
         if not sound:
-            (self.local, self.world), self.bounds, self.exact = saved
+            self.local[nodes], self.world[sub] = saved[0], saved[1]
+            self.bounds.put(rows, saved[2])
+            self.exact.put(sub, saved[3])
+            self._note_changed(rows)
             self.version += 1
             raise InputError("the updates collapse or overflow world transforms in float64")
         return up
+
+    def _mode(self, refit_mode: str | None) -> str:
+        mode = refit_mode or bnd.enclosing_mode(self.kind)
+        if mode not in ("obb", "aabb", "sphere"):
+            raise InputError(f"refit must be 'obb' or 'aabb', got {mode!r}")
+        return mode
+
+    def reach(self, nodes: np.ndarray, refit_mode: str | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """``(sub, up)``: the sorted ids of the nodes in the subtrees of ``nodes`` (whose world
+        transforms and bounds a move of ``nodes`` changes) and of the ancestors it refits.
+        A move changes no other row."""
+        scene, mode = self.scene, self._mode(refit_mode)
+        levels, parent = scene.levels, scene.parent
+        inside = np.zeros(len(scene), dtype=bool)
+        inside[nodes] = True
+        for level in levels[1:]:
+            inside[level] |= inside[parent[level]]
+        # Only the strict ancestors of moved nodes are refit, bottom up; that includes moved
+        # nodes above other moved nodes, whose rigid motion alone no longer fits their subtree.
+        above = np.zeros(len(scene), dtype=bool)
+        above[parent[nodes[nodes > 0]]] = True
+        if mode == "aabb":  # moved internal nodes: refit from their children
+            above[nodes[~scene.is_leaf[nodes]]] = True
+        for level in reversed(levels[1:]):
+            above[parent[level[above[level]]]] = True
+        return np.flatnonzero(inside), np.flatnonzero(above)
 
     def move_nodes(self, nodes: np.ndarray, local: np.ndarray,
                    refit_mode: str | None = None) -> np.ndarray:
@@ -446,19 +514,20 @@ class SceneState:
         where it is not (a scale changed, or a turn under a non-uniformly scaled parent), its
         leaves are fit again in their new pose, from their templates (:func:`leaf_bounds`).
         """
-        scene = self.scene
-        mode = refit_mode or bnd.enclosing_mode(self.kind)
-        if mode not in ("obb", "aabb", "sphere"):
-            raise InputError(f"refit must be 'obb' or 'aabb', got {mode!r}")
+        mode = self._mode(refit_mode)
+        sub, up = self.reach(nodes, mode)
         self._own()
+        return self._move(nodes, local, mode, sub, up)
+
+    def _move(self, nodes: np.ndarray, local: np.ndarray, mode: str, sub: np.ndarray,
+              up: np.ndarray) -> np.ndarray:
+        scene = self.scene
+        self._note_changed(np.union1d(sub, up))
         self.local[nodes] = local
         levels, parent = scene.levels, scene.parent
         # Every node in a moved subtree gets a new world transform, top down.
         inside = np.zeros(len(scene), dtype=bool)
-        inside[nodes] = True
-        for level in levels[1:]:
-            inside[level] |= inside[parent[level]]
-        sub = np.flatnonzero(inside)
+        inside[sub] = True
         old = self.world[sub]
         for level in levels[1:]:
             level = level[inside[level]]
@@ -476,19 +545,11 @@ class SceneState:
             # Under a scaled parent the motion of a subtree is not rigid in world space:
             # fit its leaves again and refit the subtree above them.
             self._refit_leaves(sub[~rigid])
-        # Only the strict ancestors of moved nodes are refit, bottom up; that includes moved
-        # nodes above other moved nodes, whose rigid motion alone no longer fits their subtree.
-        above = np.zeros(len(scene), dtype=bool)
-        above[parent[nodes[nodes > 0]]] = True
         if mode == "aabb":
             # Moved leaves: the axis-aligned box of their exact bound. Moved internal nodes:
-            # refit from their children, never a box of last frame's box.
+            # refit from their children (they are in ``up``), never a box of last frame's box.
             moved_leaves = nodes[scene.is_leaf[nodes]]
             self.bounds.put(moved_leaves, bnd.axis_aligned(self.exact.take(moved_leaves)))
-            above[nodes[~scene.is_leaf[nodes]]] = True
-        for level in reversed(levels[1:]):
-            above[parent[level[above[level]]]] = True
-        up = np.flatnonzero(above)
         refit(scene, self.bounds, up, mode)
         self.version += 1
         return up

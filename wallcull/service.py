@@ -528,12 +528,14 @@ class WallSession:
     _new_frame: asyncio.Event = field(default_factory=asyncio.Event)
     _new_ack: asyncio.Event = field(default_factory=asyncio.Event)
     _frame_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    _ever_moved: np.ndarray = None
+    # leaves moved in frames computed but not published (refused after their moves, say):
+    # the next record carries them as its own, so that a node is told where they went
+    _unsent: np.ndarray = None
 
     def __post_init__(self):
         self.acks = np.full(self.wall.tiles, -1, dtype=np.int64)
         self.acked_at = np.zeros(self.wall.tiles)
-        self._ever_moved = np.zeros(0, dtype=np.int64)
+        self._unsent = np.zeros(0, dtype=np.int64)
 
     @property
     def wall(self):
@@ -589,18 +591,17 @@ class WallSession:
         frame = Frame.from_dict(frame, self.wall)
         if self.on_number is not None:  # its number written down (or the frame refused)
             self.on_number(number)
-        changed = np.zeros(0, dtype=np.int64)
+        changed = self._unsent
         if updates:
             self.session.move(updates, refit)
             moved = np.array([self.scene.index[n] for n in updates])
-            changed = np.unique(self.scene.subtree_leaves(moved))
-            self._ever_moved = np.union1d(self._ever_moved, changed)
+            changed = self._unsent = np.union1d(changed, self.scene.subtree_leaves(moved))
         t1 = time.perf_counter()
         result = self.session.frame(frame)
         start, leaves = result.leaves
-        posed = self._ever_moved
-        record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed, posed,
-                                      self.session.state.world[posed], result.parts)
+        # only the transforms of the leaves this frame moved: the history has the others'
+        record = protocol.FrameRecord(number, posted, start, leaves, result.fits, changed,
+                                      self.session.state.world[changed], result.parts)
         t2 = time.perf_counter()
         # every tile's node-message entry against the frame before, encoded here (often a
         # worker thread) rather than on the event loop when the first stream asks for it
@@ -617,6 +618,8 @@ class WallSession:
         if record.number <= self.latest:
             raise Conflict(f"frame {record.number} is out of order: frame {self.latest} is in")
         self.history.add(record)
+        if self._unsent is record.changed:  # (else a frame computed since carries them)
+            self._unsent = np.zeros(0, dtype=np.int64)
         self.active = time.monotonic()
         old, self._new_frame = self._new_frame, asyncio.Event()
         old.set()
