@@ -279,13 +279,10 @@ def test_repeated_moves_do_not_grow_the_bounds(refit):
     np.testing.assert_allclose(walked.bounds.center, once.bounds.center, atol=1e-6)
 
 
-def test_a_move_that_fails_changes_nothing(monkeypatch):
-    """All or nothing: if a refit turns out non-finite, the scene state is as before."""
+def poison_refits(monkeypatch):
+    """Every refit from now on comes out non-finite; the real ``bounds.enclose`` back."""
     from wallcull import bounds as bnd
 
-    scene = Scene.from_trimesh(random_scene(2, leaves=12))
-    state = SceneState(scene)
-    before = [a.copy() for a in (state.local, state.world, state.bounds.center, state.exact.center)]
     real = bnd.enclose
 
     def poisoned(*args, **kw):
@@ -294,6 +291,15 @@ def test_a_move_that_fails_changes_nothing(monkeypatch):
         return out
 
     monkeypatch.setattr(bnd, "enclose", poisoned)
+    return real
+
+
+def test_a_move_that_fails_changes_nothing(monkeypatch):
+    """All or nothing: if a refit turns out non-finite, the scene state is as before."""
+    scene = Scene.from_trimesh(random_scene(2, leaves=12))
+    state = SceneState(scene)
+    before = [a.copy() for a in (state.local, state.world, state.bounds.center, state.exact.center)]
+    poison_refits(monkeypatch)
     m = scene.local[scene.index["leaf3"]].copy()
     m[:3, 3] += 1.0
     with pytest.raises(InputError, match="overflow"):
@@ -373,14 +379,7 @@ def test_a_refused_move_after_others_restores_its_rows_and_their_records(monkeyp
                                              state.bounds.half, state.bounds.radius,
                                              state.exact.center, state.exact.half)]
     before, records = arrays(), packed(state).copy()
-    real = bnd.enclose
-
-    def poisoned(*args, **kw):
-        out = real(*args, **kw)
-        out.center[:] = np.nan
-        return out
-
-    monkeypatch.setattr(bnd, "enclose", poisoned)
+    real = poison_refits(monkeypatch)
     m = scene.local[scene.index["leaf3"]].copy()
     m[:3, 3] += 2.0
     with pytest.raises(InputError, match="overflow"):
