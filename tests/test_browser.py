@@ -34,9 +34,6 @@ import json
 import os
 import secrets
 import shutil
-import subprocess
-import sys
-import time
 from pathlib import Path
 from urllib.parse import quote
 
@@ -583,37 +580,19 @@ class Restartable:
     def __init__(self, folder: Path, args=()):
         self.state, self.scenes = folder / "state", folder / "scenes"
         self.scenes.mkdir(parents=True)
-        self.port, self.args, self.proc = free_port(), list(args), None
+        self.port, self.running = free_port(), None
+        self.args = ["--scenes", str(self.scenes), *args]
         self.url = f"http://127.0.0.1:{self.port}"
-        self.log = folder / "server.log"
 
-    def start(self, timeout: float = 120.0) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1", "--port",
-             str(self.port), "--log-level", "warning", "--state", str(self.state), "--scenes",
-             str(self.scenes), "--token", TOKEN, *self.args],
-            stdout=self.log.open("ab"), stderr=subprocess.STDOUT,
-            env={**os.environ, "PYTHONPATH": os.pathsep.join(
-                [str(ROOT), os.environ.get("PYTHONPATH", "")])})
-        deadline = time.monotonic() + timeout
-        while True:
-            assert self.proc.poll() is None, self.log.read_text()[-2000:]
-            try:
-                if httpx.get(f"{self.url}/health", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            assert time.monotonic() < deadline, "the server did not answer /health"
-            time.sleep(0.1)
+    def start(self) -> None:
+        self.running = running_server(TOKEN, env={"PYTHONPATH": str(ROOT)}, args=self.args,
+                                      port=self.port, state=str(self.state))
+        self.running.__enter__()
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.running is not None:
+            self.running.__exit__(None, None, None)
+            self.running = None
 
     def restart(self, then=None) -> None:
         """Stop, do ``then()`` (change its files) while it is down, start again."""

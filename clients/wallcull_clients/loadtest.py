@@ -167,18 +167,20 @@ class Server:
 
 @contextmanager
 def running_server(token: str | None = None, timeout: float = 120.0, env: dict | None = None,
-                   args=(), ca: str | None = None):
-    """``wallcull serve`` on a free loopback port, with a temporary state folder, for the
-    ``with`` block (no event loop needed, for tests); yields its base URL (``https://`` when
-    ``args`` hold ``--tls-cert``, ``ca`` then the file of the authority that signed it)."""
+                   args=(), ca: str | None = None, port: int | None = None,
+                   state: str | None = None):
+    """``wallcull serve`` on a free loopback port (or ``port``), with a temporary state folder
+    (or ``state``, kept: a server started again there finds its walls), for the ``with``
+    block (no event loop needed, for tests); yields its base URL (``https://`` when ``args``
+    hold ``--tls-cert``, ``ca`` then the file of the authority that signed it)."""
     import ssl
     import subprocess
     import urllib.request
 
-    port = free_port()
-    state = tempfile.TemporaryDirectory(prefix="wallcull-state-")
+    port = port or free_port()
+    temporary = None if state else tempfile.TemporaryDirectory(prefix="wallcull-state-")
     cmd = [sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1", "--port",
-           str(port), "--log-level", "warning", "--state", state.name, *args] + \
+           str(port), "--log-level", "warning", "--state", state or temporary.name, *args] + \
         (["--token", token] if token else [])
     log = tempfile.TemporaryFile()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
@@ -209,7 +211,8 @@ def running_server(token: str | None = None, timeout: float = 120.0, env: dict |
             proc.kill()
             proc.wait()
         log.close()
-        state.cleanup()
+        if temporary is not None:
+            temporary.cleanup()
 
 
 async def metrics(url: str) -> dict:
