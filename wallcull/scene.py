@@ -647,17 +647,15 @@ def load_trimesh(path: str | os.PathLike):
     if not path.is_file():
         raise InputError(f"scene file not found: {path}")
     gltf.check_file(path)
-    kwargs = {"split_groups": True} if path.suffix.lower() in (".obj", ".zip") else {}
-    if path.suffix.lower() == ".gltf":
-        kwargs["resolver"] = gltf.resolver(path)
-    made = gltf.plain_file(path)
+    suffix = path.suffix.lower()
+    kwargs = {"split_groups": True} if suffix in (".obj", ".zip") else {}
+    made = gltf.plain_file(path)  # the file made plain (:mod:`.gltf`); None: read as it is
+    if suffix == ".gltf" or (suffix == ".glb" and made is not None):
+        kwargs["resolver"] = gltf.resolver(path)  # the files beside it, names decoded
+    if made is not None:
+        kwargs["file_type"] = "zip" if suffix == ".zip" else "glb"
     try:
-        if made is not None:  # the same reader on the file made plain (:mod:`.gltf`)
-            suffix = "zip" if path.suffix.lower() == ".zip" else "glb"
-            kwargs["resolver"] = None if suffix == "zip" else gltf.resolver(path)
-            loaded = _trimesh_load(io.BytesIO(made), file_type=suffix, **kwargs)
-        else:
-            loaded = _trimesh_load(str(path), **kwargs)
+        loaded = _trimesh_load(str(path) if made is None else io.BytesIO(made), **kwargs)
     except ModuleNotFoundError as exc:  # trimesh's readers of XML formats (3DXML, ...)
         # (trimesh re-raises a reader's import error from its message alone: no name)
         needs = exc.name or next(iter(re.findall(r"named '([\w.]+)'", str(exc))), None)
