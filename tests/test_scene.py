@@ -158,6 +158,34 @@ def test_unreadable_file_is_a_clear_error(tmp_path):
         load(str(f))
 
 
+def test_a_zip_bomb_is_refused_before_it_is_inflated(tmp_path, monkeypatch, capsys):
+    """A member that inflates past a hundred times its packed size (and past the free
+    allowance) is refused from the zip's directory, in one line on the command line; the
+    scene zips in the repository pass."""
+    import zipfile
+
+    from wallcull import cli
+    from wallcull import scene as S
+
+    monkeypatch.setattr(S, "INFLATE_FREE", 1 << 20)
+    bomb = tmp_path / "bomb.zip"
+    with zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("model.obj", bytes(8 << 20))  # 8 MiB of zeros: about 1,000 times
+    inflated = []
+    monkeypatch.setattr(zipfile.ZipFile, "read", lambda self, name, pwd=None:
+                        inflated.append(name) or b"")
+    with pytest.raises(InputError, match="model.obj.*inflates .* times.*zip bomb"):
+        load(str(bomb))
+    assert cli.main(["cull", str(bomb), "--wall", "examples/wall-4x4.json",
+                     "--frame", "examples/frame.json"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "zip bomb" in err and len(err.splitlines()) == 1, err
+    assert inflated == []
+    monkeypatch.undo()
+    for packed in SCENES.glob("*.zip"):
+        S.check_archive(packed)
+
+
 # ------------------------------------------------------------------ dynamic scenes
 
 
