@@ -1074,6 +1074,32 @@ def test_swap_barrier(client):
         client.delete(f"/walls/{wid}", headers=AUTH)
 
 
+def test_the_index_links_a_few_nodes_of_each_wall_not_every_one(client, monkeypatch):
+    """``GET /`` is open: it links the view pages of a wall's first node credentials only
+    (at most ``INDEX_NODES``, of ``INDEX_TILES`` tiles in all), and says how many more there
+    are, so that its size does not grow with the walls' (a 256 x 256 wall's 65,536 links were
+    3.9 MB, made on the event loop at every request)."""
+    from wallcull.server import pages
+
+    monkeypatch.setattr(pages, "INDEX_TILES", 40, raising=False)
+    grid = {**WALL, "cols": 16, "rows": 16}
+    one = new_wall(client, wall=grid)  # a node per tile: 256
+    rows = new_wall(client, wall=grid, nodes=[list(range(16 * k, 16 * k + 16))
+                                              for k in range(16)])
+    try:
+        page = client.get("/").text
+        row = page.split(f'id="wall-{one}"')[1].split("</tr>")[0]
+        assert row.count("/view?tiles=") == 8  # INDEX_NODES
+        assert f'/walls/{one}/view?tiles=7"' in row and "?tiles=8\"" not in row
+        assert f"and {256 - 8} more node(s)" in row and f'href="/walls/{one}"' in row
+        row = page.split(f'id="wall-{rows}"')[1].split("</tr>")[0]
+        assert row.count("/view?tiles=") == 2 and "?tiles=16-31" in row  # 32 of 40 tiles
+        assert "and 14 more node(s)" in row
+    finally:
+        for wid in (one, rows):
+            client.delete(f"/walls/{wid}", headers=AUTH)
+
+
 def test_meshes_by_etag(client):
     nodes = client.get("/scenes/two.glb?nodes=true").json()["nodes"]
     scene = glb_from_bytes(boxes_glb(), "two")

@@ -108,10 +108,16 @@ class Issued:
     def _group(self, node: int) -> list[int]:
         return self._tiles[self._start[node]:self._start[node + 1]].tolist()
 
-    def nodes(self) -> list[list[int]]:
-        """Each node credential's tiles, sorted (by first tile)."""
-        tiles, start = self._tiles.tolist(), self._start.tolist()
+    def nodes(self, limit: int | None = None) -> list[list[int]]:
+        """Each node credential's tiles, sorted (by first tile); the first ``limit`` only,
+        when given."""
+        start = self._start if limit is None else self._start[:limit + 1]
+        tiles, start = self._tiles[:start[-1]].tolist(), start.tolist()
         return [tiles[a:b] for a, b in zip(start[:-1], start[1:])]
+
+    @property
+    def node_count(self) -> int:
+        return len(self._start) - 1
 
     def rows(self) -> Iterator[tuple[str, str, str]]:
         """(hex digest, role, tiles as JSON) of each credential: the state database's rows."""

@@ -2,7 +2,7 @@
 the API's own interactive documents.
 
 * ``GET /``: the walls the server holds, each with links to its console and view pages (and
-  the node credentials' tiles), and links to the API's documents.
+  the first few node credentials' tiles), and links to the API's documents.
 * ``GET /walls/{wid}/view?tiles=3,4``: the page a render PC opens full-screen, one browser
   window per output. It draws its tiles in one WebGL2 canvas (``static/view.js``), a grid's
   tiles as on the wall when they fill a rectangle, else side by side: the node stream in JSON,
@@ -59,6 +59,10 @@ DOCS_ASSETS = FilePath(fastapi_offline.__file__).resolve().parent / "static"
 CONSOLE_PERIOD, CONSOLE_QUIET = 0.25, 2.0
 #: Console streams open at once, on the whole server.
 MAX_CONSOLES = 32
+#: The index links the view pages of a wall's first node credentials, at most this many and
+#: of at most this many tiles in all (a 256 x 256 wall has 65,536 of them: 3.9 MB of links,
+#: made on the event loop at every ``GET /``); the console links every tile's page.
+INDEX_NODES, INDEX_TILES = 8, 1024
 #: A tile list's form (``0-3``, ``0,1,8,9``, ``all``); tiles out of the wall are a 404.
 TILES = worded(r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$",
                "tiles are 'all' or tile numbers and ranges, such as '0-3,8'")
@@ -142,15 +146,26 @@ def _root(request: Request) -> str:
 @page
 async def index_page(request: Request, state: State):
     """The walls this server holds, each with links to its console and to its view pages (all
-    tiles, and each node credential's tiles), the walls waiting for their scene with the
-    reason, and links to the API's documents."""
+    tiles, and the first few node credentials' tiles: ``INDEX_NODES``), the walls waiting for
+    their scene with the reason, and links to the API's documents."""
     root = _root(request)
     rows = []
     for wid, session in state.walls.sessions.items():
         wall = session.wall
         shape = f"{wall.cols} x {wall.rows}" if wall.kind == "grid" else f"{wall.tiles} screens"
+        shown, named, issued = [], 0, session.issued
+        for tiles in [] if issued is None else issued.nodes(INDEX_NODES):
+            named += len(tiles)
+            if named > INDEX_TILES:
+                break
+            shown.append(tiles)
         views = " ".join(f'<a href="{root}/walls/{wid}/view?tiles={tiles_text(tiles)}">'
-                         f"tiles {tiles_text(tiles)}</a>" for tiles in session.nodes)
+                         f"tiles {tiles_text(tiles)}</a>" for tiles in shown)
+        more = (0 if issued is None else issued.node_count) - len(shown)
+        if more:
+            views += (f' <span class="more">and {more} more node(s): their tiles in '
+                      f'<a href="{root}/walls/{wid}">the wall\'s nodes</a>, each tile\'s page '
+                      "on the console</span>")
         rows.append(f'<tr id="wall-{wid}"><td><code>{wid}</code></td>'
                     f"<td>{html.escape(session.scene.name)}</td><td>{shape}</td>"
                     f"<td>{session.session.method}</td>"
