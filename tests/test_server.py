@@ -1100,6 +1100,27 @@ def test_the_index_links_a_few_nodes_of_each_wall_not_every_one(client, monkeypa
             client.delete(f"/walls/{wid}", headers=AUTH)
 
 
+def assert_one_etag_per_format(client, path: str) -> None:
+    """JSON and msgpack answers of ``path`` (chosen by ``Accept``) vary by ``Accept`` and
+    each has its own ETag: a cache never answers one format for the other, and the ETag of
+    one is no 304 for the other (RFC 9110, 8.8.3: a strong ETag names one representation)."""
+    plain, packed = client.get(path), client.get(path, headers={"Accept": MP})
+    assert plain.headers["content-type"].startswith("application/json")
+    assert packed.headers["content-type"].startswith(MP)
+    for r in (plain, packed):
+        assert "accept" in [v.strip().lower() for v in r.headers.get("vary", "").split(",")]
+    assert plain.headers["etag"] != packed.headers["etag"]
+    for accept, held, status in ((MP, plain, 200), (MP, packed, 304), ("*/*", packed, 200),
+                                 ("*/*", plain, 304)):
+        r = client.get(path, headers={"Accept": accept, "If-None-Match": held.headers["etag"]})
+        assert r.status_code == status, (accept, held.headers["etag"])
+        if status == 200:
+            assert r.content == (packed if accept == MP else plain).content
+        else:
+            assert r.headers["etag"] == held.headers["etag"]
+            assert "accept" in r.headers["vary"].lower()
+
+
 def test_meshes_by_etag(client):
     nodes = client.get("/scenes/two.glb?nodes=true").json()["nodes"]
     scene = glb_from_bytes(boxes_glb(), "two")
@@ -1125,6 +1146,7 @@ def test_meshes_by_etag(client):
     for held in (f"W/{etag}", f'"x", {etag}', "*"):  # weakly, in a list, any (RFC 9110)
         r = client.get(f"/scenes/two.glb/meshes/{body['mesh']}", headers={"If-None-Match": held})
         assert r.status_code == 304, held
+    assert_one_etag_per_format(client, f"/scenes/two.glb/nodes/{leaf}/mesh")
     assert client.get("/scenes/two.glb/nodes/0/mesh").status_code == 404  # the root has none
     assert client.get("/scenes/two.glb/nodes/99/mesh").status_code == 404
     assert client.get("/scenes/two.glb/meshes/nope").status_code == 404
@@ -1778,6 +1800,7 @@ def test_the_node_table_is_encoded_once_and_revalidated_by_its_etag(tmp_path, mo
         packed = c.get("/scenes/two.glb?nodes=true", headers={"Accept": MP})
         assert packed.headers["etag"] != etag
         assert msgpack.unpackb(packed.content)["nodes"] == first.json()["nodes"]
+        assert_one_etag_per_format(c, "/scenes/two.glb?nodes=true")
         assert built.count(True) == 2
 
 

@@ -245,9 +245,14 @@ def status_handler(status: int, metrics: Metrics):
 
 def mesh_reply(request: Request, blob) -> Response:
     """A mesh, or 304 when the client holds it: ``If-None-Match`` names its ETag (weakly, in
-    a list: RFC 9110, section 13.1.2) or is ``*``."""
-    headers = {"ETag": blob.etag, "Cache-Control": "public, max-age=31536000, immutable"}
-    if holds(request.headers.get("if-none-match"), blob.etag):
+    a list: RFC 9110, section 13.1.2) or is ``*``. JSON and msgpack are two representations:
+    each has its own ETag, and ``Vary: Accept`` keeps a cache from answering one for the
+    other."""
+    binary = protocol.wants_msgpack(request.headers.get("accept"))
+    etag = blob.etag[:-1] + '-msgpack"' if binary else blob.etag
+    headers = {"ETag": etag, "Cache-Control": "public, max-age=31536000, immutable",
+               "Vary": "Accept"}
+    if holds(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers=headers)
     return reply(request, blob.body, headers=headers)
 
