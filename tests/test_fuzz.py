@@ -19,7 +19,9 @@ frame is still held is the server's state, not the request's shape.
 from __future__ import annotations
 
 import copy
+import math
 
+import msgpack
 import numpy as np
 import schemathesis
 import trimesh
@@ -120,6 +122,24 @@ def short_waits(case) -> None:
         if isinstance(value, (int, float)) and not isinstance(value, bool) and 0.05 < value <= 10:
             query[key] = 0.05
     case.query = query or case.query
+
+
+def _fits_msgpack(value):
+    """``value`` with integers msgpack cannot carry (past 64 bits) as floats (infinite
+    past a float's range)."""
+    if isinstance(value, dict):
+        return {k: _fits_msgpack(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_fits_msgpack(v) for v in value]
+    if isinstance(value, int) and not isinstance(value, bool) and \
+            not -2**63 <= value < 2**64:
+        return float(value) if abs(value) < 2**1023 else math.copysign(math.inf, value)
+    return value
+
+
+@schemathesis.serializer("application/msgpack")
+def _msgpack(ctx, value):
+    return msgpack.packb(_fits_msgpack(value))
 
 
 @schemathesis.serializer("model/gltf-binary")

@@ -24,7 +24,7 @@ from wallcull.service import FrameNumbers, SceneStore, Walls
 from wallcull.wall import Wall
 
 from .test_access import FRAME, OPERATOR, TOKEN, WALL, bearer
-from .test_server import boxes_glb
+from .test_server import assert_documented, boxes_glb
 
 
 def test_walls_come_back_after_a_restart(tmp_path):
@@ -121,6 +121,14 @@ def test_uploads_and_the_walls_on_them_survive(tmp_path):
         r = c.get(f"/walls/{wid}")
         assert r.status_code == 503 and "two.glb" in r.json()["detail"], r.text
         assert r.headers["retry-after"]
+        node = bearer(info["credentials"]["nodes"][0]["token"])
+        for r in (r, c.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=driver),
+                  c.get(f"/walls/{wid}/tiles/0/packets/latest", headers=node),
+                  c.post(f"/walls/{wid}/tiles/0/ack", json={"frame": 0}, headers=node),
+                  c.get(f"/walls/{wid}/barrier/0?timeout=0"),
+                  c.get(f"/walls/{wid}/view"), c.get(f"/walls/{wid}/console")):
+            assert r.status_code == 503, (r.request.url, r.text)
+            assert_documented(c, r)  # (and so does the document)
         health = c.get("/health").json()
         assert health["status"] == "degraded" and health["walls_unavailable"] == [wid]
         assert "wallcull_walls_unavailable 1.0" in c.get("/metrics").text
@@ -254,6 +262,7 @@ def test_failed_state_writes_are_507_or_503_and_frames_stop_where_numbers_are_wr
                     break
         assert r.status_code == status, r.text
         assert "walls.sqlite3" in r.json()["detail"]
+        assert_documented(c, r)
         health = c.get("/health").json()
         assert health["status"] == "degraded" and "walls.sqlite3" in health["problems"][0]
         assert "wallcull_state_write_failing 1.0" in c.get("/metrics").text
@@ -262,11 +271,14 @@ def test_failed_state_writes_are_507_or_503_and_frames_stop_where_numbers_are_wr
         r = c.post(frames, json={"frame": FRAME}, headers=driver)
         if pragma == "query_only":  # (the page limit still takes a number in its page)
             assert r.status_code == status and "walls.sqlite3" in r.json()["detail"], r.text
+            assert_documented(c, r)
             assert c.get(f"/walls/{info['id']}/tiles/0/packets/latest",
                          headers=node0).json()["frame"] == 4
         if pragma == "query_only":  # (a full disk still lets a wall be deleted)
             walls = len(c.get("/walls").json()["walls"])
-            assert c.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == status
+            r = c.delete(f"/walls/{info['id']}", headers=OPERATOR)
+            assert r.status_code == status
+            assert_documented(c, r)
             assert len(c.get("/walls").json()["walls"]) == walls  # a failed delete keeps it
         db.execute("PRAGMA max_page_count = 1000000" if pragma == "max_page_count"
                    else "PRAGMA query_only = 0")
@@ -373,6 +385,7 @@ def test_an_upload_the_scene_folder_cannot_take_is_507_or_503(tmp_path, monkeypa
         monkeypatch.setattr(SceneStore, "spool", cannot)
         r = c.post("/scenes?name=two", content=boxes_glb(), headers=OPERATOR)
         assert r.status_code == status and os.strerror(code) in r.json()["detail"], r.text
+        assert_documented(c, r)
         monkeypatch.undo()
         assert c.post("/scenes?name=two", content=boxes_glb(),
                       headers=OPERATOR).status_code == 201  # the name was let go

@@ -15,6 +15,7 @@ import logging
 import pathlib
 import math
 import os
+import re
 import socket
 import struct
 import threading
@@ -1100,6 +1101,55 @@ def test_the_index_links_a_few_nodes_of_each_wall_not_every_one(client, monkeypa
             client.delete(f"/walls/{wid}", headers=AUTH)
 
 
+def assert_documented(client, r) -> None:
+    """``r`` is an answer the OpenAPI document declares for its request's operation: its
+    status, its content type and its ``Retry-After``."""
+    doc = client.app.openapi()
+    method, path = r.request.method.lower(), r.request.url.path
+    found = [t for t, ops in doc["paths"].items()
+             if method in ops and re.fullmatch(re.sub(r"\{[^}]+\}", "[^/]+", t), path)]
+    assert len(found) == 1, (method, path, found)
+    declared = doc["paths"][found[0]][method]["responses"].get(str(r.status_code))
+    where = f"{method.upper()} {found[0]}: {r.status_code}"
+    assert declared is not None, f"{where} is not in the document"
+    if r.content:
+        media = r.headers["content-type"].split(";")[0]
+        assert media in declared.get("content", {}), f"{where} in {media} is not in the document"
+    if "retry-after" in r.headers:
+        assert "Retry-After" in declared.get("headers", {}), f"{where}: Retry-After undocumented"
+
+
+def test_every_route_documents_what_it_answers(client, wid):
+    """Each operation of the OpenAPI document declares what it answers: the 422 of an
+    unknown query parameter (the gate's, on every route), and msgpack where JSON is, asked
+    for by ``Accept`` or sent as a body. (The 503s and 507s: where they are provoked.)"""
+    post_frame(client, wid)
+    nodes = client.get("/scenes/two.glb?nodes=true").json()["nodes"]
+    row = nodes["leaf"].index(True)
+    real = {"wid": wid, "tile": 0, "frame": 0, "name": "two.glb", "node": nodes["id"][row],
+            "key": nodes["mesh"][row]}
+    doc = client.app.openapi()
+    for template, ops in doc["paths"].items():
+        path = template.format(**real)
+        for method, op in ops.items():
+            r = client.request(method, f"{path}?bogus=1", headers=AUTH)
+            assert r.status_code == 422 and "bogus" in r.text, (method, path, r.text)
+            assert_documented(client, r)
+            body = op.get("requestBody", {}).get("content", {})
+            if "application/json" in body:
+                assert body.get(MP) == body["application/json"], (method, template)
+            if method == "get":
+                r = client.get(path, headers={**AUTH, "Accept": MP})
+                assert r.status_code == 200, (path, r.text)
+                assert_documented(client, r)
+                if MP in op["responses"]["200"].get("content", {}):
+                    assert r.headers["content-type"] == MP, path
+    r = client.post(f"/walls/{wid}/frames", content=msgpack.packb({"frame": FRAME}),
+                    headers={**AUTH, "Content-Type": MP, "Accept": MP})
+    assert r.status_code == 200 and msgpack.unpackb(r.content)["frame"] == 1
+    assert_documented(client, r)
+
+
 def assert_one_etag_per_format(client, path: str) -> None:
     """JSON and msgpack answers of ``path`` (chosen by ``Accept``) vary by ``Accept`` and
     each has its own ETag: a cache never answers one format for the other, and the ETag of
@@ -1913,8 +1963,13 @@ def test_a_full_scene_cache_is_507_and_an_unwritable_one_503(tmp_path, monkeypat
             r = c.get("/scenes/full.glb")
             assert r.status_code == 507, r.text
             assert "No space left on device" in r.json()["detail"]
+            assert_documented(c, r)
             r = c.post("/walls", json={"wall": WALL, "scene": "full.glb"}, headers=AUTH)
             assert r.status_code == 507, r.text
+            assert_documented(c, r)
+            r = c.get("/scenes/full.glb/meshes/left")
+            assert r.status_code == 507, r.text
+            assert_documented(c, r)
         told = [rec for rec in caplog.records if "cache folder cannot be written" in
                 rec.getMessage()]
         assert len(told) == 1
@@ -1924,8 +1979,10 @@ def test_a_full_scene_cache_is_507_and_an_unwritable_one_503(tmp_path, monkeypat
     with TestClient(create_app(tmp_path / "scenes", token=TOKEN)) as c:
         r = c.get("/scenes/ro.glb")
         assert r.status_code == 503, r.text
+        assert_documented(c, r)
         r = c.post("/walls", json={"wall": WALL, "scene": "ro.glb"}, headers=AUTH)
         assert r.status_code == 503, r.text
+        assert_documented(c, r)
     from wallcull.errors import WriteFailed  # what the child hands back, errno and all
 
     assert pickle.loads(pickle.dumps(WriteFailed("full", errno.ENOSPC))).errno == errno.ENOSPC

@@ -207,10 +207,27 @@ _REFUSALS = {304: "Not modified: the ETag matches", 400: "Malformed msgpack body
              408: "The body arrived too slowly", 409: "Conflicts with the server's state",
              410: "The frame left the history", 413: "Body too large",
              415: "Bodies are JSON or msgpack", 422: "Invalid input",
-             503: "Too many uploads at once; retry"}
+             507: "The state folder or the scene cache folder is full"}
+#: What a 503 (for now: retry after ``Retry-After`` seconds) may say, by its cause: a route
+#: names the causes it meets among its refusals' codes. ``UNWRITABLE`` is a 507 too.
+WAITS = "the wall waits for its scene (a restart did not find it)"
+UNWRITABLE = "the state folder or the scene cache folder cannot be written"
+BUSY = "too many uploads at once"
+RETRY_AFTER = {"Retry-After": {"description": "Seconds to wait before trying again",
+                               "schema": {"type": "integer"}}}
 
 
-def refusals(*codes: int) -> dict:
-    """OpenAPI ``responses`` for the refusals a route may answer (all with a ``detail``)."""
-    return {c: {"description": _REFUSALS[c]} if c == 304 else
-            {"model": Detail, "description": _REFUSALS[c]} for c in (*codes, 422)}
+def refusals(*codes: int | str) -> dict:
+    """OpenAPI ``responses`` for the refusals a route may answer (all with a ``detail``):
+    status codes, and the causes of a 503 (``WAITS``, ``UNWRITABLE``, ``BUSY``)."""
+    causes = [c for c in codes if isinstance(c, str)]
+    codes = [c for c in codes if isinstance(c, int)] + [507] * (UNWRITABLE in causes)
+    out = {c: {"description": _REFUSALS[c]} if c == 304 else
+           {"model": Detail, "description": _REFUSALS[c]} for c in (*codes, 422)}
+    if 507 in out:
+        out[507]["headers"] = RETRY_AFTER
+    if causes:
+        said = "; or ".join(causes)
+        out[503] = {"model": Detail, "description": f"{said[0].upper()}{said[1:]}: retry",
+                    "headers": RETRY_AFTER}
+    return out

@@ -1,7 +1,9 @@
 """The OpenAPI document, completed with what FastAPI cannot see: the bodies routes validate
-themselves (:func:`.http.body_of`), who may call what (bearer security on every route that
-needs a token, when the server has one), and the links from a wall to its frames, packets,
-acknowledgements and barrier, so that a client (or a stateful fuzzer) can follow them.
+themselves (:func:`.http.body_of`), JSON or msgpack, the answers in msgpack of the routes
+that negotiate (:func:`.http.reply`), the 422 of an unknown query parameter on every route
+(the gate's), who may call what (bearer security on every route that needs a token, when
+the server has one), and the links from a wall to its frames, packets, acknowledgements and
+barrier, so that a client (or a stateful fuzzer) can follow them.
 """
 
 from __future__ import annotations
@@ -13,8 +15,12 @@ from fastapi.routing import APIRoute
 from pydantic.json_schema import models_json_schema
 
 from .access import OPEN, leaf_routes, role_of
+from .models import Detail
 
 REF = "#/components/schemas/{model}"
+MSGPACK = "application/msgpack"
+#: The tags whose routes answer through :func:`.http.reply`: JSON, or msgpack by ``Accept``.
+NEGOTIATED = {"scenes", "walls"}
 
 #: Links of a created wall (201 of ``POST /walls``): its id feeds every route of the wall.
 #: (Constants are strings, as the OpenAPI schema asks of a link's parameters: ``"0"`` is
@@ -59,8 +65,18 @@ def document(app, secured: bool) -> dict:
                 model = getattr(dep.call, "body_model", None)
                 if model is not None:
                     models[model.__name__] = model
-                    op["requestBody"] = {"required": True, "content": {"application/json": {
-                        "schema": {"$ref": REF.format(model=model.__name__)}}}}
+                    body = {"schema": {"$ref": REF.format(model=model.__name__)}}
+                    op["requestBody"] = {"required": True, "content": {
+                        "application/json": body, MSGPACK: body}}
+            if NEGOTIATED & set(op.get("tags", ())):
+                for status, response in op["responses"].items():
+                    content = response.get("content", {})
+                    if status.startswith("2") and "application/json" in content:
+                        content[MSGPACK] = content["application/json"]
+            if "422" not in op["responses"]:  # the gate's: an unknown query parameter
+                op["responses"]["422"] = {"description": "Invalid input", "content": {
+                    "application/json": {"schema": {"$ref": REF.format(model="Detail")}}}}
+                models.setdefault("Detail", Detail)
             if secured and role_of(route.endpoint) != OPEN:
                 op["security"] = [{"bearer": []}]
     components = doc.setdefault("components", {})

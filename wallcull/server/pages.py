@@ -46,7 +46,7 @@ from ..workers import background
 from .access import bearer
 from .deps import ServerState, State
 from .http import Budget, Refused, encode_in_pieces
-from .models import WallId, refusals, worded
+from .models import WAITS, WallId, refusals, worded
 from .streams import GONE, count, deny, room
 
 router = APIRouter(tags=["pages"])
@@ -72,12 +72,13 @@ STATIC_NAME = worded(r"^[a-z][a-z0-9_-]{0,40}\.(js|css)$",
 SIZE = worded(r"^[1-9]\d{0,3}x[1-9]\d{0,3}$", "a size is WIDTHxHEIGHT in pixels, such as 1920x1080")
 
 
-def _html_or_refusals(*codes: int) -> dict:
+def _html_or_refusals(*codes: int | str) -> dict:
     """OpenAPI ``responses`` of a page: an HTML page, its refusals too."""
     out = {200: {"description": "An HTML page", "content": {"text/html": {
         "schema": {"type": "string"}}}}}
     for code, response in refusals(*codes).items():
         response.pop("model", None)
+        response.pop("headers", None)  # a page has no Retry-After
         out[code] = {**response, "content": {"text/html": {"schema": {"type": "string"}}}}
     return out
 
@@ -196,7 +197,7 @@ async def index_page(request: Request, state: State):
 
 
 @router.get("/walls/{wid}/view", response_class=HTMLResponse, operation_id="viewPage",
-            responses=_html_or_refusals(404))
+            responses=_html_or_refusals(404, WAITS))
 @page
 async def view_page(request: Request, state: State, wid: WallId,
                     tiles: Annotated[str | None, Query(pattern=TILES, max_length=4000)] = None,
@@ -231,7 +232,7 @@ async def view_page(request: Request, state: State, wid: WallId,
 
 
 @router.get("/walls/{wid}/console", response_class=HTMLResponse, operation_id="consolePage",
-            responses=_html_or_refusals(404))
+            responses=_html_or_refusals(404, WAITS))
 @page
 async def console_page(request: Request, state: State, wid: WallId,
                        token: Token = None):

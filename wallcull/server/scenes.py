@@ -20,7 +20,7 @@ from ..service import NotFound, describe, mesh_blob
 from .access import needs
 from .deps import State
 from .http import Refused, encode_in_pieces, holds, mesh_reply, reply
-from .models import SCENE_NAME, refusals, worded
+from .models import BUSY, SCENE_NAME, UNWRITABLE, refusals, worded
 
 router = APIRouter(tags=["scenes"])
 
@@ -43,7 +43,7 @@ async def list_scenes(request: Request, state: State):
 
 
 @router.post("/scenes", status_code=201, operation_id="uploadScene",
-             responses=refusals(401, 403, 408, 409, 413, 503), openapi_extra={
+             responses=refusals(401, 403, 408, 409, 413, BUSY, UNWRITABLE), openapi_extra={
                  "requestBody": {"required": True, "content": {
                      "model/gltf-binary": {"schema": {"type": "string", "format": "binary"}}}}})
 @needs(OPERATOR)
@@ -90,7 +90,8 @@ async def _receive(request: Request, state, name: str):
             os.unlink(path)
 
 
-@router.get("/scenes/{name}", operation_id="getScene", responses=refusals(304, 404))
+@router.get("/scenes/{name}", operation_id="getScene",
+            responses=refusals(304, 404, UNWRITABLE))
 async def scene_info(request: Request, state: State, name: SceneName, nodes: bool = False):
     """A scene's stats, bounds and settings; ``nodes=true`` adds its node table (every node
     but the clusters): id, name, parent, leaf flag, mesh key and rest world transform (row by
@@ -127,7 +128,8 @@ def _encode_table(scene, binary: bool) -> tuple[bytes, str]:
     return body, '"' + hashlib.blake2b(body, digest_size=16).hexdigest() + '"'
 
 
-@router.get("/scenes/{name}/meshes/{key}", operation_id="getMesh", responses=refusals(304, 404))
+@router.get("/scenes/{name}/meshes/{key}", operation_id="getMesh",
+            responses=refusals(304, 404, UNWRITABLE))
 async def mesh(request: Request, state: State, name: SceneName,
                key: Annotated[str, Path(max_length=1024)]):
     """A mesh as typed arrays (little-endian float32 vertices, uint32 faces); cache it by
@@ -136,7 +138,7 @@ async def mesh(request: Request, state: State, name: SceneName,
 
 
 @router.get("/scenes/{name}/nodes/{node}/mesh", operation_id="getNodeMesh",
-            responses=refusals(304, 404))
+            responses=refusals(304, 404, UNWRITABLE))
 async def node_mesh(request: Request, state: State, name: SceneName,
                     node: Annotated[int, Path(ge=0, le=2**31)]):
     """The mesh of a leaf node, in the node's local coordinates (see ``nodes=true``)."""

@@ -20,8 +20,8 @@ from .access import needs
 from .deps import State
 from .http import body_of, reply, reply_large
 from .messages import FrameAnswer, Packet
-from .models import (Ack, Barrier, FramePost, WallCreate, WallCreated, WallId, WallInfo,
-                     WallList, refusals, worded)
+from .models import (UNWRITABLE, WAITS, Ack, Barrier, FramePost, WallCreate, WallCreated,
+                     WallId, WallInfo, WallList, refusals, worded)
 from .openapi import FRAME_LINKS, WALL_LINKS
 
 #: Seconds a request may wait for a frame or the barrier.
@@ -42,7 +42,7 @@ FRAME = worded(r"^(latest|\d{1,16})$", "a frame is 'latest' or a frame number")
 
 
 @router.post("/walls", status_code=201, operation_id="createWall", response_model=WallCreated,
-             responses={**refusals(400, 401, 403, 404, 408, 409, 413, 415),
+             responses={**refusals(400, 401, 403, 404, 408, 409, 413, 415, UNWRITABLE),
                         201: {"description": "The wall, with its credentials (shown once)",
                               "links": WALL_LINKS}})
 @needs(OPERATOR)
@@ -90,14 +90,14 @@ async def list_walls(request: Request, state: State):
 
 
 @router.get("/walls/{wid}", operation_id="getWall", response_model=WallInfo,
-            responses=refusals(404))
+            responses=refusals(404, WAITS))
 async def wall_info(request: Request, state: State, wid: WallId):
     session = state.walls.get(wid)
     return await _reply(request, session, session.info)
 
 
 @router.delete("/walls/{wid}", status_code=204, operation_id="deleteWall",
-               responses=refusals(401, 403, 404))
+               responses=refusals(401, 403, 404, UNWRITABLE))
 @needs(OPERATOR)
 async def delete_wall(state: State, wid: WallId):
     if wid in state.walls.sessions and state.walls.state is not None:
@@ -113,7 +113,8 @@ async def delete_wall(state: State, wid: WallId):
 
 
 @router.post("/walls/{wid}/frames", operation_id="postFrame", response_model=FrameAnswer,
-             responses={**refusals(400, 401, 403, 404, 408, 409, 413, 415),
+             responses={**refusals(400, 401, 403, 404, 408, 409, 413, 415, WAITS,
+                                   UNWRITABLE),
                         200: {"description": "The frame's number and timings",
                               "links": FRAME_LINKS}})
 @needs(DRIVER)
@@ -154,7 +155,7 @@ def check_packets(session, body: FramePost) -> None:
 
 
 @router.get("/walls/{wid}/tiles/{tile}/packets/{frame}", operation_id="getPacket",
-            response_model=Packet, responses=refusals(401, 403, 404, 410))
+            response_model=Packet, responses=refusals(401, 403, 404, 410, WAITS))
 @needs(NODE)
 async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
                      frame: Annotated[str, Path(pattern=FRAME)],
@@ -184,7 +185,7 @@ async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
 
 
 @router.post("/walls/{wid}/tiles/{tile}/ack", status_code=204, operation_id="acknowledge",
-             responses=refusals(400, 401, 403, 404, 408, 409, 413, 415))
+             responses=refusals(400, 401, 403, 404, 408, 409, 413, 415, WAITS))
 @needs(NODE)
 async def ack(state: State, wid: WallId, tile: TileId, body: Annotated[Ack, body_of(Ack)]):
     """The tile has drawn frame ``frame`` (the swap barrier counts these). With a server
@@ -194,7 +195,7 @@ async def ack(state: State, wid: WallId, tile: TileId, body: Annotated[Ack, body
 
 
 @router.get("/walls/{wid}/barrier/{frame}", operation_id="barrier", response_model=Barrier,
-            responses=refusals(404))
+            responses=refusals(404, WAITS))
 async def barrier(request: Request, state: State, wid: WallId,
                   frame: Annotated[int, Path(ge=0, le=MAX_FRAME)],
                   timeout: Wait = 1.0):
