@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import json
 import os
 import sqlite3
 import subprocess
@@ -43,6 +44,11 @@ def test_walls_come_back_after_a_restart(tmp_path):
         assert [w["id"] for w in c.get("/walls").json()["walls"]] == [info["id"]]
         after = c.get(f"/walls/{info['id']}").json()
         assert after == before and after["latest"] == 4 and after["method"] == "oh"
+        # the console says so too: frame 4 was the newest handed out, none held since
+        with c.websocket_connect(f"/walls/{info['id']}/console/stream",
+                                 headers=OPERATOR) as ws:
+            status = json.loads(ws.receive_text())
+        assert status["newest"] == 4 and status["frame"] == -1
         # the same credentials; numbers go on after the last one handed out
         r = c.post(f"/walls/{info['id']}/frames", json={"frame": FRAME}, headers=driver)
         assert r.status_code == 200 and r.json()["frame"] == 5

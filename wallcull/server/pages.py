@@ -243,10 +243,11 @@ async def console_page(request: Request, state: State, wid: WallId,
 
 
 #: The console's tile states (``WallSession.status``), and what each means.
-LEGEND = (("offline", f"no stream, no acknowledgement for {LIVE:g} s"),
+LEGEND = (("offline", f"no stream, no acknowledgement for {LIVE:g} s, the newest frame "
+                      "not drawn"),
           ("waiting", "no frame posted yet"),
           ("drawing", "the newest frame is not yet acknowledged"),
-          ("acked", "has drawn the newest frame"),
+          ("acked", "has drawn the newest frame (streaming or not)"),
           ("lagging", f"more than {LAG_FRAMES} frames or {LAG:g} s behind"))
 
 
