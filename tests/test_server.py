@@ -576,6 +576,34 @@ def test_an_older_acknowledgement_keeps_a_newer_ones_time(client, wid):
     assert session.acked_at[0] == at
 
 
+def test_consoles_without_a_credential_never_lock_out_one_with_it(client, wid):
+    """Anonymous consoles fill their own cap (429) and no more: the operator's console, and
+    one with a node's credential, still open (32 anonymous sockets locked out every console,
+    the operator's too)."""
+    with ExitStack() as held:
+        for k in range(40):
+            try:
+                held.enter_context(client.websocket_connect(f"/walls/{wid}/console/stream"))
+            except WebSocketDenialResponse as refused:
+                assert refused.status_code == 429
+                detail = refused.json()["detail"]
+                break
+        else:
+            pytest.fail("40 consoles without a credential were all let in")
+        with client.websocket_connect(f"/walls/{wid}/console/stream?token={TOKEN}") as ws:
+            assert json.loads(ws.receive_text())["wall"] == wid
+        assert k == client.app.state.server.limits.consoles and "without a credential" in detail
+        info = client.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
+                           headers=AUTH).json()
+        try:
+            node = info["credentials"]["nodes"][0]["token"]
+            with client.websocket_connect(f"/walls/{info['id']}/console/stream",
+                                          headers={"Authorization": f"Bearer {node}"}) as ws:
+                assert json.loads(ws.receive_text())["wall"] == info["id"]
+        finally:
+            client.delete(f"/walls/{info['id']}", headers=AUTH)
+
+
 def test_a_refused_frame_applies_none_of_its_updates(client, wid, fatehpur):
     """Updates travel with the frame: when the frame is refused, nothing moves."""
     leaf = fatehpur.names[int(fatehpur.leaves[0])]

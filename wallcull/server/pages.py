@@ -57,7 +57,9 @@ DOCS_ASSETS = FilePath(fastapi_offline.__file__).resolve().parent / "static"
 #: Seconds between two looks at a wall's state, for the console streams; a status unchanged
 #: is sent again only after ``CONSOLE_QUIET`` seconds.
 CONSOLE_PERIOD, CONSOLE_QUIET = 0.25, 2.0
-#: Console streams open at once, on the whole server.
+#: Console streams opened with a credential of their wall (the operator's token, a node's or
+#: the driver's) open at once, on the whole server; those without one have their own cap,
+#: ``limits.consoles``, and never take these.
 MAX_CONSOLES = 32
 #: A tile list's form (``0-3``, ``0,1,8,9``, ``all``); tiles out of the wall are a 404.
 TILES = worded(r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$",
@@ -281,24 +283,28 @@ async def console_stream(ws: WebSocket, wid: str):
     """The console's status of a wall (JSON, see ``WallSession.status``) whenever it changes,
     looked at every ``CONSOLE_PERIOD`` seconds; closed with code 4404 when the wall is
     deleted. Open, like ``GET /walls/{wid}`` (it carries no pose), but counted against the
-    caps of streams (the server's, the wall's: 429), and a console opened without a credential
-    of the wall (``?token=``: the operator's or one of the wall's) shares with every other
-    such console ``limits.open_bytes`` a second: on a 256 x 256 wall it is sent a status
-    (2 MB) less often."""
+    caps of streams (the server's, the wall's: 429). A console opened without a credential of
+    the wall (``?token=``: the operator's or one of the wall's) counts against
+    ``limits.consoles`` (429), never against the ``MAX_CONSOLES`` of those opened with one (so
+    that anonymous consoles cannot lock the operator out), and shares with every other such
+    console ``limits.open_bytes`` a second: on a 256 x 256 wall it is sent a status (2 MB)
+    less often."""
     state: ServerState = ws.app.state.server
+    token = ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
     try:
         session = state.walls.get(wid)
-        if state.consoles >= MAX_CONSOLES:
-            raise Refused(429, f"the server already has {MAX_CONSOLES} consoles open")
+        grant = state.walls.grant(token) if token else None
+        trusted = token is not None and (state.is_operator(token) or
+                                         (grant is not None and grant.wall == wid))
+        cap = MAX_CONSOLES if trusted else state.limits.consoles
+        if state.consoles[trusted] >= cap:
+            raise Refused(429, f"the server already has {cap} consoles open "
+                               f"{'with' if trusted else 'without'} a credential")
         room(state, session, NO_TILES)
     except (NotFound, Refused, Unavailable) as exc:
         return await deny(ws, state, exc)
-    token = ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
-    grant = state.walls.grant(token) if token else None
-    trusted = token is not None and (state.is_operator(token) or
-                                     (grant is not None and grant.wall == wid))
     await ws.accept()
-    state.consoles += 1
+    state.consoles[trusted] += 1
     count(state, session, NO_TILES, +1)
 
     pace = Budget(state.limits.messages)
@@ -328,7 +334,7 @@ async def console_stream(ws: WebSocket, wid: str):
     except (WebSocketDisconnect, RuntimeError, OSError):
         pass  # the console went away
     finally:
-        state.consoles -= 1
+        state.consoles[trusted] -= 1
         count(state, session, NO_TILES, -1)
         for w in waits:
             w.cancel()
