@@ -136,6 +136,9 @@ def test_uploads_and_the_walls_on_them_survive(tmp_path):
             r = c.get(f"/walls/{wid}/{page}")
             assert r.status_code == 503 and r.headers["content-type"].startswith("text/html")
             assert "two.glb" in r.text and "Service Unavailable" in r.text
+            # it loads itself again (it stayed an error after the wall came back)
+            assert '<meta http-equiv="refresh" content="5">' in r.text
+            assert r.headers["retry-after"] == "5"
         row = c.get("/").text.split(f'id="wall-{wid}"')[1].split("</tr>")[0]
         assert "unavailable" in row and "two.glb" in row  # the index lists it, and why
         # the scene comes back (uploaded again): so does the wall, with its credentials

@@ -604,6 +604,14 @@ def test_consoles_without_a_credential_never_lock_out_one_with_it(client, wid):
             client.delete(f"/walls/{info['id']}", headers=AUTH)
 
 
+def test_pages_refused_are_counted_as_refusals(client):
+    """A page's 404 counts in ``wallcull_errors_total`` as the API's does."""
+    before = metric(metrics(client), "wallcull_errors_total", status=404)
+    for page in ("console", "view"):
+        assert client.get(f"/walls/000000000000/{page}").status_code == 404
+    assert metric(metrics(client), "wallcull_errors_total", status=404) == before + 2
+
+
 def test_a_refused_frame_applies_none_of_its_updates(client, wid, fatehpur):
     """Updates travel with the frame: when the frame is refused, nothing moves."""
     leaf = fatehpur.names[int(fatehpur.leaves[0])]

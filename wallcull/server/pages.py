@@ -61,6 +61,8 @@ CONSOLE_PERIOD, CONSOLE_QUIET = 0.25, 2.0
 #: the driver's) open at once, on the whole server; those without one have their own cap,
 #: ``limits.consoles``, and never take these.
 MAX_CONSOLES = 32
+#: Seconds a page refused for a wall waiting for its scene (503) waits before it loads again.
+REFRESH = 5
 #: A tile list's form (``0-3``, ``0,1,8,9``, ``all``); tiles out of the wall are a 404.
 TILES = worded(r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$",
                "tiles are 'all' or tile numbers and ranges, such as '0-3,8'")
@@ -93,13 +95,13 @@ def is_page(request: Request) -> bool:
 
 
 def _page(title: str, body: str, root: str, script: str | None = None,
-          config: dict | None = None, status: int = 200, kind: str = "index") -> HTMLResponse:
-    head = ""
+          config: dict | None = None, status: int = 200, kind: str = "index",
+          head: str = "") -> HTMLResponse:
     if script is not None:
         # JSON inside <script>: "<", ">" and "&" escaped, so no value can close the element
         data = json.dumps(config).replace("<", "\\u003c").replace(">", "\\u003e") \
             .replace("&", "\\u0026")
-        head = (f'<script type="application/json" id="wallcull-config">{data}</script>\n'
+        head += (f'<script type="application/json" id="wallcull-config">{data}</script>\n'
                 f'<script type="module" src="{root}/static/{script}"></script>\n')
         kind = script.split(".")[0]
     return HTMLResponse(f"""<!doctype html>
@@ -112,13 +114,19 @@ def _page(title: str, body: str, root: str, script: str | None = None,
 
 
 def error_page(request: Request, status: int, detail: str) -> HTMLResponse:
-    """A refusal, as a page: the status, what is wrong, and the way back to the walls."""
+    """A refusal, as a page: the status, what is wrong, and the way back to the walls; a 503
+    (a wall waiting for its scene) loads itself again every ``REFRESH`` seconds."""
     root = _root(request)
     reason = html.escape(_REASONS.get(status, "Refused"))
-    return _page(f"{status} {reason}: wallcull", f'<main><h1>{status} {reason}</h1>'
+    again = f'<meta http-equiv="refresh" content="{REFRESH}">\n' if status == 503 else ""
+    page = _page(f"{status} {reason}: wallcull", f'<main><h1>{status} {reason}</h1>'
                  f'<p class="detail">{html.escape(detail)}</p>'
+                 + (f"<p>Trying again every {REFRESH} s.</p>" if again else "") +
                  f'<p><a href="{root}/">the walls of this server</a></p></main>', root,
-                 status=status, kind="index error")
+                 status=status, kind="index error", head=again)
+    if again:
+        page.headers["Retry-After"] = str(REFRESH)
+    return page
 
 
 #: A page's ``?token=``: a credential it passes on to its streams and links.
@@ -130,8 +138,10 @@ _REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests",
 
 def _missing(request: Request, exc: Exception) -> HTMLResponse:
     """The page of a wall (or tiles) that is not there: 503 while its scene is away (it
-    comes back with it), else 404."""
-    return error_page(request, 503 if isinstance(exc, Unavailable) else 404, str(exc))
+    comes back with it), else 404; counted with the API's refusals."""
+    status = 503 if isinstance(exc, Unavailable) else 404
+    request.app.state.server.metrics.errors.labels(str(status)).inc()
+    return error_page(request, status, str(exc))
 
 
 def _root(request: Request) -> str:
