@@ -18,7 +18,9 @@ on loopback with a token:
   of pixels at 640 x 360 (up to 1.2 % at 320 x 180); it is checked too, at 99 %;
 * the operator console (``/walls/{wid}/console``) draws one element per tile and its numbers
   follow the frames and the acknowledgements; its legend shows the plan's colours, and each
-  tile leads to its view page;
+  tile leads to its view page; it draws a wall of 32,768 tiles, shows every CAVE2 screen (none
+  under another), draws only the newest of the statuses that came while it was busy, greys
+  while its server is down, and says why it is refused (503, too many consoles);
 * the index (``/``) leads to every wall's console and view pages; a page refused (an unknown
   wall, a bad query) is a page with the status; Swagger UI renders with every request that is
   not to the server refused.
@@ -34,6 +36,7 @@ import json
 import os
 import secrets
 import shutil
+from contextlib import ExitStack
 from pathlib import Path
 from urllib.parse import quote
 
@@ -57,6 +60,7 @@ if not Path(CHROMIUM).exists():
 
 import httpx  # noqa: E402
 import jsonschema  # noqa: E402
+import websockets.sync.client  # noqa: E402
 
 from wallcull_clients.loadtest import free_port, running_server  # noqa: E402
 from wallcull_clients.sim import decode_mesh  # noqa: E402
@@ -597,9 +601,11 @@ class Restartable:
     def restart(self, then=None) -> None:
         """Stop, do ``then()`` (change its files) while it is down, start again."""
         self.stop()
-        if then is not None:
-            then()
-        self.start()
+        try:
+            if then is not None:
+                then()
+        finally:  # up again, whatever ``then`` raised
+            self.start()
 
 
 @pytest.fixture(scope="module")
@@ -715,6 +721,49 @@ def test_a_page_refused_for_too_many_streams_says_so(restartable, restartable_ht
     finally:
         for page in pages:
             page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_console_greys_while_its_server_is_down_and_says_why_it_is_refused(
+        restartable, restartable_http, browser, tmp_path):
+    """The server stops: the console greys its plan and table (the last state, no longer
+    known) and says the server does not answer; it comes back without the wall's scene file:
+    refused (503), said with the reason; the file back, the wall back: the console says the
+    newest frame was handed out before the restart (it said "no frame yet" where the API
+    says ``latest``)."""
+    http, url = restartable_http, restartable.url
+    scene = restartable.scenes / "console.glb"
+    scene.write_bytes(blocks_glb())
+    wid = create_wall(http, GRID, scene="console.glb")["id"]
+    number = post(http, wid, BLOCK_FRAMES[0])
+    console = open_page(browser, f"{url}/walls/{wid}/console")
+    summary = "document.getElementById('summary').textContent"
+    try:
+        console.wait_for_function(f"window.wallcull && window.wallcull.status && "
+                                  f"window.wallcull.status.frame === {number}", timeout=60_000)
+        assert not console.evaluate("document.body.classList.contains('stale')")
+
+        def down():
+            console.wait_for_function(f"document.body.classList.contains('stale') && "
+                                      f"{summary}.includes('does not answer')", timeout=60_000)
+            assert console.locator("#plan").evaluate(
+                "e => getComputedStyle(e).filter") == "grayscale(1)"
+            scene.rename(tmp_path / "away.glb")
+
+        restartable.restart(down)
+        console.wait_for_function(f"{summary}.startsWith('refused (503)')", timeout=60_000)
+        assert "console.glb" in console.locator("#summary").text_content()
+        (tmp_path / "away.glb").rename(scene)
+        console.wait_for_function(f"!document.body.classList.contains('stale')",
+                                  timeout=60_000)
+        assert http.get(f"/walls/{wid}").json()["latest"] == number
+        assert console.locator("#summary").text_content() == \
+            f"frame {number} before the server restarted; none since"
+        # what the browser logs of the requests and streams refused, and no other error
+        assert [e for e in console.wallcull_errors if not e.startswith(
+            ("Failed to load resource", "WebSocket connection to"))] == []
+    finally:
+        console.close()
         http.delete(f"/walls/{wid}", headers=AUTH)
 
 
@@ -891,6 +940,129 @@ def test_console_of_screens_around_the_viewer_is_a_top_view(server, http, browse
     finally:
         console.close()
         http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_console_of_cave2_shows_and_leads_to_every_screen(server, http, browser):
+    """CAVE2's 72 screens stand in 18 columns of 4 rows: from above, each column's four
+    coincide (54 screens lay hidden under others). Unrolled around the viewer, each is on top
+    at its own centre, and clicking there follows its own link."""
+    wall = json.loads((ROOT / "examples" / "wall-cave2.json").read_text())
+    wid = create_wall(http, wall)["id"]
+    console = open_page(browser, f"{server}/walls/{wid}/console", 1600, 1000)
+    try:
+        console.wait_for_function("window.wallcull && window.wallcull.updates > 0",
+                                  timeout=30_000)
+        owners = console.evaluate("""() => [...document.querySelectorAll('#plan g.tile')].map(
+            (g) => { const box = g.querySelector('polygon').getBoundingClientRect();
+                     const at = document.elementFromPoint(box.x + box.width / 2,
+                                                          box.y + box.height / 2);
+                     const owner = at && at.closest('g.tile');
+                     return [Number(g.dataset.tile), owner ? Number(owner.dataset.tile) : null,
+                             box.width, box.height]; })""")
+        assert len(owners) == 72
+        hidden = [(t, on) for t, on, _, _ in owners if on != t]
+        assert hidden == [], f"{len(hidden)} screens under others: {hidden[:8]}"
+        assert all(w > 10 and h > 10 for _, _, w, h in owners)  # areas, not lines
+        assert console.locator("#plan .viewer").count() == 0  # not a view from above
+        box = console.locator("#tile-8 polygon").bounding_box()
+        with console.expect_navigation():
+            console.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        assert console.url.endswith(f"/walls/{wid}/view?tiles=8")
+        assert console.wallcull_errors == []
+    finally:
+        console.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_console_of_a_wall_past_31k_tiles_is_drawn(server, http, browser):
+    """128 x 256 tiles: the plan's extent spread 4 values a tile as a call's arguments, and
+    Chromium's limit (about 124,000) threw a RangeError before anything was drawn."""
+    wall = {"cols": 128, "rows": 256, "tile_size": [0.05, 0.03], "gap": [0.0, 0.0],
+            "distance": 2.0, "near": 0.1, "far": 1000.0, "resolution": [64, 36]}
+    wid = create_wall(http, wall, history=16)["id"]
+    console = open_page(browser, f"{server}/walls/{wid}/console")
+    try:
+        console.wait_for_function("window.wallcull && (window.wallcull.updates > 0 || "
+                                  "document.getElementById('summary').textContent"
+                                  ".includes('Error'))", timeout=300_000)
+        assert "Error" not in console.locator("#summary").text_content()
+        assert console.locator("#plan .tile").count() == 128 * 256
+        assert console.locator("#tiles tbody tr").count() == 128 * 256
+        assert console.wallcull_errors == []
+    finally:
+        console.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+#: Counts the messages every WebSocket of a page receives (``window.received``).
+COUNT_MESSAGES = """window.received = 0;
+window.WebSocket = class extends window.WebSocket {
+  constructor(...args) {
+    super(...args);
+    this.addEventListener("message", () => { window.received += 1; });
+  }
+};"""
+
+
+def test_console_draws_only_the_newest_status(server, http, browser):
+    """Statuses that came while the page was busy are dropped, the newest drawn once (each was
+    drawn in turn, and a 64 x 64 wall's console fell ever further behind). The page is held
+    in the debugger while frames come, as a page busy drawing is."""
+    wid = create_wall(http, GRID)["id"]
+    console = open_page(browser, f"{server}/walls/{wid}/console", init=COUNT_MESSAGES)
+    cdp = None
+    try:
+        console.wait_for_function("window.wallcull && window.wallcull.updates > 0",
+                                  timeout=30_000)
+        before = console.evaluate("[window.received, window.wallcull.updates]")
+        cdp = console.context.new_cdp_session(console)
+        cdp.send("Debugger.enable")
+        cdp.send("Debugger.pause")
+        number = None
+        url = server.replace("http", "ws", 1) + f"/walls/{wid}/console/stream?token={TOKEN}"
+        # a console of its own sees each status the page is sent
+        with websockets.sync.client.connect(url, ping_interval=None) as watch:
+            for frame in GRID_FRAMES * 3:
+                number = post(http, wid, frame)
+                while json.loads(watch.recv(timeout=30))["frame"] != number:
+                    pass
+        cdp.send("Debugger.resume")
+        console.wait_for_function(f"window.wallcull.status.frame === {number}",
+                                  timeout=60_000)
+        console.wait_for_function(f"window.received - {before[0]} >= 6", timeout=60_000)
+        received, updates = console.evaluate("[window.received, window.wallcull.updates]")
+        assert updates - before[1] < received - before[0], (before, received, updates)
+        assert console.wallcull_errors == []
+    finally:
+        if cdp is not None:
+            cdp.detach()
+        console.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def test_a_console_refused_for_too_many_consoles_says_so(server, http, browser):
+    """Every console slot for pages without a credential taken: the page says it is refused
+    and retries (it said "disconnected; reconnecting", though it never connected)."""
+    wid = create_wall(http, GRID)["id"]
+    url = server.replace("http", "ws", 1) + f"/walls/{wid}/console/stream"
+    console = None
+    with ExitStack() as held:
+        for _ in range(64):
+            try:
+                held.enter_context(websockets.sync.client.connect(url, ping_interval=None))
+            except websockets.exceptions.InvalidStatus as refused:
+                assert refused.response.status_code == 429
+                break
+        try:
+            console = open_page(browser, f"{server}/walls/{wid}/console")
+            console.wait_for_function("document.getElementById('summary').textContent"
+                                      ".startsWith('refused')", timeout=60_000)
+            note = console.locator("#summary").text_content()
+            assert "too many consoles" in note and "retrying every 2 s" in note, note
+        finally:
+            if console is not None:
+                console.close()
+            http.delete(f"/walls/{wid}", headers=AUTH)
 
 
 @pytest.mark.skipif(not os.environ.get("WALLCULL_SCREENSHOT"),

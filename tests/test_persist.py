@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import json
 import os
 import sqlite3
 import subprocess
@@ -43,6 +44,11 @@ def test_walls_come_back_after_a_restart(tmp_path):
         assert [w["id"] for w in c.get("/walls").json()["walls"]] == [info["id"]]
         after = c.get(f"/walls/{info['id']}").json()
         assert after == before and after["latest"] == 4 and after["method"] == "oh"
+        # the console says so too: frame 4 was the newest handed out, none held since
+        with c.websocket_connect(f"/walls/{info['id']}/console/stream",
+                                 headers=OPERATOR) as ws:
+            status = json.loads(ws.receive_text())
+        assert status["newest"] == 4 and status["frame"] == -1
         # the same credentials; numbers go on after the last one handed out
         r = c.post(f"/walls/{info['id']}/frames", json={"frame": FRAME}, headers=driver)
         assert r.status_code == 200 and r.json()["frame"] == 5
@@ -138,6 +144,9 @@ def test_uploads_and_the_walls_on_them_survive(tmp_path):
             r = c.get(f"/walls/{wid}/{page}")
             assert r.status_code == 503 and r.headers["content-type"].startswith("text/html")
             assert "two.glb" in r.text and "Service Unavailable" in r.text
+            # it loads itself again (it stayed an error after the wall came back)
+            assert '<meta http-equiv="refresh" content="5">' in r.text
+            assert r.headers["retry-after"] == "5"
         row = c.get("/").text.split(f'id="wall-{wid}"')[1].split("</tr>")[0]
         assert "unavailable" in row and "two.glb" in row  # the index lists it, and why
         # the scene comes back (uploaded again): so does the wall, with its credentials

@@ -40,6 +40,7 @@ from wallcull.pipeline import Session
 from wallcull.scene import Scene, load
 from wallcull.server import create_app, uvicorn_options
 from wallcull.server.messages import ConsoleStatus
+from wallcull.service import LIVE
 from wallcull.wall import Wall
 
 from .test_protocol import Holder
@@ -540,6 +541,76 @@ def test_console_status_columns(client, wid, fatehpur):
     assert status["latency_ms"][:2] + status["latency_ms"][3:] == [None] * (tiles - 1)
     assert status["state"][2] == "acked"
     assert set(status["state"][:2] + status["state"][3:]) == {"offline"}
+
+
+def test_a_tile_that_drew_the_newest_frame_stays_acked_without_a_stream(client, wid):
+    """A node that pulls over HTTP and acknowledges, then hears of no new frame for longer than
+    ``LIVE``: its tile has drawn the newest frame, as the barrier says (it was "offline", and
+    the console said 0 tiles had drawn it)."""
+    number = post_frame(client, wid)["frame"]
+    assert client.post(f"/walls/{wid}/tiles/2/ack", json={"frame": number},
+                       headers=AUTH).status_code == 204
+    session = client.app.state.server.walls.sessions[wid]
+    later = session.status(now=time.time() + 10 * LIVE)  # long after the ack, no stream
+    assert later["state"][2] == "acked" and later["state"][0] == "offline"
+    assert client.get(f"/walls/{wid}/barrier/{number}?timeout=0").json()["acked"] == 1
+
+
+def test_an_older_acknowledgement_keeps_a_newer_ones_time(client, wid):
+    """A second node on the same tiles acknowledges an older frame: tile 0, which drew the
+    newer one, keeps that frame and its time (its latency went from ms to seconds)."""
+    first = post_frame(client, wid)["frame"]
+    second = post_frame(client, wid)["frame"]
+    session = client.app.state.server.walls.sessions[wid]
+    assert client.post(f"/walls/{wid}/tiles/0/ack", json={"frame": second},
+                       headers=AUTH).status_code == 204
+    at = session.acked_at[0]
+    with client.websocket_connect(f"/walls/{wid}/nodes/stream?tiles=0-1&format=json"
+                                  f"&token={TOKEN}") as ws:
+        ws.receive_text()  # its first message
+        ws.send_text(json.dumps({"ack": first}))
+        with client.websocket_connect(f"/walls/{wid}/console/stream?token={TOKEN}") as console:
+            status = json.loads(console.receive_text())
+            while status["ack"][1] != first:  # the stream's ack, taken
+                status = json.loads(console.receive_text())
+    assert status["ack"][:2] == [second, first]
+    assert session.acked_at[0] == at
+
+
+def test_consoles_without_a_credential_never_lock_out_one_with_it(client, wid):
+    """Anonymous consoles fill their own cap (429) and no more: the operator's console, and
+    one with a node's credential, still open (32 anonymous sockets locked out every console,
+    the operator's too)."""
+    with ExitStack() as held:
+        for k in range(40):
+            try:
+                held.enter_context(client.websocket_connect(f"/walls/{wid}/console/stream"))
+            except WebSocketDenialResponse as refused:
+                assert refused.status_code == 429
+                detail = refused.json()["detail"]
+                break
+        else:
+            pytest.fail("40 consoles without a credential were all let in")
+        with client.websocket_connect(f"/walls/{wid}/console/stream?token={TOKEN}") as ws:
+            assert json.loads(ws.receive_text())["wall"] == wid
+        assert k == client.app.state.server.limits.consoles and "without a credential" in detail
+        info = client.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
+                           headers=AUTH).json()
+        try:
+            node = info["credentials"]["nodes"][0]["token"]
+            with client.websocket_connect(f"/walls/{info['id']}/console/stream",
+                                          headers={"Authorization": f"Bearer {node}"}) as ws:
+                assert json.loads(ws.receive_text())["wall"] == info["id"]
+        finally:
+            client.delete(f"/walls/{info['id']}", headers=AUTH)
+
+
+def test_pages_refused_are_counted_as_refusals(client):
+    """A page's 404 counts in ``wallcull_errors_total`` as the API's does."""
+    before = metric(metrics(client), "wallcull_errors_total", status=404)
+    for page in ("console", "view"):
+        assert client.get(f"/walls/000000000000/{page}").status_code == 404
+    assert metric(metrics(client), "wallcull_errors_total", status=404) == before + 2
 
 
 def test_a_refused_frame_applies_none_of_its_updates(client, wid, fatehpur):

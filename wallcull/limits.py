@@ -45,6 +45,7 @@ class Limits:
     stream_idle: float = 30.0  #: seconds a stream may wait for an acknowledgement before it is closed
     messages: int = 200  #: WebSocket messages a connection may send per second (a burst of as many)
     message_bytes: int = 64 * KiB  #: bytes of a message on a node's stream (a frame stream's: ``body``)
+    consoles: int = 32  #: console streams opened without a credential at once, on the whole server (those with one have 32 of their own)
     open_bytes: int = 4 * MiB  #: bytes per second the server sends to console streams opened without a credential, all together
 
     def with_text(self, text: str) -> "Limits":

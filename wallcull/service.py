@@ -755,9 +755,11 @@ class WallSession:
         if number > self.latest:
             raise Conflict(f"cannot acknowledge frame {number}: latest is {self.latest}")
         self.active = time.monotonic()
-        if (self.acks[tiles] < number).any():
-            self.acks[tiles] = np.maximum(self.acks[tiles], number)
-            self.acked_at[tiles] = time.time()
+        tiles = np.atleast_1d(tiles)
+        moved = tiles[self.acks[tiles] < number]  # a tile that drew a newer frame keeps its time
+        if len(moved):
+            self.acks[moved] = number
+            self.acked_at[moved] = time.time()
             old, self._new_ack = self._new_ack, asyncio.Event()
             old.set()
 
@@ -765,10 +767,12 @@ class WallSession:
         """What the operator console shows (:mod:`wallcull.server.pages`), per tile as columns:
         the newest frame's list size, the newest acknowledged frame, the latency of that
         acknowledgement (from the frame's post to the ack, ms; null once the frame has left
-        the history), the streams open, and a state: ``offline`` (no stream, no ack for
-        ``LIVE`` seconds), ``waiting`` (no frame yet), ``acked`` (the newest frame is drawn),
-        ``drawing`` (not yet) or ``lagging`` (more than ``LAG`` seconds or ``LAG_FRAMES``
-        frames behind). Numpy over the tiles: cheap, and off the frame path; the columns are
+        the history), the streams open, and a state: ``acked`` (the newest frame is drawn,
+        however long ago), ``offline`` (no stream, no ack for ``LIVE`` seconds), ``waiting``
+        (no frame yet), ``drawing`` (not yet) or ``lagging`` (more than ``LAG`` seconds or
+        ``LAG_FRAMES`` frames behind); and ``newest``, the newest frame number handed out,
+        before a restart too (``frame`` is the newest held: -1 after a restart until a frame
+        comes). Numpy over the tiles: cheap, and off the frame path; the columns are
         arrays (a latency unknown is NaN), encoded a piece at a time (a 256 x 256 wall's as
         lists of Python objects took 20 MB at their peak)."""
         now = time.time() if now is None else now
@@ -788,10 +792,12 @@ class WallSession:
         live = (streams > 0) | (now - acked_at < LIVE)
         behind = (latest - acks > LAG_FRAMES) | \
             ((acks < latest) & (record is not None and now - record.time > LAG))
-        state = np.where(~live, "offline", np.where(
-            latest < 0, "waiting", np.where(acks >= latest, "acked",
-                                            np.where(behind, "lagging", "drawing"))))
-        return {"wall": self.id, "frame": latest, "time": now,
+        # a tile that drew the newest frame has drawn it, streaming or not (a node that pulls
+        # over HTTP, a driver pausing): counted as the barrier counts it
+        drawn = (acks >= latest) & (latest >= 0)
+        state = np.where(drawn, "acked", np.where(~live, "offline", np.where(
+            latest < 0, "waiting", np.where(behind, "lagging", "drawing"))))
+        return {"wall": self.id, "frame": latest, "newest": self.newest, "time": now,
                 "posted": None if record is None else record.time,
                 "count": counts, "ack": acks, "latency_ms": latency, "streams": streams,
                 "state": state}

@@ -34,7 +34,8 @@ class ServerState:
     bridge: Any = None  # the NATS bridge (wallcull.server.nats), when there is a broker
     streams: int = 0  # WebSocket streams open, on every wall
     uploads: int = 0  # uploads being received or parsed
-    consoles: int = 0  # operator consoles open (wallcull.server.pages)
+    #: console streams open (wallcull.server.pages): [without, with] a credential of their wall
+    consoles: list = field(default_factory=lambda: [0, 0])
     warming: set = field(default_factory=set)  # meshes being encoded for new walls
     #: bytes a second sent to consoles opened without a credential, all together
     open_budget: Any = None

@@ -252,10 +252,13 @@ _COLUMN = "per tile, in tile order: "
 
 class ConsoleStatus(Message):
     """A wall's state for the operator console (JSON), whenever it changes; frame: the newest
-    (-1: none yet), posted: its server time, time: now (s since the epoch)."""
+    held (-1: none yet, or none since a restart), newest: the newest handed out (before a
+    restart too, as ``GET /walls/{wid}``'s ``latest``), posted: its server time, time: now (s
+    since the epoch)."""
 
     wall: str
     frame: Annotated[int, Field(ge=-1)]
+    newest: Annotated[int, Field(ge=-1)]
     time: float
     posted: Optional[float]
     count: Annotated[list[Id], Field(description=_COLUMN + "list size")]

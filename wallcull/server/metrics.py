@@ -18,6 +18,9 @@ class Metrics:
                              registry=r)
         self.clients = Gauge("wallcull_clients_connected", "Streaming render nodes", registry=r)
         self._bound: dict = {}
+        # status: the HTTP status of a refused request or handshake (JSON or a page); "ws": a
+        # message on an open stream answered {"error"}; "nats": a NATS ack dropped or a node
+        # message not published (docs/hardening.md)
         self.errors = Counter("wallcull_errors", "Requests refused", ["status"], registry=r)
         self.state_failing = Gauge(
             "wallcull_state_write_failing",

@@ -57,12 +57,16 @@ DOCS_ASSETS = FilePath(fastapi_offline.__file__).resolve().parent / "static"
 #: Seconds between two looks at a wall's state, for the console streams; a status unchanged
 #: is sent again only after ``CONSOLE_QUIET`` seconds.
 CONSOLE_PERIOD, CONSOLE_QUIET = 0.25, 2.0
-#: Console streams open at once, on the whole server.
+#: Console streams opened with a credential of their wall (the operator's token, a node's or
+#: the driver's) open at once, on the whole server; those without one have their own cap,
+#: ``limits.consoles``, and never take these.
 MAX_CONSOLES = 32
 #: The index links the view pages of a wall's first node credentials, at most this many and
 #: of at most this many tiles in all (a 256 x 256 wall has 65,536 of them: 3.9 MB of links,
 #: made on the event loop at every ``GET /``); the console links every tile's page.
 INDEX_NODES, INDEX_TILES = 8, 1024
+#: Seconds a page refused for a wall waiting for its scene (503) waits before it loads again.
+REFRESH = 5
 #: A tile list's form (``0-3``, ``0,1,8,9``, ``all``); tiles out of the wall are a 404.
 TILES = worded(r"^ *(all|\d{1,6}(-\d{1,6})?( *, *\d{1,6}(-\d{1,6})?)*) *$",
                "tiles are 'all' or tile numbers and ranges, such as '0-3,8'")
@@ -78,7 +82,8 @@ def _html_or_refusals(*codes: int | str) -> dict:
         "schema": {"type": "string"}}}}}
     for code, response in refusals(*codes).items():
         response.pop("model", None)
-        response.pop("headers", None)  # a page has no Retry-After
+        if code != 503:  # a page refused for now says when to load it again
+            response.pop("headers", None)
         out[code] = {**response, "content": {"text/html": {"schema": {"type": "string"}}}}
     return out
 
@@ -96,13 +101,13 @@ def is_page(request: Request) -> bool:
 
 
 def _page(title: str, body: str, root: str, script: str | None = None,
-          config: dict | None = None, status: int = 200, kind: str = "index") -> HTMLResponse:
-    head = ""
+          config: dict | None = None, status: int = 200, kind: str = "index",
+          head: str = "") -> HTMLResponse:
     if script is not None:
         # JSON inside <script>: "<", ">" and "&" escaped, so no value can close the element
         data = json.dumps(config).replace("<", "\\u003c").replace(">", "\\u003e") \
             .replace("&", "\\u0026")
-        head = (f'<script type="application/json" id="wallcull-config">{data}</script>\n'
+        head += (f'<script type="application/json" id="wallcull-config">{data}</script>\n'
                 f'<script type="module" src="{root}/static/{script}"></script>\n')
         kind = script.split(".")[0]
     return HTMLResponse(f"""<!doctype html>
@@ -115,13 +120,19 @@ def _page(title: str, body: str, root: str, script: str | None = None,
 
 
 def error_page(request: Request, status: int, detail: str) -> HTMLResponse:
-    """A refusal, as a page: the status, what is wrong, and the way back to the walls."""
+    """A refusal, as a page: the status, what is wrong, and the way back to the walls; a 503
+    (a wall waiting for its scene) loads itself again every ``REFRESH`` seconds."""
     root = _root(request)
     reason = html.escape(_REASONS.get(status, "Refused"))
-    return _page(f"{status} {reason}: wallcull", f'<main><h1>{status} {reason}</h1>'
+    again = f'<meta http-equiv="refresh" content="{REFRESH}">\n' if status == 503 else ""
+    page = _page(f"{status} {reason}: wallcull", f'<main><h1>{status} {reason}</h1>'
                  f'<p class="detail">{html.escape(detail)}</p>'
+                 + (f"<p>Trying again every {REFRESH} s.</p>" if again else "") +
                  f'<p><a href="{root}/">the walls of this server</a></p></main>', root,
-                 status=status, kind="index error")
+                 status=status, kind="index error", head=again)
+    if again:
+        page.headers["Retry-After"] = str(REFRESH)
+    return page
 
 
 #: A page's ``?token=``: a credential it passes on to its streams and links.
@@ -133,8 +144,10 @@ _REASONS = {404: "Not Found", 422: "Invalid request", 429: "Too Many Requests",
 
 def _missing(request: Request, exc: Exception) -> HTMLResponse:
     """The page of a wall (or tiles) that is not there: 503 while its scene is away (it
-    comes back with it), else 404."""
-    return error_page(request, 503 if isinstance(exc, Unavailable) else 404, str(exc))
+    comes back with it), else 404; counted with the API's refusals."""
+    status = 503 if isinstance(exc, Unavailable) else 404
+    request.app.state.server.metrics.errors.labels(str(status)).inc()
+    return error_page(request, status, str(exc))
 
 
 def _root(request: Request) -> str:
@@ -259,10 +272,11 @@ async def console_page(request: Request, state: State, wid: WallId,
 
 
 #: The console's tile states (``WallSession.status``), and what each means.
-LEGEND = (("offline", f"no stream, no acknowledgement for {LIVE:g} s"),
+LEGEND = (("offline", f"no stream, no acknowledgement for {LIVE:g} s, the newest frame "
+                      "not drawn"),
           ("waiting", "no frame posted yet"),
           ("drawing", "the newest frame is not yet acknowledged"),
-          ("acked", "has drawn the newest frame"),
+          ("acked", "has drawn the newest frame (streaming or not)"),
           ("lagging", f"more than {LAG_FRAMES} frames or {LAG:g} s behind"))
 
 
@@ -296,24 +310,28 @@ async def console_stream(ws: WebSocket, wid: str):
     """The console's status of a wall (JSON, see ``WallSession.status``) whenever it changes,
     looked at every ``CONSOLE_PERIOD`` seconds; closed with code 4404 when the wall is
     deleted. Open, like ``GET /walls/{wid}`` (it carries no pose), but counted against the
-    caps of streams (the server's, the wall's: 429), and a console opened without a credential
-    of the wall (``?token=``: the operator's or one of the wall's) shares with every other
-    such console ``limits.open_bytes`` a second: on a 256 x 256 wall it is sent a status
-    (2 MB) less often."""
+    caps of streams (the server's, the wall's: 429). A console opened without a credential of
+    the wall (``?token=``: the operator's or one of the wall's) counts against
+    ``limits.consoles`` (429), never against the ``MAX_CONSOLES`` of those opened with one (so
+    that anonymous consoles cannot lock the operator out), and shares with every other such
+    console ``limits.open_bytes`` a second: on a 256 x 256 wall it is sent a status (2 MB)
+    less often."""
     state: ServerState = ws.app.state.server
+    token = ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
     try:
         session = state.walls.get(wid)
-        if state.consoles >= MAX_CONSOLES:
-            raise Refused(429, f"the server already has {MAX_CONSOLES} consoles open")
+        grant = state.walls.grant(token) if token else None
+        trusted = token is not None and (state.is_operator(token) or
+                                         (grant is not None and grant.wall == wid))
+        cap = MAX_CONSOLES if trusted else state.limits.consoles
+        if state.consoles[trusted] >= cap:
+            raise Refused(429, f"the server already has {cap} consoles open "
+                               f"{'with' if trusted else 'without'} a credential")
         room(state, session, NO_TILES)
     except (NotFound, Refused, Unavailable) as exc:
         return await deny(ws, state, exc)
-    token = ws.query_params.get("token") or bearer(ws.headers.get("authorization"))
-    grant = state.walls.grant(token) if token else None
-    trusted = token is not None and (state.is_operator(token) or
-                                     (grant is not None and grant.wall == wid))
     await ws.accept()
-    state.consoles += 1
+    state.consoles[trusted] += 1
     count(state, session, NO_TILES, +1)
 
     pace = Budget(state.limits.messages)
@@ -343,7 +361,7 @@ async def console_stream(ws: WebSocket, wid: str):
     except (WebSocketDisconnect, RuntimeError, OSError):
         pass  # the console went away
     finally:
-        state.consoles -= 1
+        state.consoles[trusted] -= 1
         count(state, session, NO_TILES, -1)
         for w in waits:
             w.cancel()

@@ -8,13 +8,21 @@
 // Screens around the viewer (a CAVE, angled walls) are drawn from above, their corners
 // projected onto the floor plane: x right, z toward the viewer (down the page); the floor's
 // screens are areas, the walls' are thick lines, labelled on the side they are seen from.
+// Screens that stand in rows above each other (CAVE2's columns of four), which would hide each
+// other from above, are unrolled instead: each at its angle around the viewer (x, left to
+// right as the viewer turns right) and its height (y up), as a panorama of the room.
+//
+// A status is drawn once the browser draws: messages that came meanwhile are dropped, only the
+// newest is parsed and shown (a 64 x 64 wall's took longer to draw than the next took to come,
+// and the page fell ever further behind). A lost stream greys the plan and the table (the state
+// shown is the last known), and the page asks the server why before it tries again.
 
 const cfg = JSON.parse(document.getElementById("wallcull-config").textContent);
 const SVG = "http://www.w3.org/2000/svg";
 const plan = document.getElementById("plan"), body = document.querySelector("#tiles tbody");
 const summary = document.getElementById("summary");
 document.querySelector("h1 code").textContent = cfg.wall;
-const api = window.wallcull = { updates: 0, status: null };
+const api = window.wallcull = { updates: 0, received: 0, status: null };
 
 const sub = (a, b) => a.map((x, i) => x - b[i]), add = (a, b) => a.map((x, i) => x + b[i]);
 const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
@@ -43,16 +51,55 @@ function el(name, attrs = {}, parent = null) {
   return e;
 }
 
+// Whether screens seen from above share their place: walls (lines from above) in rows.
+function stacked(flat, thin) {
+  const seen = new Set();
+  for (let t = 0; t < flat.length; t++) {
+    if (!thin[t]) continue;
+    const key = flat[t].map((p) => p.map((v) => Math.round(v * 100)).join(",")).sort().join(" ");
+    if (seen.has(key)) return true;
+    seen.add(key);
+  }
+  return false;
+}
+
+// A screen's corners unrolled around the viewer: [angle x mean distance, -height].
+function unroller(corners) {
+  let r = 0;
+  for (const c of corners) r += Math.hypot((c[0][0] + c[1][0]) / 2, (c[0][2] + c[1][2]) / 2);
+  r = r / corners.length || 1;
+  return (c) => {
+    const mid = c.reduce((m, p) => add(m, p), [0, 0, 0]), at = Math.atan2(mid[0], -mid[2]);
+    return c.map((p) => {
+      let a = Math.atan2(p[0], -p[2]) - at;
+      a -= 2 * Math.PI * Math.round(a / (2 * Math.PI));  // on the screen's side of the cut
+      return [(at + a) * r, -p[1]];
+    });
+  };
+}
+
 function drawPlan(wall) {
   const corners = screensOf(wall);
   const normals = corners.map((c) => unit(cross(sub(c[1], c[0]), sub(c[3], c[0]))));
-  const front = normals.every((n) => n[2] > 0.99);
-  const project = front ? (p) => [p[0], -p[1]] : (p) => [p[0], p[2]];
-  const flat = corners.map((c) => c.map(project));
-  const xs = flat.flat().map((p) => p[0]), ys = flat.flat().map((p) => p[1]);
-  if (!front) { xs.push(0); ys.push(0); }  // the viewer, at the display origin
-  const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  const facing = normals.every((n) => n[2] > 0.99);
+  const project = facing ? (p) => [p[0], -p[1]] : (p) => [p[0], p[2]];
+  let flat = corners.map((c) => c.map(project));
+  const upright = normals.map((n) => Math.abs(n[1]) < 0.1);
+  const around = !facing && stacked(flat, upright);
+  if (around) flat = corners.map(unroller(corners));
+  const front = facing || around;  // drawn as seen, not from above
+  // the extent by a loop: spreading 4 values a tile as arguments threw past ~31,000 tiles
+  let [x0, x1, y0, y1] = front ? [Infinity, -Infinity, Infinity, -Infinity] : [0, 0, 0, 0];
+  for (const q of flat) {  // (from above, the viewer at the display origin is in it too)
+    for (const [x, y] of q) {
+      if (x < x0) x0 = x;
+      if (x > x1) x1 = x;
+      if (y < y0) y0 = y;
+      if (y > y1) y1 = y;
+    }
+  }
   const extent = Math.max(x1 - x0, y1 - y0) || 1, pad = extent * 0.08;
+  plan.dataset.layout = around ? "around" : facing ? "front" : "above";
   plan.setAttribute("viewBox", `${x0 - pad} ${y0 - pad} ${x1 - x0 + 2 * pad} ${y1 - y0 + 2 * pad}`);
   plan.replaceChildren();
   const area = (q) => Math.abs(q.reduce((s, p, i) => s + p[0] * q[(i + 1) % 4][1] - q[(i + 1) % 4][0] * p[1], 0)) / 2;
@@ -121,10 +168,12 @@ function show(groups, rows, s) {
     rows[t].className = state;
     [count, s.ack[t], ms(s.latency_ms[t]), s.streams[t], state].forEach((v, k) => { cells[k + 1].textContent = v; });
   });
-  const acked = s.state.filter((x) => x === "acked").length;
+  let acked = 0;
+  for (const x of s.state) if (x === "acked") acked += 1;
   const age = s.posted === null ? "" : `, posted ${(s.time - s.posted).toFixed(1)} s ago`;
-  summary.textContent = s.frame < 0 ? "no frame yet" :
-    `frame ${s.frame}${age}; ${acked} of ${s.count.length} tiles have drawn it`;
+  summary.textContent = s.frame >= 0 ?
+    `frame ${s.frame}${age}; ${acked} of ${s.count.length} tiles have drawn it` :
+    s.newest >= 0 ? `frame ${s.newest} before the server restarted; none since` : "no frame yet";
   api.status = s;
   api.updates += 1;
 }
@@ -139,12 +188,32 @@ async function start() {
     url.protocol = url.protocol === "https:" ? "wss:" : "ws:";
     if (cfg.token) url.searchParams.set("token", cfg.token);
     const ws = new WebSocket(url);
-    ws.onmessage = (event) => show(groups, rows, JSON.parse(event.data));
+    let opened = false, newest = null;
+    ws.onopen = () => { opened = true; };
+    ws.onmessage = (event) => {  // kept; drawn when the browser next draws, if still newest
+      if (newest === null) {
+        requestAnimationFrame(() => {
+          const text = newest;
+          newest = null;
+          show(groups, rows, JSON.parse(text));
+        });
+      }
+      newest = event.data;
+      api.received += 1;
+      document.body.classList.remove("stale");
+    };
     ws.onclose = async (event) => {
+      document.body.classList.add("stale");  // what is shown is no longer known to hold
       if (event.code !== 4404) {  // gone meanwhile (a restart without it, an expiry)?
         const again = await fetch(`${cfg.root}/walls/${cfg.wall}`).catch(() => null);
         if (!again || again.status !== 404) {
-          summary.textContent = "disconnected; reconnecting";
+          const detail = again && !again.ok ? await again.json().then((b) => b.detail,
+                                                                       () => "") : "";
+          summary.textContent = !again ? "the server does not answer (last state greyed): reconnecting" :
+            !again.ok ? `refused (${again.status}): ${detail}; retrying every 2 s` :
+            !opened ? "refused by the server (too many consoles or streams open, or it is restarting): " +
+              "retrying every 2 s" :
+            "disconnected; reconnecting";
           setTimeout(connect, 2000);
           return;
         }
