@@ -11,7 +11,9 @@ import signal
 import stat
 import subprocess
 import sys
+import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import httpx
@@ -21,9 +23,9 @@ from wallcull import cli
 from wallcull.errors import InputError
 from wallcull.server import settings_from_env
 from wallcull_clients import broker, picture
-from wallcull_clients.driver import write_private
+from wallcull_clients.driver import Driver, write_private
 from wallcull_clients.loadtest import free_port, running_server
-from wallcull_clients.sim import find_wall
+from wallcull_clients.sim import find_wall, run_wall
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = secrets.token_hex(8)
@@ -103,6 +105,66 @@ def test_a_node_over_nats_names_an_unreachable_broker(server):
         assert "Traceback" not in err
     finally:
         httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+
+
+def test_a_node_over_nats_with_no_server_on_its_broker_gives_up_in_one_line(server):
+    """A full request no server is subscribed for is answered "no responders" at once: the
+    node crashed on it with a traceback (status 1). It asks again with backoff, and after
+    --reconnect-for seconds of that says so in one line."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    wid = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                     headers=AUTH, timeout=60).json()["id"]
+    try:
+        with broker.Broker() as nats:  # the server is not on it
+            proc = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--nats",
+                        nats.url, "--tiles", "0", "--reconnect-for", "1", "--quiet")
+            _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, err
+        assert err.strip() == ("clients.sim: error: gave up after 1 s of retrying: tile 0: no "
+                               "culling server on the NATS broker answers full requests"), err
+    finally:
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+
+
+def test_a_node_over_nats_waits_for_its_server_to_join_the_broker():
+    """A node started before its server is on the broker (or back from the broker's restart
+    before the server is) keeps asking, and draws once the server joins the broker."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    with broker.Broker() as nats, tempfile.TemporaryDirectory() as state, ExitStack() as stack:
+        port = free_port()
+        url = stack.enter_context(running_server(TOKEN, port=port, state=state))  # no --nats
+
+        async def scenario():
+            # (patient: server B's first frame may wait for the kernels A did not compile)
+            async with Driver(url, TOKEN, timeout=600) as driver:
+                wid = (await driver.create_wall("fatehpur", WALL))["id"]
+                made = []
+                nodes = asyncio.create_task(run_wall(url, wid, "all", token=TOKEN, until=3,
+                                                     nats=nats.url, reconnect_for=120,
+                                                     made=made))
+                deadline = time.monotonic() + 120
+                while not any(c.backoff.total for c in made):  # "no responders", waited out
+                    if nodes.done():
+                        nodes.result()  # (its failure)
+                        pytest.fail("the node stopped")
+                    assert time.monotonic() < deadline, "the node never asked"
+                    await asyncio.sleep(0.05)
+                await asyncio.to_thread(stack.close)  # the same server, now on the broker
+                await asyncio.to_thread(stack.enter_context, running_server(
+                    TOKEN, port=port, state=state, args=["--nats", nats.url]))
+                await driver.post(wid, FRAME)
+                deadline = time.monotonic() + 120
+                while not nodes.done():  # until the nodes have drawn frame 3
+                    assert time.monotonic() < deadline, "the nodes never drew"
+                    await driver.post(wid, FRAME)
+                    await asyncio.sleep(0.05)
+                return nodes.result()
+
+        for c in asyncio.run(scenario()):
+            for s in c.tile_stats.values():
+                assert s.errors == [] and s.frame[-1] >= 3, (s.tile, s.frame[-5:])
 
 
 def test_auto_takes_the_newest_wall_with_no_frame_yet(server):

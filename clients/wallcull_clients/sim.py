@@ -843,8 +843,11 @@ class NodeClient(TileClient):
         broker reconnects by itself (nats-py), and a node that loses its base, or is back
         with the broker, or hears nothing for ``NATS_QUIET`` seconds, asks again. A request
         nobody answers (no server holds the wall) is checked over HTTP: a deleted wall ends
-        the node."""
+        the node. One no server is subscribed for (none on the broker yet, or back after the
+        broker's restart: "no responders") is asked again with backoff, for up to
+        ``--reconnect-for`` seconds in a row."""
         import nats
+        from nats.errors import NoRespondersError
         from nats.errors import TimeoutError as NatsTimeout
 
         inbox: asyncio.Queue = asyncio.Queue()
@@ -881,13 +884,17 @@ class NodeClient(TileClient):
                     try:
                         reply = await self._nc.request(
                             self.subject("full"), msgpack.packb({"node": self.name}), timeout=5)
-                    except NatsTimeout:
+                    except (NatsTimeout, NoRespondersError) as exc:
                         self._wants_full = True  # no server yet, or none holds the wall
                         unanswered += 1
                         if unanswered % 3 == 0:
                             await self._check_wall()
+                        if isinstance(exc, NoRespondersError):  # answered at once: wait
+                            await self.backoff.wait(f"tile {self.tile}: no culling server "
+                                                    "on the NATS broker answers full requests")
                         continue
                     unanswered = 0
+                    self.backoff.reset()
                     await self._take(reply.data)
                     continue
                 wait = NATS_QUIET
