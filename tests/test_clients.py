@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
 import secrets
 import signal
@@ -25,7 +26,7 @@ from wallcull.server import settings_from_env
 from wallcull_clients import broker, picture
 from wallcull_clients.driver import Driver, write_private
 from wallcull_clients.loadtest import free_port, running_server
-from wallcull_clients.sim import find_wall, run_wall
+from wallcull_clients.sim import NodeClient, find_wall, run_wall, shared_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = secrets.token_hex(8)
@@ -355,6 +356,13 @@ def _wall_drawn(server, frames: int) -> str:
     return r.json()["id"]
 
 
+def _post(server, wid) -> int:
+    r = httpx.post(f"{server}/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH,
+                   timeout=60)
+    assert r.status_code == 200, r.text
+    return r.json()["frame"]
+
+
 def _post_and_wait_acks(server, wid, count):
     for _ in range(count):
         r = httpx.post(f"{server}/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH,
@@ -386,6 +394,72 @@ def test_a_node_whose_wall_is_deleted_still_writes_what_it_drew(server, tmp_path
     assert report["complete"] is False and "was deleted" in report["reason"]
     assert sorted(t["tile"] for t in report["tiles"]) == [0, 1]
     assert all(len(t["frame"]) == 3 for t in report["tiles"]), report["tiles"]
+
+
+def test_a_node_over_nats_whose_wall_is_deleted_says_so_in_one_line():
+    """Its one line came after nats-py's tracebacks (a pong for a cancelled flush, a drain's
+    gathered futures never retrieved)."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    with broker.Broker() as nats, running_server(TOKEN, args=["--nats", nats.url]) as url:
+        # 16 nodes, that find the wall gone all at once: one ended the run as others left
+        # the broker (their drains cancelled)
+        r = httpx.post(f"{url}/walls", json={"wall": {**WALL, "cols": 4, "rows": 4},
+                                            "scene": "fatehpur"}, headers=AUTH, timeout=60)
+        wid = r.json()["id"]
+        node = tool("wallcull_clients.sim", "--server", url, "--wall", wid, "--nats", nats.url,
+                    "--quiet")
+        try:
+            assert json.loads(node.stdout.readline())["ready"]  # both subscribed
+            deadline = time.monotonic() + 120
+            while not httpx.get(f"{url}/walls/{wid}/barrier/{_post(url, wid)}?timeout=1",
+                                timeout=60).json()["complete"]:  # both drew a frame
+                assert node.poll() is None and time.monotonic() < deadline, "never drawn"
+            httpx.delete(f"{url}/walls/{wid}", headers=AUTH, timeout=60)
+            _, err = node.communicate(timeout=120)
+        finally:
+            node.kill()
+    assert node.returncode == 2, err
+    assert err.strip().startswith("clients.sim: error: tile ") and \
+        err.strip().endswith(f": wall {wid} was deleted") and len(err.splitlines()) == 1, err
+
+
+def test_a_node_over_nats_cancelled_as_it_leaves_the_broker_leaves_quietly(server, caplog):
+    """A NATS node's run cancelled while it drains its connection (the run ends because
+    another node failed) finishes leaving the broker: its cancelled flush made nats-py print
+    a pong's InvalidStateError, and its drain a gathered CancelledError never retrieved."""
+    import gc
+
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    wid = _wall_drawn(server, 0)
+
+    async def scenario():
+        problems = []
+        asyncio.get_running_loop().set_exception_handler(
+            lambda loop, context: problems.append(context["message"]))
+        node = NodeClient(server, wid, [0], await shared_scene(server, "fatehpur"),
+                          token=TOKEN, nats=nats.url, reconnect_for=120)
+        run = asyncio.create_task(node.run())
+        await asyncio.wait_for(node.connected.wait(), 120)
+        nc = node._nc
+        run.cancel()
+        while node._nc is not None:  # until it leaves the broker ...
+            await asyncio.sleep(0)
+        run.cancel()  # ... and the run ends meanwhile
+        await asyncio.wait([run], timeout=60)
+        assert run.cancelled(), "the run did not end"
+        deadline = time.monotonic() + 60
+        while not nc.is_closed:  # (what it left running, not awaited)
+            assert time.monotonic() < deadline, "its connection was left open"
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.1)
+        gc.collect()
+        return problems
+
+    with caplog.at_level(logging.WARNING), broker.Broker() as nats:
+        assert asyncio.run(scenario()) == []
+    assert [r.getMessage() for r in caplog.records] == []
 
 
 def test_a_node_stopped_by_its_idle_timeout_says_so(server, tmp_path):

@@ -912,7 +912,12 @@ class NodeClient(TileClient):
                 await self._take(msg.data)
         finally:
             nc, self._nc = self._nc, None
-            await nc.drain()
+            leaving = asyncio.ensure_future(nc.drain())
+            try:  # not cut short by the run's end (another node failed meanwhile): nats-py
+                await asyncio.shield(leaving)  # printed its cancelled flush's tracebacks
+            except asyncio.CancelledError:
+                await leaving
+                raise
 
     async def _check_wall(self) -> None:
         """ClientFailure if the server says the wall is gone (a deleted wall's subjects are
