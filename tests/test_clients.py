@@ -7,6 +7,7 @@ import asyncio
 import json
 import logging
 import os
+import re
 import secrets
 import signal
 import stat
@@ -460,6 +461,70 @@ def test_a_node_over_nats_cancelled_as_it_leaves_the_broker_leaves_quietly(serve
     with caplog.at_level(logging.WARNING), broker.Broker() as nats:
         assert asyncio.run(scenario()) == []
     assert [r.getMessage() for r in caplog.records] == []
+
+
+@pytest.mark.parametrize("post", ["stream", "http"])
+def test_a_driver_whose_wall_is_deleted_says_so(server, post):
+    """Driving with the wall's own credential, it was told 401 "the token is not one this
+    server holds" and said so, as if its token were wrong."""
+    info = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                      headers=AUTH, timeout=60).json()
+    wid = info["id"]
+    driver = tool("wallcull_clients.driver", "--server", server, "--wall-id", wid, "--token",
+                  info["credentials"]["driver"], "--post", post, "--rate", "20", "--frames",
+                  "100000")
+    try:
+        wait_for(lambda: httpx.get(f"{server}/walls/{wid}", timeout=60).json()["latest"] >= 0,
+                 "driving", driver)
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+        _, err = driver.communicate(timeout=120)
+    finally:
+        driver.kill()
+    assert driver.returncode == 2, err
+    assert err.strip() == f"clients.driver: error: wall {wid} was deleted", err
+
+
+def test_a_pulling_node_whose_wall_is_deleted_says_so(server, tmp_path):
+    """With its own credential it was told 401 and said that, as if its token were wrong."""
+    info = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                      headers=AUTH, timeout=60).json()
+    wid = info["id"]
+    write_private(tmp_path / "credentials.json", info)
+    node = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--mode", "pull",
+                "--credentials", str(tmp_path / "credentials.json"), "--quiet",
+                env={"WALLCULL_TOKEN": ""})
+    try:
+        assert json.loads(node.stdout.readline())["ready"]
+        _post_and_wait_acks(server, wid, 2)
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+        _, err = node.communicate(timeout=120)
+    finally:
+        node.kill()
+    assert node.returncode == 2, err
+    assert re.fullmatch(rf"clients\.sim: error: tile [01]: wall {wid} was deleted", err.strip()), err
+
+
+def test_a_streaming_node_whose_wall_is_missing_after_a_restart_says_so(tmp_path):
+    """Its stream's handshake with its own credential was refused 401, and it said that."""
+    port = free_port()
+    with ExitStack() as stack:
+        url = stack.enter_context(running_server(TOKEN, port=port))
+        info = httpx.post(f"{url}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                          headers=AUTH, timeout=60).json()
+        wid = info["id"]
+        write_private(tmp_path / "credentials.json", info)
+        node = tool("wallcull_clients.sim", "--server", url, "--wall", wid, "--credentials",
+                    str(tmp_path / "credentials.json"), "--quiet", env={"WALLCULL_TOKEN": ""})
+        try:
+            wait_for(lambda: httpx.get(f"{url}/walls/{wid}", timeout=60).json()["subscribers"]
+                     == 2, "both nodes streaming", node)
+            stack.close()
+            stack.enter_context(running_server(TOKEN, port=port))  # another state folder
+            _, err = node.communicate(timeout=120)
+        finally:
+            node.kill()
+    assert node.returncode == 2, err
+    assert re.fullmatch(rf"clients\.sim: error: tile [01]: wall {wid} was deleted", err.strip()), err
 
 
 def test_a_node_stopped_by_its_idle_timeout_says_so(server, tmp_path):

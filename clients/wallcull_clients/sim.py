@@ -625,6 +625,9 @@ class TileClient:
             except InvalidStatus as exc:
                 status, body = exc.response.status_code, exc.response.body or b""
                 detail = body.decode(errors="replace")[:300]
+                if status == 404 and f'"no wall {self.wall_id!r}"' in detail:
+                    raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted"
+                                        ) from None
                 if status not in (429, 500, 502, 503, 504):
                     raise ClientFailure(f"tile {self.tile}: the server refused the stream: "
                                         f"HTTP {status}: {detail}") from None
@@ -699,6 +702,9 @@ class TileClient:
                     return
             elif r.status in (410, 404) and r.detail().startswith(("frame", "there is no")):
                 number = None  # fell out of the history, or a number never posted: the newest
+            elif r.status == 404 and r.detail() in (f"no wall {self.wall_id!r}",
+                                                    f"wall {self.wall_id} was deleted"):
+                raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
             elif r.status in (401, 403, 404):
                 raise ClientFailure(f"tile {self.tile}: GET packet {target}: HTTP {r.status}: "
                                     f"{r.detail()}")
