@@ -95,15 +95,33 @@ def test_each_credential_holds_its_role_wall_and_tiles(client, wall):
         client.delete(f"/walls/{other['id']}", headers=OPERATOR)
 
 
-def test_a_deleted_walls_credentials_die_with_it(client):
+def test_a_deleted_walls_credentials_die_with_it(client, wall):
+    """... and its driver and nodes are told the wall is gone, 404 as the operator is (they
+    were told 401, "the token is not one this server holds": a wrong token to look for).
+    Any token gets that 404, one never issued too: it says nothing of tokens."""
     info = client.post("/walls", json={"wall": WALL, "scene": "fatehpur"},
                        headers=OPERATOR).json()
-    driver = bearer(info["credentials"]["driver"])
-    assert client.post(f"/walls/{info['id']}/frames", json={"frame": FRAME},
+    wid, driver = info["id"], bearer(info["credentials"]["driver"])
+    assert client.post(f"/walls/{wid}/frames", json={"frame": FRAME},
                        headers=driver).status_code == 200
-    assert client.delete(f"/walls/{info['id']}", headers=OPERATOR).status_code == 204
-    r = client.post(f"/walls/{info['id']}/frames", json={"frame": FRAME}, headers=driver)
+    assert client.delete(f"/walls/{wid}", headers=OPERATOR).status_code == 204
+    gone = (404, f"no wall {wid!r}")
+    for headers in (driver, node(info, 0), bearer("wcn_never-issued"), OPERATOR):
+        r = client.post(f"/walls/{wid}/frames", json={"frame": FRAME}, headers=headers)
+        assert (r.status_code, r.json()["detail"]) == gone, headers
+        r = client.get(f"/walls/{wid}/tiles/0/packets/0", headers=headers)
+        assert (r.status_code, r.json()["detail"]) == gone, headers
+    for path, token in ((f"/walls/{wid}/frames/stream", info["credentials"]["driver"]),
+                        (f"/walls/{wid}/tiles/0/stream", node(info, 0)["Authorization"][7:]),
+                        (f"/walls/{wid}/nodes/stream", node(info, 0)["Authorization"][7:])):
+        with pytest.raises(WebSocketDenialResponse) as denied:
+            with client.websocket_connect(f"{path}?token={token}"):
+                pass
+        assert (denied.value.status_code, denied.value.json()["detail"]) == gone, path
+    # nowhere else do they hold anything; no token is still a 401
+    r = client.post(f"/walls/{wall['id']}/frames", json={"frame": FRAME}, headers=driver)
     assert r.status_code == 401
+    assert client.post(f"/walls/{wid}/frames", json={"frame": FRAME}).status_code == 401
 
 
 def test_credentials_are_checked_before_the_body_is_read(client, wall):

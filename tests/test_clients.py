@@ -5,13 +5,17 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import os
+import re
 import secrets
 import signal
 import stat
 import subprocess
 import sys
+import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import httpx
@@ -21,9 +25,9 @@ from wallcull import cli
 from wallcull.errors import InputError
 from wallcull.server import settings_from_env
 from wallcull_clients import broker, picture
-from wallcull_clients.driver import write_private
+from wallcull_clients.driver import Driver, write_private
 from wallcull_clients.loadtest import free_port, running_server
-from wallcull_clients.sim import find_wall
+from wallcull_clients.sim import NodeClient, find_wall, run_wall, shared_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = secrets.token_hex(8)
@@ -103,6 +107,66 @@ def test_a_node_over_nats_names_an_unreachable_broker(server):
         assert "Traceback" not in err
     finally:
         httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+
+
+def test_a_node_over_nats_with_no_server_on_its_broker_gives_up_in_one_line(server):
+    """A full request no server is subscribed for is answered "no responders" at once: the
+    node crashed on it with a traceback (status 1). It asks again with backoff, and after
+    --reconnect-for seconds of that says so in one line."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    wid = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                     headers=AUTH, timeout=60).json()["id"]
+    try:
+        with broker.Broker() as nats:  # the server is not on it
+            proc = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--nats",
+                        nats.url, "--tiles", "0", "--reconnect-for", "1", "--quiet")
+            _, err = proc.communicate(timeout=120)
+        assert proc.returncode == 2, err
+        assert err.strip() == ("clients.sim: error: gave up after 1 s of retrying: tile 0: no "
+                               "culling server on the NATS broker answers full requests"), err
+    finally:
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+
+
+def test_a_node_over_nats_waits_for_its_server_to_join_the_broker():
+    """A node started before its server is on the broker (or back from the broker's restart
+    before the server is) keeps asking, and draws once the server joins the broker."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    with broker.Broker() as nats, tempfile.TemporaryDirectory() as state, ExitStack() as stack:
+        port = free_port()
+        url = stack.enter_context(running_server(TOKEN, port=port, state=state))  # no --nats
+
+        async def scenario():
+            # (patient: server B's first frame may wait for the kernels A did not compile)
+            async with Driver(url, TOKEN, timeout=600) as driver:
+                wid = (await driver.create_wall("fatehpur", WALL))["id"]
+                made = []
+                nodes = asyncio.create_task(run_wall(url, wid, "all", token=TOKEN, until=3,
+                                                     nats=nats.url, reconnect_for=120,
+                                                     made=made))
+                deadline = time.monotonic() + 120
+                while not any(c.backoff.total for c in made):  # "no responders", waited out
+                    if nodes.done():
+                        nodes.result()  # (its failure)
+                        pytest.fail("the node stopped")
+                    assert time.monotonic() < deadline, "the node never asked"
+                    await asyncio.sleep(0.05)
+                await asyncio.to_thread(stack.close)  # the same server, now on the broker
+                await asyncio.to_thread(stack.enter_context, running_server(
+                    TOKEN, port=port, state=state, args=["--nats", nats.url]))
+                await driver.post(wid, FRAME)
+                deadline = time.monotonic() + 120
+                while not nodes.done():  # until the nodes have drawn frame 3
+                    assert time.monotonic() < deadline, "the nodes never drew"
+                    await driver.post(wid, FRAME)
+                    await asyncio.sleep(0.05)
+                return nodes.result()
+
+        for c in asyncio.run(scenario()):
+            for s in c.tile_stats.values():
+                assert s.errors == [] and s.frame[-1] >= 3, (s.tile, s.frame[-5:])
 
 
 def test_auto_takes_the_newest_wall_with_no_frame_yet(server):
@@ -293,6 +357,13 @@ def _wall_drawn(server, frames: int) -> str:
     return r.json()["id"]
 
 
+def _post(server, wid) -> int:
+    r = httpx.post(f"{server}/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH,
+                   timeout=60)
+    assert r.status_code == 200, r.text
+    return r.json()["frame"]
+
+
 def _post_and_wait_acks(server, wid, count):
     for _ in range(count):
         r = httpx.post(f"{server}/walls/{wid}/frames", json={"frame": FRAME}, headers=AUTH,
@@ -324,6 +395,136 @@ def test_a_node_whose_wall_is_deleted_still_writes_what_it_drew(server, tmp_path
     assert report["complete"] is False and "was deleted" in report["reason"]
     assert sorted(t["tile"] for t in report["tiles"]) == [0, 1]
     assert all(len(t["frame"]) == 3 for t in report["tiles"]), report["tiles"]
+
+
+def test_a_node_over_nats_whose_wall_is_deleted_says_so_in_one_line():
+    """Its one line came after nats-py's tracebacks (a pong for a cancelled flush, a drain's
+    gathered futures never retrieved)."""
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    with broker.Broker() as nats, running_server(TOKEN, args=["--nats", nats.url]) as url:
+        # 16 nodes, that find the wall gone all at once: one ended the run as others left
+        # the broker (their drains cancelled)
+        r = httpx.post(f"{url}/walls", json={"wall": {**WALL, "cols": 4, "rows": 4},
+                                            "scene": "fatehpur"}, headers=AUTH, timeout=60)
+        wid = r.json()["id"]
+        node = tool("wallcull_clients.sim", "--server", url, "--wall", wid, "--nats", nats.url,
+                    "--quiet")
+        try:
+            assert json.loads(node.stdout.readline())["ready"]  # both subscribed
+            deadline = time.monotonic() + 120
+            while not httpx.get(f"{url}/walls/{wid}/barrier/{_post(url, wid)}?timeout=1",
+                                timeout=60).json()["complete"]:  # both drew a frame
+                assert node.poll() is None and time.monotonic() < deadline, "never drawn"
+            httpx.delete(f"{url}/walls/{wid}", headers=AUTH, timeout=60)
+            _, err = node.communicate(timeout=120)
+        finally:
+            node.kill()
+    assert node.returncode == 2, err
+    assert err.strip().startswith("clients.sim: error: tile ") and \
+        err.strip().endswith(f": wall {wid} was deleted") and len(err.splitlines()) == 1, err
+
+
+def test_a_node_over_nats_cancelled_as_it_leaves_the_broker_leaves_quietly(server, caplog):
+    """A NATS node's run cancelled while it drains its connection (the run ends because
+    another node failed) finishes leaving the broker: its cancelled flush made nats-py print
+    a pong's InvalidStateError, and its drain a gathered CancelledError never retrieved."""
+    import gc
+
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    wid = _wall_drawn(server, 0)
+
+    async def scenario():
+        problems = []
+        asyncio.get_running_loop().set_exception_handler(
+            lambda loop, context: problems.append(context["message"]))
+        node = NodeClient(server, wid, [0], await shared_scene(server, "fatehpur"),
+                          token=TOKEN, nats=nats.url, reconnect_for=120)
+        run = asyncio.create_task(node.run())
+        await asyncio.wait_for(node.connected.wait(), 120)
+        nc = node._nc
+        run.cancel()
+        while node._nc is not None:  # until it leaves the broker ...
+            await asyncio.sleep(0)
+        run.cancel()  # ... and the run ends meanwhile
+        await asyncio.wait([run], timeout=60)
+        assert run.cancelled(), "the run did not end"
+        deadline = time.monotonic() + 60
+        while not nc.is_closed:  # (what it left running, not awaited)
+            assert time.monotonic() < deadline, "its connection was left open"
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.1)
+        gc.collect()
+        return problems
+
+    with caplog.at_level(logging.WARNING), broker.Broker() as nats:
+        assert asyncio.run(scenario()) == []
+    assert [r.getMessage() for r in caplog.records] == []
+
+
+@pytest.mark.parametrize("post", ["stream", "http"])
+def test_a_driver_whose_wall_is_deleted_says_so(server, post):
+    """Driving with the wall's own credential, it was told 401 "the token is not one this
+    server holds" and said so, as if its token were wrong."""
+    info = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                      headers=AUTH, timeout=60).json()
+    wid = info["id"]
+    driver = tool("wallcull_clients.driver", "--server", server, "--wall-id", wid, "--token",
+                  info["credentials"]["driver"], "--post", post, "--rate", "20", "--frames",
+                  "100000")
+    try:
+        wait_for(lambda: httpx.get(f"{server}/walls/{wid}", timeout=60).json()["latest"] >= 0,
+                 "driving", driver)
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+        _, err = driver.communicate(timeout=120)
+    finally:
+        driver.kill()
+    assert driver.returncode == 2, err
+    assert err.strip() == f"clients.driver: error: wall {wid} was deleted", err
+
+
+def test_a_pulling_node_whose_wall_is_deleted_says_so(server, tmp_path):
+    """With its own credential it was told 401 and said that, as if its token were wrong."""
+    info = httpx.post(f"{server}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                      headers=AUTH, timeout=60).json()
+    wid = info["id"]
+    write_private(tmp_path / "credentials.json", info)
+    node = tool("wallcull_clients.sim", "--server", server, "--wall", wid, "--mode", "pull",
+                "--credentials", str(tmp_path / "credentials.json"), "--quiet",
+                env={"WALLCULL_TOKEN": ""})
+    try:
+        assert json.loads(node.stdout.readline())["ready"]
+        _post_and_wait_acks(server, wid, 2)
+        httpx.delete(f"{server}/walls/{wid}", headers=AUTH, timeout=60)
+        _, err = node.communicate(timeout=120)
+    finally:
+        node.kill()
+    assert node.returncode == 2, err
+    assert re.fullmatch(rf"clients\.sim: error: tile [01]: wall {wid} was deleted", err.strip()), err
+
+
+def test_a_streaming_node_whose_wall_is_missing_after_a_restart_says_so(tmp_path):
+    """Its stream's handshake with its own credential was refused 401, and it said that."""
+    port = free_port()
+    with ExitStack() as stack:
+        url = stack.enter_context(running_server(TOKEN, port=port))
+        info = httpx.post(f"{url}/walls", json={"wall": WALL, "scene": "fatehpur"},
+                          headers=AUTH, timeout=60).json()
+        wid = info["id"]
+        write_private(tmp_path / "credentials.json", info)
+        node = tool("wallcull_clients.sim", "--server", url, "--wall", wid, "--credentials",
+                    str(tmp_path / "credentials.json"), "--quiet", env={"WALLCULL_TOKEN": ""})
+        try:
+            wait_for(lambda: httpx.get(f"{url}/walls/{wid}", timeout=60).json()["subscribers"]
+                     == 2, "both nodes streaming", node)
+            stack.close()
+            stack.enter_context(running_server(TOKEN, port=port))  # another state folder
+            _, err = node.communicate(timeout=120)
+        finally:
+            node.kill()
+    assert node.returncode == 2, err
+    assert re.fullmatch(rf"clients\.sim: error: tile [01]: wall {wid} was deleted", err.strip()), err
 
 
 def test_a_node_stopped_by_its_idle_timeout_says_so(server, tmp_path):

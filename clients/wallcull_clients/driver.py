@@ -150,19 +150,27 @@ class Driver:
 
     async def post(self, wid: str, frame: dict) -> dict:
         """Post one frame: over the frame stream when :meth:`stream_frames` opened it (and
-        over HTTP again while the server is away: a restart), else ``POST .../frames``."""
-        if self._frames is not None:
-            try:
-                await self._frames.send(msgpack.packb({"frame": frame}))
-                answer = msgpack.unpackb(await self._frames.recv())
-            except (OSError, ConnectionClosed):
-                await self._close_frames()
-            else:
-                if "error" in answer:
-                    raise HTTPError(answer["status"], answer["error"], "POST", "frame stream")
-                return answer
-        return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame}, auth=True,
-                               body_format="msgpack")
+        over HTTP again while the server is away: a restart), else ``POST .../frames``. A
+        wall gone (deleted, or missing after a restart) is a :class:`ClientFailure` saying so."""
+        try:
+            if self._frames is not None:
+                try:
+                    await self._frames.send(msgpack.packb({"frame": frame}))
+                    answer = msgpack.unpackb(await self._frames.recv())
+                except (OSError, ConnectionClosed):
+                    await self._close_frames()
+                else:
+                    if "error" in answer:
+                        raise HTTPError(answer["status"], answer["error"], "POST",
+                                        "frame stream")
+                    return answer
+            return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame},
+                                   auth=True, body_format="msgpack")
+        except HTTPError as exc:
+            if exc.status == 404 and exc.detail in (f"no wall {wid!r}",
+                                                    f"wall {wid} was deleted"):
+                raise ClientFailure(f"wall {wid} was deleted") from None
+            raise
 
     async def stream_frames(self, wid: str) -> None:
         """Post this wall's frames over one WebSocket (``/walls/{wid}/frames/stream``) from now

@@ -625,6 +625,9 @@ class TileClient:
             except InvalidStatus as exc:
                 status, body = exc.response.status_code, exc.response.body or b""
                 detail = body.decode(errors="replace")[:300]
+                if status == 404 and f'"no wall {self.wall_id!r}"' in detail:
+                    raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted"
+                                        ) from None
                 if status not in (429, 500, 502, 503, 504):
                     raise ClientFailure(f"tile {self.tile}: the server refused the stream: "
                                         f"HTTP {status}: {detail}") from None
@@ -699,6 +702,9 @@ class TileClient:
                     return
             elif r.status in (410, 404) and r.detail().startswith(("frame", "there is no")):
                 number = None  # fell out of the history, or a number never posted: the newest
+            elif r.status == 404 and r.detail() in (f"no wall {self.wall_id!r}",
+                                                    f"wall {self.wall_id} was deleted"):
+                raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
             elif r.status in (401, 403, 404):
                 raise ClientFailure(f"tile {self.tile}: GET packet {target}: HTTP {r.status}: "
                                     f"{r.detail()}")
@@ -843,8 +849,11 @@ class NodeClient(TileClient):
         broker reconnects by itself (nats-py), and a node that loses its base, or is back
         with the broker, or hears nothing for ``NATS_QUIET`` seconds, asks again. A request
         nobody answers (no server holds the wall) is checked over HTTP: a deleted wall ends
-        the node."""
+        the node. One no server is subscribed for (none on the broker yet, or back after the
+        broker's restart: "no responders") is asked again with backoff, for up to
+        ``--reconnect-for`` seconds in a row."""
         import nats
+        from nats.errors import NoRespondersError
         from nats.errors import TimeoutError as NatsTimeout
 
         inbox: asyncio.Queue = asyncio.Queue()
@@ -881,13 +890,17 @@ class NodeClient(TileClient):
                     try:
                         reply = await self._nc.request(
                             self.subject("full"), msgpack.packb({"node": self.name}), timeout=5)
-                    except NatsTimeout:
+                    except (NatsTimeout, NoRespondersError) as exc:
                         self._wants_full = True  # no server yet, or none holds the wall
                         unanswered += 1
                         if unanswered % 3 == 0:
                             await self._check_wall()
+                        if isinstance(exc, NoRespondersError):  # answered at once: wait
+                            await self.backoff.wait(f"tile {self.tile}: no culling server "
+                                                    "on the NATS broker answers full requests")
                         continue
                     unanswered = 0
+                    self.backoff.reset()
                     await self._take(reply.data)
                     continue
                 wait = NATS_QUIET
@@ -905,7 +918,12 @@ class NodeClient(TileClient):
                 await self._take(msg.data)
         finally:
             nc, self._nc = self._nc, None
-            await nc.drain()
+            leaving = asyncio.ensure_future(nc.drain())
+            try:  # not cut short by the run's end (another node failed meanwhile): nats-py
+                await asyncio.shield(leaving)  # printed its cancelled flush's tracebacks
+            except asyncio.CancelledError:
+                await leaving
+                raise
 
     async def _check_wall(self) -> None:
         """ClientFailure if the server says the wall is gone (a deleted wall's subjects are
