@@ -30,7 +30,7 @@ import pytest
 from wallcull_clients import broker
 from wallcull_clients.driver import Driver
 from wallcull_clients.sim import run_wall
-from wallcull_clients.loadtest import running_server
+from wallcull_clients.loadtest import Server, running_server
 from wallcull.pipeline import Session
 from wallcull.scene import load
 from wallcull.wall import Wall
@@ -325,6 +325,39 @@ def test_a_node_that_joins_late_over_nats_asks_for_full_lists(nats_server, scene
             await driver.call("DELETE", f"/walls/{wid}", auth=True)
 
     asyncio.run(scenario())
+
+
+def test_a_brokers_password_is_never_shown():
+    """A broker URL's user, password or token never reaches what the server shows: ``/health``
+    (which needs no credential) while the broker is away, and the server's log."""
+    import httpx
+
+    from wallcull.credentials import shown
+
+    assert shown("nats://u:pw@h:4222,nats://tok@g:4222,nats://h") == \
+        "nats://***@h:4222,nats://***@g:4222,nats://h"
+    if broker.find() is None:
+        pytest.skip("no nats-server (Debian package nats-server; .ci/run installs it)")
+    secret = "s3cret-pw"
+    away = broker.Broker(user="wall", password=secret).start()
+
+    async def scenario():
+        async with Server(TOKEN, log_level="info", args=["--nats", away.url]) as server, \
+                httpx.AsyncClient() as http:
+            away.stop()
+            deadline = time.monotonic() + 60
+            while not (problems := (await http.get(f"{server.url}/health")).json()["problems"]):
+                assert time.monotonic() < deadline, "health never said the broker is away"
+                await asyncio.sleep(0.1)
+            assert "***@127.0.0.1" in " ".join(problems), problems
+            assert secret not in (await http.get(f"{server.url}/health")).text
+            return server.output()
+
+    try:
+        log = asyncio.run(scenario())
+    finally:
+        away.stop()
+    assert "NATS" in log and "went away" in log and secret not in log, log
 
 
 def test_nodes_over_nats_ride_out_a_broker_restart(scene):

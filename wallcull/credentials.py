@@ -190,3 +190,21 @@ def issue(wall: str, tiles: int, nodes=None) -> tuple[dict, Issued]:
     issued = Issued.of_nodes(wall, raw_digest(driver),
                              b"".join(raw_digest(token) for token in tokens), start, flat)
     return {"driver": driver, "nodes": Shown(start, flat, tokens)}, issued
+
+
+def shown(url: str) -> str:
+    """``url`` as it may be shown (a log, ``/health``, an error): a user, password or token
+    before the host (``nats://user:secret@host``, ``nats://TOKEN@host``) is replaced by
+    ``***``; several URLs, comma-separated, each so."""
+    from urllib.parse import urlsplit
+
+    def one(part: str) -> str:
+        try:
+            netloc = urlsplit(part.strip()).netloc
+        except ValueError:
+            return "***"
+        if "@" not in netloc:
+            return part
+        return part.replace(netloc, "***@" + netloc.rsplit("@", 1)[1], 1)
+
+    return ",".join(one(p) for p in str(url).split(","))

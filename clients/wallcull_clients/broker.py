@@ -22,9 +22,12 @@ def find() -> str | None:
 class Broker:
     """``nats-server`` on a free loopback port until :meth:`stop` (or the ``with`` block)."""
 
-    def __init__(self, port: int | None = None):
+    def __init__(self, port: int | None = None, user: str | None = None,
+                 password: str | None = None):
         self.port = port or _free_port()
-        self.url = f"nats://127.0.0.1:{self.port}"
+        self.auth = [] if user is None else ["--user", user, "--pass", password or ""]
+        login = "" if user is None else f"{user}:{password or ''}@"
+        self.url = f"nats://{login}127.0.0.1:{self.port}"
         self.proc = None
         self.log = tempfile.TemporaryFile()
 
@@ -33,7 +36,8 @@ class Broker:
         if server is None:
             raise RuntimeError("no nats-server: install Debian's package (apt-get install "
                                "nats-server) or give a broker's URL")
-        self.proc = subprocess.Popen([server, "-a", "127.0.0.1", "-p", str(self.port)],
+        self.proc = subprocess.Popen([server, "-a", "127.0.0.1", "-p", str(self.port),
+                                      *self.auth],
                                      stdout=self.log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
         while True:

@@ -63,6 +63,7 @@ import msgpack
 import numpy as np
 
 from wallcull import protocol
+from wallcull.credentials import shown
 from wallcull.errors import InputError
 from wallcull.validate import parse_tiles, tiles_text
 
@@ -876,7 +877,7 @@ class NodeClient(TileClient):
                 reconnected_cb=back), self.backoff.give_up)
         except asyncio.TimeoutError:
             why = failed[-1] if failed else "no answer"
-            raise ClientFailure(f"cannot reach the NATS broker at {self.nats} within "
+            raise ClientFailure(f"cannot reach the NATS broker at {shown(self.nats)} within "
                                 f"{self.backoff.give_up:g} s: {why}") from None
         try:
             await self._nc.subscribe(self.subject("node"), cb=arrived)

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
+from ..credentials import shown
 from ..errors import InputError, optional
 from ..service import Gone, NotFound, Unavailable, WallSession, Walls
 from .messages import control
@@ -158,7 +159,7 @@ async def _connect(url: str, timeout: float, reconnect: bool, **callbacks):
 
     async def quiet(exc):  # nats-py prints each failed attempt's traceback otherwise
         failed.append(exc)
-        log.debug("NATS %s: %r", url, exc)
+        log.debug("NATS %s: %r", shown(url), exc)
 
     try:
         return await asyncio.wait_for(nats.connect(
@@ -169,7 +170,7 @@ async def _connect(url: str, timeout: float, reconnect: bool, **callbacks):
         if isinstance(exc, asyncio.TimeoutError):
             exc = failed[-1] if failed else "no answer"
         why = exc if isinstance(exc, str) else str(exc) or type(exc).__name__
-        raise InputError(f"cannot reach the NATS broker at {url} within {timeout:g} s: "
+        raise InputError(f"cannot reach the NATS broker at {shown(url)} within {timeout:g} s: "
                          f"{why}") from None
 
 
@@ -203,20 +204,20 @@ class NatsBridge:
             self.watch(session)
         self.walls.on_add.append(self.watch)
         log.info("publishing node messages on NATS %s (subjects %s.<wall>.node.<tile>)",
-                 self.url, self.prefix)
+                 shown(self.url), self.prefix)
 
     @property
     def problem(self) -> str | None:
         """Why the bridge is not publishing (health shows it), or None."""
         if self.nc is not None and not self.nc.is_connected:
-            return f"the NATS broker at {self.url} is away: reconnecting"
+            return f"the NATS broker at {shown(self.url)} is away: reconnecting"
         return None
 
     async def _away(self) -> None:
-        log.warning("the NATS broker at %s went away: reconnecting", self.url)
+        log.warning("the NATS broker at %s went away: reconnecting", shown(self.url))
 
     async def _back(self) -> None:
-        log.info("the NATS broker at %s is back: full lists to every node", self.url)
+        log.info("the NATS broker at %s is back: full lists to every node", shown(self.url))
         for node in self.nodes.values():
             node.lost()
 
