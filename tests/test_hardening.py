@@ -18,6 +18,7 @@ from wallcull_clients.driver import Driver
 from wallcull_clients.rawhttp import Connection
 
 MiB = 1 << 20
+TOKEN = hostile.TOKEN
 WALL = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0}
 
 
@@ -236,3 +237,117 @@ def test_damaged_state_is_refused_in_one_line_and_kept():
         c = r[case]
         assert c["exit"] == 2 and c["lines"] == 1, r
         assert c["names_the_file"] and c["file_unchanged"], r
+
+
+# --------------------------------------------------------------------------- the hostile-client
+# audit of tokens and TLS: credentials in the log, long polls and TLS handshakes against the
+# connection cap. Each against a real ``wallcull serve`` on loopback.
+
+
+async def _raw(url: str, request: bytes, ssl=None):
+    """A new connection that sends ``request``: its reader and writer."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    reader, writer = await asyncio.open_connection(parts.hostname, parts.port, ssl=ssl)
+    writer.write(request)
+    return reader, writer
+
+
+async def _answer(reader) -> tuple[int, dict, bytes]:
+    """A response's status, headers and body, or ``(0, {}, b"")`` when the connection ended
+    without one."""
+    try:
+        head = await reader.readuntil(b"\r\n\r\n")
+        status, *lines = head.decode("latin-1").split("\r\n")
+        headers = dict(line.lower().split(": ", 1) for line in lines if ": " in line)
+        body = await reader.readexactly(int(headers.get("content-length", 0)))
+    except (ConnectionError, asyncio.IncompleteReadError):
+        return 0, {}, b""
+    return int(status.split()[1]), headers, body
+
+
+HEALTH = b"GET /health HTTP/1.1\r\nhost: x\r\n\r\n"
+
+
+async def _health(url: str, ssl=None) -> tuple[int, bytes]:
+    """``GET /health`` on a new connection: its status (0 when it got none) and body."""
+    try:
+        reader, writer = await _raw(url, HEALTH, ssl)
+    except OSError:
+        return 0, b""
+    try:
+        return (await asyncio.wait_for(_answer(reader), 30))[::2]
+    finally:
+        writer.close()
+
+
+def test_no_credential_reaches_the_log():
+    """The operator's token, a node's and the driver's credentials and a wrong guess, sent as
+    ``?token=`` and as ``Authorization`` over HTTP and WebSockets, to ``wallcull serve`` at
+    debug level and to the app run by uvicorn itself (``--factory``, its access log on):
+    none is in the log, which says ``token=<redacted>`` where uvicorn logged them."""
+    import os
+    import subprocess
+    import sys
+
+    from websockets.asyncio.client import connect
+
+    from wallcull_clients.loadtest import Server, free_port
+
+    wrong = "wrong-guess-5f3a9c"
+
+    def secrets_of(made: dict) -> dict:
+        return {"wid": made["id"], "operator": TOKEN, "driver": made["credentials"]["driver"],
+                "node": made["credentials"]["nodes"][0]["token"]}
+
+    async def knock(url: str, secrets: dict) -> None:
+        wid = secrets["wid"]
+        async with Connection(url) as conn:
+            for target, headers in ((f"/walls/{wid}?token={secrets['operator']}", {}),
+                                    (f"/walls?token={wrong}", {}),
+                                    ("/walls", {"authorization": f"Bearer {secrets['node']}"}),
+                                    (f"/walls/{wid}/barrier/0?timeout=0&token="
+                                     f"{secrets['driver']}", {})):
+                await conn.request("GET", target, headers=headers)
+        for query, headers in ((f"tiles=0&token={secrets['node']}", None),
+                               (f"tiles=0&token={secrets['operator']}", None),
+                               (f"tiles=0&token={wrong}", None),
+                               ("tiles=0", {"Authorization": f"Bearer {secrets['node']}"})):
+            try:
+                async with connect(f"ws{url[4:]}/walls/{wid}/nodes/stream?{query}",
+                                   additional_headers=headers, open_timeout=30):
+                    pass
+            except Exception:  # noqa: BLE001 - refused or not, what is logged is the point
+                pass
+
+    async def go():
+        async with Server(TOKEN, log_level="debug") as s:
+            async with Driver(s.url, TOKEN) as d:
+                secrets = secrets_of(await d.create_wall("fatehpur", WALL))
+            await knock(s.url, secrets)
+            served = s.output()
+        port = free_port()  # the app as Docker's friends run it: uvicorn's own command line
+        env = {**os.environ, "WALLCULL_TOKEN": TOKEN, "WALLCULL_STATE": "none"}
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "uvicorn", "wallcull.server:make_app_from_env", "--factory",
+            "--port", str(port), "--log-level", "debug", env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        url = f"http://127.0.0.1:{port}"
+        try:
+            while (await _health(url))[0] != 200:
+                assert proc.returncode is None, (await proc.communicate())[0]
+                await asyncio.sleep(0.2)
+            async with Driver(url, TOKEN) as d:
+                await knock(url, secrets_of(await d.create_wall("fatehpur", WALL)))
+        finally:
+            proc.terminate()
+            factory = (await proc.communicate())[0].decode(errors="replace")
+        return served, factory, secrets
+
+    served, factory, secrets = run(go())
+    for log in (served, factory):
+        assert "WebSocket /walls/" in log and "token=<redacted>" in log, log[-3000:]
+        for secret in (TOKEN, wrong, secrets["driver"], secrets["node"]):
+            assert secret not in log, [line for line in log.splitlines() if secret in line]
+    assert '"GET /walls?token=<redacted> HTTP/1.1"' in factory  # the access log's line

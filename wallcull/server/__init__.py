@@ -38,7 +38,7 @@ from ..errors import InputError, optional
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from .. import warm
-from . import heap
+from . import heap, redact
 from ..workers import background, count as kernel_threads
 from ..persist import StateWriteFailed
 from ..service import Conflict, Gone, NotFound, SceneStore, Unavailable, Walls, settled
@@ -303,6 +303,7 @@ def seconds_setting(text: str | None, what: str) -> float | None:
 def make_app_from_env() -> FastAPI:
     """For ``uvicorn wallcull.server:make_app_from_env --factory`` (Docker and friends)."""
     heap.tune()
+    redact.install()  # no credential in uvicorn's logs, the access log included
     return create_app(**settings_from_env())
 
 
@@ -325,6 +326,7 @@ def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info",
     import uvicorn
 
     heap.tune()
+    redact.install()
     app = create_app(**settings)
     certificate, key = tls or (None, None)
     uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False,
