@@ -351,3 +351,43 @@ def test_no_credential_reaches_the_log():
         for secret in (TOKEN, wrong, secrets["driver"], secrets["node"]):
             assert secret not in log, [line for line in log.splitlines() if secret in line]
     assert '"GET /walls?token=<redacted> HTTP/1.1"' in factory  # the access log's line
+
+
+def test_long_polls_and_idle_connections_cannot_keep_a_new_client_out():
+    """``connections=64``: 80 long polls of the open barrier route (64 fill the cap), then
+    64 connections kept alive after a request: a new connection's health check is answered
+    each time; the oldest long polls are answered 503 with ``Retry-After`` and closed to make
+    room (they held every place: every new connection was reset)."""
+    async def go():
+        async with hostile.server(args=["--limit", "connections=64"]) as s:
+            async with Driver(s.url, TOKEN) as d:
+                wid = (await d.create_wall("fatehpur", WALL))["id"]
+            poll = (f"GET /walls/{wid}/barrier/9007199254740000?timeout=10 HTTP/1.1\r\n"
+                    "host: x\r\n\r\n").encode()
+            polls, health = [], []
+            for _ in range(80):  # each asks for health first: the server has it, then polls
+                reader, writer = await _raw(s.url, HEALTH)
+                health.append((await _answer(reader))[0])
+                writer.write(poll)
+                polls.append((reader, writer))
+            health += [(await _health(s.url))[0] for _ in range(5)]
+            answers = await asyncio.wait_for(asyncio.gather(
+                *(_answer(reader) for reader, _ in polls)), 60)
+            for _, writer in polls:
+                writer.close()
+            idle = []
+            for _ in range(64):
+                reader, writer = await _raw(s.url, HEALTH)
+                health.append((await _answer(reader))[0])
+                idle.append(writer)
+            health += [(await _health(s.url))[0] for _ in range(5)]
+            for writer in idle:
+                writer.close()
+        return health, answers
+
+    health, answers = run(go())
+    assert health == [200] * (80 + 5 + 64 + 5), health
+    evicted = [headers for status, headers, _ in answers if status == 503]
+    assert len(evicted) >= 16, answers
+    assert all(h.get("retry-after") == "1" and h.get("connection") == "close"
+               for h in evicted), evicted
