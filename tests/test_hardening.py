@@ -391,3 +391,45 @@ def test_long_polls_and_idle_connections_cannot_keep_a_new_client_out():
     assert len(evicted) >= 16, answers
     assert all(h.get("retry-after") == "1" and h.get("connection") == "close"
                for h in evicted), evicted
+
+
+def test_tls_handshakes_are_capped_and_on_the_header_deadline(tmp_path):
+    """With TLS, ``connections=64`` and ``header_seconds=5``: 200 connections that never send
+    a ClientHello are counted from their accept (the oldest closed for each new one) and all
+    closed within the deadline (asyncio held each for 60 s, outside the cap), while a health
+    check over TLS on a new connection is answered."""
+    import ssl
+
+    import trustme
+
+    from wallcull_clients.loadtest import running_server
+
+    ca = trustme.CA()
+    pem, authority = tmp_path / "server.pem", tmp_path / "ca.pem"
+    ca.issue_cert("127.0.0.1").private_key_and_cert_chain_pem.write_to_path(str(pem))
+    ca.cert_pem.write_to_path(str(authority))
+    trust = ssl.create_default_context(cafile=str(authority))
+
+    async def closed(reader) -> bool:
+        try:
+            return await reader.read() == b""
+        except ConnectionError:
+            return True
+
+    async def go(url):
+        while b'"kernels":"ready"' not in (await _health(url, trust))[1]:
+            await asyncio.sleep(0.2)  # loading them can hold the loop for seconds
+        silent = [await _raw(url, b"") for _ in range(200)]
+        health = [(await _health(url, trust))[0] for _ in range(3)]
+        # asyncio closed them after 60 s: 40 s is the deadline and room for a busy machine
+        ended = await asyncio.wait_for(asyncio.gather(*(closed(r) for r, _ in silent)), 40)
+        for _, writer in silent:
+            writer.close()
+        return health, ended, (await _health(url, trust))[0]
+
+    with running_server(TOKEN, args=["--tls-cert", str(pem), "--limit",
+                                     "connections=64,header_seconds=5"],
+                        ca=str(authority)) as url:
+        health, ended, after = run(go(url))
+    assert health == [200] * 3 and after == 200, health
+    assert all(ended), ended
