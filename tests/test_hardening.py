@@ -433,3 +433,11 @@ def test_tls_handshakes_are_capped_and_on_the_header_deadline(tmp_path):
         health, ended, after = run(go(url))
     assert health == [200] * 3 and after == 200, health
     assert all(ended), ended
+
+
+def test_tls_handshakes_are_measured():
+    """``hostile handshakes`` (docs/hardening.md's numbers) at a small size: every kind of
+    connection made, its server CPU counted."""
+    r = run(hostile.handshakes(count=40))
+    for kind in ("plain", "rsa2048", "ecdsa_p256"):
+        assert r[kind]["per_second"] > 0 and r[kind]["server_cpu_ms_each"] >= 0, r
