@@ -18,6 +18,7 @@ from wallcull_clients.driver import Driver
 from wallcull_clients.rawhttp import Connection
 
 MiB = 1 << 20
+TOKEN = hostile.TOKEN
 WALL = {"cols": 2, "rows": 2, "tile_size": [0.6, 0.34], "distance": 2.0}
 
 
@@ -236,3 +237,207 @@ def test_damaged_state_is_refused_in_one_line_and_kept():
         c = r[case]
         assert c["exit"] == 2 and c["lines"] == 1, r
         assert c["names_the_file"] and c["file_unchanged"], r
+
+
+# --------------------------------------------------------------------------- the hostile-client
+# audit of tokens and TLS: credentials in the log, long polls and TLS handshakes against the
+# connection cap. Each against a real ``wallcull serve`` on loopback.
+
+
+async def _raw(url: str, request: bytes, ssl=None):
+    """A new connection that sends ``request``: its reader and writer."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    reader, writer = await asyncio.open_connection(parts.hostname, parts.port, ssl=ssl)
+    writer.write(request)
+    return reader, writer
+
+
+async def _answer(reader) -> tuple[int, dict, bytes]:
+    """A response's status, headers and body, or ``(0, {}, b"")`` when the connection ended
+    without one."""
+    try:
+        head = await reader.readuntil(b"\r\n\r\n")
+        status, *lines = head.decode("latin-1").split("\r\n")
+        headers = dict(line.lower().split(": ", 1) for line in lines if ": " in line)
+        body = await reader.readexactly(int(headers.get("content-length", 0)))
+    except (ConnectionError, asyncio.IncompleteReadError):
+        return 0, {}, b""
+    return int(status.split()[1]), headers, body
+
+
+HEALTH = b"GET /health HTTP/1.1\r\nhost: x\r\n\r\n"
+
+
+async def _health(url: str, ssl=None) -> tuple[int, bytes]:
+    """``GET /health`` on a new connection: its status (0 when it got none) and body."""
+    try:
+        reader, writer = await _raw(url, HEALTH, ssl)
+    except OSError:
+        return 0, b""
+    try:
+        return (await asyncio.wait_for(_answer(reader), 30))[::2]
+    finally:
+        writer.close()
+
+
+def test_no_credential_reaches_the_log():
+    """The operator's token, a node's and the driver's credentials and a wrong guess, sent as
+    ``?token=`` and as ``Authorization`` over HTTP and WebSockets, to ``wallcull serve`` at
+    debug level and to the app run by uvicorn itself (``--factory``, its access log on):
+    none is in the log, which says ``token=<redacted>`` where uvicorn logged them."""
+    import os
+    import subprocess
+    import sys
+
+    from websockets.asyncio.client import connect
+
+    from wallcull_clients.loadtest import Server, free_port
+
+    wrong = "wrong-guess-5f3a9c"
+
+    def secrets_of(made: dict) -> dict:
+        return {"wid": made["id"], "operator": TOKEN, "driver": made["credentials"]["driver"],
+                "node": made["credentials"]["nodes"][0]["token"]}
+
+    async def knock(url: str, secrets: dict) -> None:
+        wid = secrets["wid"]
+        async with Connection(url) as conn:
+            for target, headers in ((f"/walls/{wid}?token={secrets['operator']}", {}),
+                                    (f"/walls?token={wrong}", {}),
+                                    ("/walls", {"authorization": f"Bearer {secrets['node']}"}),
+                                    (f"/walls/{wid}/barrier/0?timeout=0&token="
+                                     f"{secrets['driver']}", {})):
+                await conn.request("GET", target, headers=headers)
+        for query, headers in ((f"tiles=0&token={secrets['node']}", None),
+                               (f"tiles=0&token={secrets['operator']}", None),
+                               (f"tiles=0&token={wrong}", None),
+                               ("tiles=0", {"Authorization": f"Bearer {secrets['node']}"})):
+            try:
+                async with connect(f"ws{url[4:]}/walls/{wid}/nodes/stream?{query}",
+                                   additional_headers=headers, open_timeout=30):
+                    pass
+            except Exception:  # noqa: BLE001 - refused or not, what is logged is the point
+                pass
+
+    async def go():
+        async with Server(TOKEN, log_level="debug") as s:
+            async with Driver(s.url, TOKEN) as d:
+                secrets = secrets_of(await d.create_wall("fatehpur", WALL))
+            await knock(s.url, secrets)
+            served = s.output()
+        port = free_port()  # the app as Docker's friends run it: uvicorn's own command line
+        env = {**os.environ, "WALLCULL_TOKEN": TOKEN, "WALLCULL_STATE": "none"}
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "uvicorn", "wallcull.server:make_app_from_env", "--factory",
+            "--port", str(port), "--log-level", "debug", env=env,
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        url = f"http://127.0.0.1:{port}"
+        try:
+            while (await _health(url))[0] != 200:
+                assert proc.returncode is None, (await proc.communicate())[0]
+                await asyncio.sleep(0.2)
+            async with Driver(url, TOKEN) as d:
+                await knock(url, secrets_of(await d.create_wall("fatehpur", WALL)))
+        finally:
+            proc.terminate()
+            factory = (await proc.communicate())[0].decode(errors="replace")
+        return served, factory, secrets
+
+    served, factory, secrets = run(go())
+    for log in (served, factory):
+        assert "WebSocket /walls/" in log and "token=<redacted>" in log, log[-3000:]
+        for secret in (TOKEN, wrong, secrets["driver"], secrets["node"]):
+            assert secret not in log, [line for line in log.splitlines() if secret in line]
+    assert '"GET /walls?token=<redacted> HTTP/1.1"' in factory  # the access log's line
+
+
+def test_long_polls_and_idle_connections_cannot_keep_a_new_client_out():
+    """``connections=64``: 80 long polls of the open barrier route (64 fill the cap), then
+    64 connections kept alive after a request: a new connection's health check is answered
+    each time; the oldest long polls are answered 503 with ``Retry-After`` and closed to make
+    room (they held every place: every new connection was reset)."""
+    async def go():
+        async with hostile.server(args=["--limit", "connections=64"]) as s:
+            async with Driver(s.url, TOKEN) as d:
+                wid = (await d.create_wall("fatehpur", WALL))["id"]
+            poll = (f"GET /walls/{wid}/barrier/9007199254740000?timeout=10 HTTP/1.1\r\n"
+                    "host: x\r\n\r\n").encode()
+            polls, health = [], []
+            for _ in range(80):  # each asks for health first: the server has it, then polls
+                reader, writer = await _raw(s.url, HEALTH)
+                health.append((await _answer(reader))[0])
+                writer.write(poll)
+                polls.append((reader, writer))
+            health += [(await _health(s.url))[0] for _ in range(5)]
+            answers = await asyncio.wait_for(asyncio.gather(
+                *(_answer(reader) for reader, _ in polls)), 60)
+            for _, writer in polls:
+                writer.close()
+            idle = []
+            for _ in range(64):
+                reader, writer = await _raw(s.url, HEALTH)
+                health.append((await _answer(reader))[0])
+                idle.append(writer)
+            health += [(await _health(s.url))[0] for _ in range(5)]
+            for writer in idle:
+                writer.close()
+        return health, answers
+
+    health, answers = run(go())
+    assert health == [200] * (80 + 5 + 64 + 5), health
+    evicted = [headers for status, headers, _ in answers if status == 503]
+    assert len(evicted) >= 16, answers
+    assert all(h.get("retry-after") == "1" and h.get("connection") == "close"
+               for h in evicted), evicted
+
+
+def test_tls_handshakes_are_capped_and_on_the_header_deadline(tmp_path):
+    """With TLS, ``connections=64`` and ``header_seconds=5``: 200 connections that never send
+    a ClientHello are counted from their accept (the oldest closed for each new one) and all
+    closed within the deadline (asyncio held each for 60 s, outside the cap), while a health
+    check over TLS on a new connection is answered."""
+    import ssl
+
+    import trustme
+
+    from wallcull_clients.loadtest import running_server
+
+    ca = trustme.CA()
+    pem, authority = tmp_path / "server.pem", tmp_path / "ca.pem"
+    ca.issue_cert("127.0.0.1").private_key_and_cert_chain_pem.write_to_path(str(pem))
+    ca.cert_pem.write_to_path(str(authority))
+    trust = ssl.create_default_context(cafile=str(authority))
+
+    async def closed(reader) -> bool:
+        try:
+            return await reader.read() == b""
+        except ConnectionError:
+            return True
+
+    async def go(url):
+        while b'"kernels":"ready"' not in (await _health(url, trust))[1]:
+            await asyncio.sleep(0.2)  # loading them can hold the loop for seconds
+        silent = [await _raw(url, b"") for _ in range(200)]
+        health = [(await _health(url, trust))[0] for _ in range(3)]
+        # asyncio closed them after 60 s: 40 s is the deadline and room for a busy machine
+        ended = await asyncio.wait_for(asyncio.gather(*(closed(r) for r, _ in silent)), 40)
+        for _, writer in silent:
+            writer.close()
+        return health, ended, (await _health(url, trust))[0]
+
+    with running_server(TOKEN, args=["--tls-cert", str(pem), "--limit",
+                                     "connections=64,header_seconds=5"],
+                        ca=str(authority)) as url:
+        health, ended, after = run(go(url))
+    assert health == [200] * 3 and after == 200, health
+    assert all(ended), ended
+
+
+def test_tls_handshakes_are_measured():
+    """``hostile handshakes`` (docs/hardening.md's numbers) at a small size: every kind of
+    connection made, its server CPU counted."""
+    r = run(hostile.handshakes(count=40))
+    for kind in ("plain", "rsa2048", "ecdsa_p256"):
+        assert r[kind]["per_second"] > 0 and r[kind]["server_cpu_ms_each"] >= 0, r

@@ -11,6 +11,7 @@ how long its event loop stalled, how long nodes took to come back after it was k
     python -m wallcull_clients.hostile acks         # an ack with another tile's credential
     python -m wallcull_clients.hostile loop         # 1 MiB of updates; 100k nodes described
     python -m wallcull_clients.hostile restart      # SIGKILL mid-run on an 8 x 8 wall
+    python -m wallcull_clients.hostile handshakes   # server CPU per TLS handshake, RSA and ECDSA
     python -m wallcull_clients.hostile all --json
 
 The tests run bounded versions of the same functions (``tests/test_hardening.py``).
@@ -827,10 +828,78 @@ async def state() -> dict:
     return {"scenario": "state", **out}
 
 
+async def handshakes(count: int = 3000, at_once: int = 4) -> dict:
+    """Full TLS handshakes (a connection opened, its handshake made, closed; no session
+    reused), ``at_once`` at a time, against ``wallcull serve --tls-cert`` with an RSA-2048 and
+    with an ECDSA P-256 certificate (``trustme``, the tests' authority), and plain connections
+    beside them: the server's CPU time per connection, all of it its event loop's."""
+    import ssl
+
+    import psutil
+    import trustme
+
+    from .loadtest import free_port
+
+    async def connect(port, context):
+        reader, writer = await asyncio.open_connection("127.0.0.1", port, ssl=context)
+        return reader, writer
+
+    out = {"connections": count, "at_once": at_once}
+    with tempfile.TemporaryDirectory(prefix="wallcull-tls-") as folder:
+        for name, key in (("plain", None), ("rsa2048", trustme.KeyType.RSA),
+                          ("ecdsa_p256", trustme.KeyType.ECDSA)):
+            args, context = [], None
+            if key is not None:
+                ca = trustme.CA(key_type=key)
+                pem = Path(folder, f"{name}.pem")
+                ca.issue_cert("127.0.0.1", key_type=key).private_key_and_cert_chain_pem \
+                    .write_to_path(str(pem))
+                args, context = ["--tls-cert", str(pem)], ssl.create_default_context()
+                ca.configure_trust(context)
+            port = free_port()
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "wallcull.cli", "serve", "--host", "127.0.0.1", "--port",
+                str(port), "--state", "none", "--log-level", "warning", *args,
+                stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL)
+            try:
+                while True:  # the kernels loaded: their CPU is not the handshakes'
+                    try:
+                        reader, writer = await connect(port, context)
+                        writer.write(b"GET /health HTTP/1.1\r\nhost: x\r\n"
+                                     b"connection: close\r\n\r\n")
+                        ready = b'"ready"' in await reader.read()
+                        writer.close()
+                        if ready:
+                            break
+                    except OSError:
+                        pass
+                    await asyncio.sleep(0.2)
+                server = psutil.Process(proc.pid)
+                left = count
+
+                async def one_after_another():
+                    nonlocal left
+                    while left > 0:
+                        left -= 1
+                        _, writer = await connect(port, context)
+                        writer.close()
+
+                cpu = sum(server.cpu_times()[:2])
+                t = time.perf_counter()
+                await asyncio.gather(*(one_after_another() for _ in range(at_once)))
+                seconds = time.perf_counter() - t
+                cpu = sum(server.cpu_times()[:2]) - cpu
+            finally:
+                proc.terminate()
+                await proc.wait()
+            out[name] = {"per_second": count / seconds, "server_cpu_ms_each": 1e3 * cpu / count}
+    return out
+
+
 SCENARIOS = {"glb-bomb": glb_bomb, "uploads": uploads, "streams": streams, "acks": acks,
              "loop": loop, "restart": restart, "messages": messages, "headers": headers,
              "prepare": prepare, "stereo": stereo, "huge": huge, "answers": answers,
-             "state": state}
+             "state": state, "handshakes": handshakes}
 
 
 def main(argv=None) -> int:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import sys
 import time
 from pathlib import Path
 from contextlib import asynccontextmanager
@@ -38,7 +39,7 @@ from ..errors import InputError, optional
 from ..limits import Limits
 from ..persist import StateFolder, default_folder
 from .. import warm
-from . import heap
+from . import heap, redact
 from ..workers import background, count as kernel_threads
 from ..persist import StateWriteFailed
 from ..service import Conflict, Gone, NotFound, SceneStore, Unavailable, Walls, settled
@@ -303,17 +304,19 @@ def seconds_setting(text: str | None, what: str) -> float | None:
 def make_app_from_env() -> FastAPI:
     """For ``uvicorn wallcull.server:make_app_from_env --factory`` (Docker and friends)."""
     heap.tune()
+    redact.install()  # no credential in uvicorn's logs, the access log included
     return create_app(**settings_from_env())
 
 
-def uvicorn_options(app: FastAPI) -> dict:
+def uvicorn_options(app: FastAPI, tls=None) -> dict:
     """What :func:`serve` runs uvicorn with besides the address and the logs: the protocols
-    of :mod:`.guard` (connections capped, header deadlines, refusals that are no errors) and
-    the largest WebSocket message."""
+    of :mod:`.guard` (connections capped, header deadlines, refusals that are no errors; with
+    ``tls``, an ``ssl.SSLContext``, TLS served by the guard, each handshake counted and on
+    the header's deadline) and the largest WebSocket message."""
     from .guard import Refusals, protocol
 
     limits = app.state.server.limits
-    return {"http": protocol(limits), "ws": Refusals,
+    return {"http": protocol(limits, tls), "ws": Refusals,
             "ws_max_size": max(limits.body, limits.message_bytes)}
 
 
@@ -322,10 +325,33 @@ def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "info",
     """Run the server (``settings``: :func:`create_app` keywords) with
     :func:`uvicorn_options`; over TLS with ``tls``, ``(certificate, key)`` files (PEM; the key
     None when the certificate's file holds it)."""
+    import ssl
+
     import uvicorn
+    from uvicorn.main import STARTUP_FAILURE
 
     heap.tune()
+    redact.install()
     app = create_app(**settings)
-    certificate, key = tls or (None, None)
-    uvicorn.run(app, host=host, port=port, log_level=log_level, access_log=False,
-                ssl_certfile=certificate, ssl_keyfile=key, **uvicorn_options(app))
+    context = None
+    if tls is not None:  # served by the guard's protocol, not by uvicorn (:mod:`.guard`)
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        context.load_cert_chain(*tls)
+
+    class Server(uvicorn.Server):
+        def _log_started_message(self, listeners) -> None:
+            self.config.ssl = context  # "running on https://..." when it does
+            try:
+                super()._log_started_message(listeners)
+            finally:
+                self.config.ssl = None
+
+    config = uvicorn.Config(app, host=host, port=port, log_level=log_level, access_log=False,
+                            **uvicorn_options(app, context))
+    server = Server(config)
+    try:
+        server.run()
+    except KeyboardInterrupt:
+        pass
+    if not server.started:  # as uvicorn.run: the port was taken, the app failed to start
+        sys.exit(STARTUP_FAILURE)

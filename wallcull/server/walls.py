@@ -18,6 +18,7 @@ from ..wall import Wall
 from ..workers import background
 from .access import needs
 from .deps import State
+from .guard import long_poll
 from .http import body_of, reply, reply_large
 from .messages import FrameAnswer, Packet
 from .models import (UNWRITABLE, WAITS, Ack, Barrier, FramePost, WallCreate, WallCreated,
@@ -169,14 +170,15 @@ async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
     session = state.walls.get(wid)
     session.check_tile(tile)
     if frame == "latest":
-        if session.latest < 0 and not await session.wait_frame(0, wait):
+        if session.latest < 0 and not await long_poll(request.scope,
+                                                      session.wait_frame(0, wait)):
             raise NotFound("no frame yet")
         number = session.latest
     else:
         number = int(frame)
         if number > MAX_FRAME:
             raise InputError(f"frame numbers end at {MAX_FRAME}, got {number}")
-        if not await session.wait_frame(number, wait):
+        if not await long_poll(request.scope, session.wait_frame(number, wait)):
             raise NotFound(f"frame {number} is not ready (latest {session.newest})")
     pkt = session.packet(tile, number, full)
     response = reply(request, pkt)
@@ -200,4 +202,5 @@ async def barrier(request: Request, state: State, wid: WallId,
                   frame: Annotated[int, Path(ge=0, le=MAX_FRAME)],
                   timeout: Wait = 1.0):
     """Wait until every tile has acknowledged ``frame``, or ``timeout`` seconds."""
-    return reply(request, await state.walls.get(wid).barrier(frame, timeout))
+    session = state.walls.get(wid)
+    return reply(request, await long_poll(request.scope, session.barrier(frame, timeout)))
