@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+import httpx
 import msgpack
 import pytest
 
@@ -362,6 +363,8 @@ def test_long_polls_and_idle_connections_cannot_keep_a_new_client_out():
         async with hostile.server(args=["--limit", "connections=64"]) as s:
             async with Driver(s.url, TOKEN) as d:
                 wid = (await d.create_wall("fatehpur", WALL))["id"]
+            async with httpx.AsyncClient() as http:
+                document = (await http.get(f"{s.url}/openapi.json")).json()
             poll = (f"GET /walls/{wid}/barrier/9007199254740000?timeout=10 HTTP/1.1\r\n"
                     "host: x\r\n\r\n").encode()
             polls, health = [], []
@@ -383,14 +386,18 @@ def test_long_polls_and_idle_connections_cannot_keep_a_new_client_out():
             health += [(await _health(s.url))[0] for _ in range(5)]
             for writer in idle:
                 writer.close()
-        return health, answers
+        return health, answers, document
 
-    health, answers = run(go())
+    health, answers, document = run(go())
     assert health == [200] * (80 + 5 + 64 + 5), health
     evicted = [headers for status, headers, _ in answers if status == 503]
     assert len(evicted) >= 16, answers
     assert all(h.get("retry-after") == "1" and h.get("connection") == "close"
                for h in evicted), evicted
+    for path in ("/walls/{wid}/barrier/{frame}", "/walls/{wid}/tiles/{tile}/packets/{frame}"):
+        declared = document["paths"][path]["get"]["responses"]["503"]  # as the API says
+        assert "connection cap" in declared["description"] and "Retry-After" in \
+            declared["headers"], declared
 
 
 def test_tls_handshakes_are_capped_and_on_the_header_deadline(tmp_path):

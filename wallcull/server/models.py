@@ -213,6 +213,8 @@ _REFUSALS = {304: "Not modified: the ETag matches", 400: "Malformed msgpack body
 WAITS = "the wall waits for its scene (a restart did not find it)"
 UNWRITABLE = "the state folder or the scene cache folder cannot be written"
 BUSY = "too many uploads at once"
+CROWDED = ("the server is at its connection cap, and this long poll, the oldest, made room for "
+           "a new connection")
 RETRY_AFTER = {"Retry-After": {"description": "Seconds to wait before trying again",
                                "schema": {"type": "integer"}}}
 

@@ -21,7 +21,7 @@ from .deps import State
 from .guard import long_poll
 from .http import body_of, reply, reply_large
 from .messages import FrameAnswer, Packet
-from .models import (UNWRITABLE, WAITS, Ack, Barrier, FramePost, WallCreate, WallCreated,
+from .models import (CROWDED, UNWRITABLE, WAITS, Ack, Barrier, FramePost, WallCreate, WallCreated,
                      WallId, WallInfo, WallList, refusals, worded)
 from .openapi import FRAME_LINKS, WALL_LINKS
 
@@ -156,7 +156,7 @@ def check_packets(session, body: FramePost) -> None:
 
 
 @router.get("/walls/{wid}/tiles/{tile}/packets/{frame}", operation_id="getPacket",
-            response_model=Packet, responses=refusals(401, 403, 404, 410, WAITS))
+            response_model=Packet, responses=refusals(401, 403, 404, 410, WAITS, CROWDED))
 @needs(NODE)
 async def get_packet(request: Request, state: State, wid: WallId, tile: TileId,
                      frame: Annotated[str, Path(pattern=FRAME)],
@@ -197,7 +197,7 @@ async def ack(state: State, wid: WallId, tile: TileId, body: Annotated[Ack, body
 
 
 @router.get("/walls/{wid}/barrier/{frame}", operation_id="barrier", response_model=Barrier,
-            responses=refusals(404, WAITS))
+            responses=refusals(404, WAITS, CROWDED))
 async def barrier(request: Request, state: State, wid: WallId,
                   frame: Annotated[int, Path(ge=0, le=MAX_FRAME)],
                   timeout: Wait = 1.0):
