@@ -1490,9 +1490,10 @@ BLOCK = 2
 _HIDDEN, _CLEAR, _NEAR, _TEST = 0, 1, 2, 3
 #: A node's record per eye (:func:`_project`): its rectangle (texels, unclipped), nearest and
 #: farthest depth, centre and half vectors (view coordinates); once a texel test needs them,
-#: the planes of its front faces (ready 1) and its outline's corners (ready 2, texels).
+#: the planes of its front faces (ready 1) and its outline's corners (ready 2, texels); room
+#: for the outline's working (its corners in order of x, and its chains).
 _R_RECT, _R_NEAR, _R_FAR, _R_CENTRE, _R_HALF, _R_READY, _R_HULL, _R_ORDER, _R_CORNERS, \
-    _R_FACES, _R_PLANES, _R_SIZE = 0, 4, 5, 6, 9, 18, 19, 35, 43, 44, 45, 54
+    _R_FACES, _R_PLANES, _R_WORK, _R_SIZE = 0, 4, 5, 6, 9, 18, 19, 35, 43, 44, 45, 54, 78
 
 
 @njit(cache=True, nogil=True)
@@ -1701,7 +1702,12 @@ def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
 @njit(cache=True, inline="always")
 def _outline_of(re, rect, w, h):
     """A node's outline on the image, into its record: the convex hull of its box's eight
-    corners (gift wrapping), in texel coordinates."""
+    corners (Andrew's monotone chain), counter-clockwise, in texel coordinates. A flat box
+    (a wall's, a floor's, any planar mesh's) has corners in pairs a rounding apart, along
+    which a cross product's sign is noise: gift wrapping then walked to wrong corners and the
+    outline left most of the box out (whole walls judged hidden behind nothing). Here a near
+    twin is popped as not turning left, and its twin, as far out, stays. Should rounding still
+    give an outline of more than eight corners, it is one point, which rules nothing out."""
     sx = w / (rect[1] - rect[0])
     sy = h / (rect[3] - rect[2])
     hull = _R_HULL
@@ -1709,27 +1715,38 @@ def _outline_of(re, rect, w, h):
         x, y, d = _corner(re, c)
         re[hull + 2 * c] = (x / d - rect[0]) * sx
         re[hull + 2 * c + 1] = (y / d - rect[2]) * sy
-    start = 0
-    for c in range(1, 8):
-        if re[hull + 2 * c] < re[hull + 2 * start] or (
-                re[hull + 2 * c] == re[hull + 2 * start]
-                and re[hull + 2 * c + 1] < re[hull + 2 * start + 1]):
-            start = c
+    order, chain = _R_WORK, _R_WORK + 8  # the corners by x, then y; the chains (16 at most)
+    for c in range(8):
+        m = c
+        while m > 0:
+            o = int(re[order + m - 1])
+            if re[hull + 2 * o] < re[hull + 2 * c] or (
+                    re[hull + 2 * o] == re[hull + 2 * c]
+                    and re[hull + 2 * o + 1] <= re[hull + 2 * c + 1]):
+                break
+            re[order + m] = o
+            m -= 1
+        re[order + m] = c
     n = 0
-    p = start
-    while True:
-        re[_R_ORDER + n] = p
-        n += 1
-        q = (p + 1) % 8
-        px, py = re[hull + 2 * p], re[hull + 2 * p + 1]
-        for r in range(8):
-            cross = ((re[hull + 2 * q] - px) * (re[hull + 2 * r + 1] - py)
-                     - (re[hull + 2 * q + 1] - py) * (re[hull + 2 * r] - px))
-            if cross < 0:
-                q = r
-        p = q
-        if p == start or n == 8:
-            break
+    for upper in range(2):  # the lower chain left to right, then the upper right to left
+        first = n
+        for q in range(8):
+            k = int(re[order + 7 - q]) if upper else int(re[order + q])
+            kx, ky = re[hull + 2 * k], re[hull + 2 * k + 1]
+            while n >= first + 2:
+                o, a = int(re[chain + n - 2]), int(re[chain + n - 1])
+                ox, oy = re[hull + 2 * o], re[hull + 2 * o + 1]
+                if (re[hull + 2 * a] - ox) * (ky - oy) - (re[hull + 2 * a + 1] - oy) * (kx - ox) \
+                        > 0:
+                    break
+                n -= 1
+            re[chain + n] = k
+            n += 1
+        n -= 1  # each chain's last corner is the other's first
+    if not 1 <= n <= 8:
+        n = 1
+    for e in range(n):
+        re[_R_ORDER + e] = re[chain + e]
     re[_R_CORNERS] = n
     re[_R_READY] = 2.0
 
