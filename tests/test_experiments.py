@@ -321,3 +321,17 @@ def test_occluders(out):
         assert 0 < e["ratio"] < 1 and e["triangles"] < s["without"]
         assert 0 < e["occluder_triangles"] <= e["budget"] and e["occlude_ms_median"] > 0
     assert "## Choosing occluders" in (out / "occluders.md").read_text()
+
+
+def test_a_step_reports_its_own_peak_memory():
+    """A step started by a big parent (``experiment all`` after the other experiments) reports
+    its own peak, not the parent's: Linux keeps ``ru_maxrss`` across fork and exec (every
+    scene of the scale table said 4,307 MB)."""
+    import subprocess
+    import sys
+
+    ballast = np.ones(800 * 2**20 // 8)  # 800 MB, touched
+    done = subprocess.run([sys.executable, "-c", "from wallcull.bench import peak_rss_mb; "
+                           "print(peak_rss_mb())"], capture_output=True, text=True, check=True)
+    assert float(done.stdout) < 400 < bench.peak_rss_mb(), done.stdout
+    del ballast

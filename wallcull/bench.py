@@ -31,8 +31,17 @@ WARMUP_FRAMES = 3
 
 
 def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, MB (Linux reports kB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    """Peak resident memory of this process so far, MB: Linux's ``VmHWM``, which is this
+    program's own (``ru_maxrss`` keeps the peak of the process that started it, across fork
+    and exec, so a step started by a big parent reported the parent's peak)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
 
 
 def machine() -> dict:
