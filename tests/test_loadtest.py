@@ -738,3 +738,31 @@ def test_a_retry_stops_when_its_tool_is_told_to_stop():
         return asyncio.get_running_loop().time() - t0
 
     assert asyncio.run(go()) < 5
+
+
+def test_the_driver_marks_its_posting_span(server):
+    """The driver says when its posts begin and end, with its CPU time at each, and the load
+    test samples every process's CPU at those two lines (the window began before the driver's
+    start-up and imports, which diluted every percentage and counted its imports)."""
+    from wallcull_clients.loadtest import _driving_span
+
+    info = asyncio.run(_wall_with_frames(server, 1))
+    proc = subprocess.run([sys.executable, "-m", "wallcull_clients.driver", "--server", server,
+                           "--wall-id", info["id"], "--token", TOKEN, "--frames", "3",
+                           "--rate", "0"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = [strict_json(line) for line in proc.stdout.splitlines()]
+    driving, driven = lines[1], lines[2]
+    assert driving["driving"] and driven["driven"]
+    assert 0 < driving["cpu_seconds"] <= driven["cpu_seconds"]
+
+    async def go():
+        stream = asyncio.StreamReader()
+        stream.feed_data(proc.stdout.encode())
+        stream.feed_eof()
+        samples = iter(range(10))
+        return await _driving_span(stream, lambda: next(samples))
+
+    start, end, cpu = asyncio.run(go())
+    assert (start, end) == (0, 1)
+    assert cpu == pytest.approx(driven["cpu_seconds"] - driving["cpu_seconds"])

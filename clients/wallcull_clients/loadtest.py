@@ -21,7 +21,8 @@ posts ``rate x duration`` frames of the camera path. It then writes ``report.jso
   re-encodes every delta it gets as the full packet the server would have sent), in total and for
   the leaf-id lists alone, and the bytes of the fitted frusta that every packet carries;
 * CPU seconds and percent of the server, the node processes and the driver (psutil), over the
-  driving window;
+  span of the driver's posts (from its ``{"driving": ...}`` line to its ``{"driven": ...}``
+  line; its start-up and imports left out);
 * frames dropped (tile-frames a node never saw: conflation on the stream, or history loss;
   every measured frame of a tile whose node process left no records), errors, barrier
   timeouts, frames the driver skipped behind its schedule, and the server's own counters
@@ -591,22 +592,27 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
         if barrier:
             cmd += ["--barrier", "--barrier-timeout", str(barrier_timeout)]
-        cpu0 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
-                "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
-                "clients": sum(cpu_seconds(p) for p in client_ps),
-                "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process())}
-        t0 = time.monotonic()
+        def sample() -> dict:
+            return {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
+                    "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
+                    "clients": [cpu_seconds(p) for p in client_ps],  # nan for those gone
+                    "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process()),
+                    "t": time.monotonic()}
+
+        before = sample()
         drv = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
                                                    stderr=asyncio.subprocess.PIPE,
                                                    cwd=str(ROOT))
-        drv_cpu0 = cpu_seconds(psutil.Process(drv.pid))
+        # the window is the span of the posts: from the driver's "driving" line (its start-up,
+        # imports and path building left out) to its "driven" line
+        span = asyncio.ensure_future(_driving_span(drv.stdout, sample))
         await _watch(url, wid, frames, drv, progress)
-        wall_s = time.monotonic() - t0
-        cpu1 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
-                "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
-                "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process())}
-        clients_at_end = [cpu_seconds(p) for p in client_ps]  # nan for those already gone
-        drv_out, drv_err = await drv.communicate()
+        cpu0, cpu1, drv_cpu = await span
+        cpu0, cpu1 = cpu0 or before, cpu1 or sample()  # (a driver that never drove: its run)
+        wall_s = max(cpu1["t"] - cpu0["t"], 1e-9)
+        clients_at_end = cpu1["clients"]
+        cpu0["clients"] = sum(cpu0["clients"])
+        _, drv_err = await drv.communicate()
         if drv.returncode != 0:
             raise InputError(f"the driver {exit_text(drv.returncode)}: {last_line(drv_err)}")
         driver = json.loads(Path(f"{tmp.name}/driver.json").read_text())
@@ -631,9 +637,9 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                 why = last_line(err)
                 node_errors.append(f"node process {k} (tiles {ranges[k][0]}-{ranges[k][1]}) "
                                    f"{exit_text(p.returncode)}{': ' + why if why else ''}")
-        # the processes report their own CPU time when they finish (they may exit before
-        # anyone could sample them); less what they had used when the driver started
-        drv_cpu = driver["cpu_seconds"] - (drv_cpu0 if drv_cpu0 == drv_cpu0 else 0.0)
+        # the driver's CPU over the span, as it reported it; the node processes report their
+        # own CPU time when they finish (they may exit before anyone could sample them)
+        drv_cpu = drv_cpu if drv_cpu is not None else driver["cpu_seconds"]
         nodes, cpu1["clients"] = [], 0.0
         for k in range(len(procs)):
             f = Path(f"{tmp.name}/nodes-{k}.json")
@@ -676,7 +682,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     report["driver"] = driver["summary"]
     report["cpu"] = {name: {"seconds": cpu1[name] - cpu0[name],
                             "percent": 100 * (cpu1[name] - cpu0[name]) / wall_s}
-                     for name in cpu0}
+                     for name in cpu0 if name != "t"}
     report["cpu"]["driver"] = {"seconds": drv_cpu, "percent": 100 * drv_cpu / wall_s}
     # everything else the machine did meanwhile (with --server, the server among it: its CPU
     # is not sampled)
@@ -766,6 +772,24 @@ async def kernels_loaded(url: str, show: bool = False, timeout: float = KERNELS_
                                        f"after {timeout:g} s")
                 await asyncio.sleep(0.1)
     return time.monotonic() - t0
+
+
+async def _driving_span(stdout, sample) -> tuple:
+    """Read the driver's JSON lines to its end; ``(sample() at "driving", sample() at
+    "driven", the driver's CPU seconds between the two)``, None for a line that never came."""
+    start = end = cpu = None
+    async for line in stdout:
+        try:
+            said = json.loads(line)
+        except ValueError:
+            continue
+        if not isinstance(said, dict):
+            continue
+        if said.get("driving"):
+            start, cpu = sample(), said["cpu_seconds"]
+        elif said.get("driven") and start is not None:
+            end, cpu = sample(), said["cpu_seconds"] - cpu
+    return start, end, (cpu if end is not None else None)
 
 
 async def _watch(url, wid, frames, drv, show: bool) -> None:
