@@ -163,6 +163,61 @@ def test_loadtest_bad_arguments(tmp_path):
     assert proc.returncode == 2 and proc.stderr.startswith("wallcull: error:")
 
 
+@pytest.mark.parametrize("args,said", [
+    (["--duration", "inf"], "--duration must be a positive number of seconds, got inf"),
+    (["--duration", "nan"], "--duration must be a positive number of seconds, got nan"),
+    (["--rate", "inf", "--duration", "2"], "--rate must be 0 (as fast as it goes) or a "),
+    (["--nats", "nats://127.0.0.1:4222"], "--nats is the broker of --transport nats"),
+    (["--server", "http://127.0.0.1:9", "--transport", "nats"],
+     "--transport nats with --server needs the server's broker: --nats URL")])
+def test_loadtest_refuses_what_it_cannot_run_in_one_line(capsys, args, said):
+    """Infinite or NaN durations and rates were internal errors (or blamed --warmup); a
+    --nats without NATS was ignored; NATS on a --server with a broker of our own measured
+    nothing (the server never publishes there)."""
+    from wallcull.cli import main
+
+    assert main(["loadtest", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"wallcull: error: {said}"), err
+
+
+def test_loadtest_whose_server_cannot_reach_its_broker_says_so_in_one_line(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "loadtest", "--transport",
+                           "nats", "--nats", f"nats://127.0.0.1:{free_port()}"],
+                          capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(
+        "wallcull: error: the server exited with status 2: cannot reach the NATS broker"), \
+        proc.stderr
+
+
+def test_loadtest_whose_tiles_hear_nothing_fails(server, tmp_path):
+    """Nodes on a broker the server does not publish to: every tile-frame is dropped, and the
+    run fails (status 1, one line) instead of passing with nothing measured."""
+    from wallcull_clients.broker import Broker
+
+    with Broker() as broker:
+        proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "loadtest", "--server",
+                               server, "--token", TOKEN, "--wall", json.dumps(WALL_2x2),
+                               "--transport", "nats", "--nats", broker.url, "--rate", "20",
+                               "--duration", "1", "--warmup", "0", "--out",
+                               str(tmp_path / "report"), "--json"],
+                              capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr == ("wallcull: error: 4 of 4 tiles got no packet: the nodes heard "
+                           "nothing from the server (with --server and --transport nats, is "
+                           "--nats the server's broker?)\n")
+    assert json.loads(proc.stdout)["nodes"]["every_tile_got_packets"] is False
+
+
+def test_loadtest_as_fast_as_it_goes_keeps_its_warmup(server, tmp_path):
+    """--rate 0: the warm-up's seconds are frames at the rate achieved (they were none)."""
+    report = loadtest(tmp_path, "--server", server, "--token", TOKEN, "--wall",
+                      json.dumps(WALL_2x2), "--rate", "0", "--duration", "1", "--warmup", "0.5")
+    assert report["config"]["warmup_frames"] == min(
+        round(0.5 * report["driver"]["rate"]), report["config"]["frames"] - 2) > 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("path", ["orbit", "fly"])
 def test_loadtest_8x8_full_size(tmp_path, path):

@@ -258,6 +258,14 @@ def last_line(err: bytes | str) -> str:
     return lines[-1] if lines else ""
 
 
+def started(exc: RuntimeError) -> str:
+    """A server or broker that would not start, in one line: what happened and the last line
+    it said (``the server exited with status 2: cannot reach the NATS broker ...``)."""
+    what, _, said = str(exc).partition(": ")
+    why = last_line(said).removeprefix("wallcull: error: ")
+    return f"{what}: {why}" if why else what
+
+
 def exit_text(status: int) -> str:
     """``exited 2``, or ``was killed by SIGKILL``."""
     import signal
@@ -536,7 +544,11 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     tmp = tempfile.TemporaryDirectory(dir=workdir)
     broker = Broker() if transport == "nats" and nats is None else None
     if broker is not None:
-        nats = broker.start().url
+        try:
+            nats = broker.start().url
+        except RuntimeError as exc:
+            broker.stop()
+            raise InputError(started(exc)) from None
     own = Server(token, args=["--nats", nats] if transport == "nats" else ()) \
         if server is None else None
     procs: list = []
@@ -544,7 +556,10 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     url = server
     try:
         if own:
-            await own.start()
+            try:
+                await own.start()
+            except RuntimeError as exc:
+                raise InputError(started(exc)) from None
         url = own.url if own else server
         await _reach(url, progress)
         async with Driver(url, token, retry_for=retry_for) as d:
@@ -667,7 +682,9 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         if broker is not None:
             broker.stop()
         tmp.cleanup()
-    warm = min(int(round(warmup * rate)) if rate > 0 else 0, max(frames - 2, 0))
+    # (--rate 0, as fast as it goes: the warm-up's frames at the rate the driver achieved)
+    per_s = rate if rate > 0 else driver["summary"].get("rate") or 0.0
+    warm = min(int(round(warmup * per_s)), max(frames - 2, 0))
     report = {"kind": "walkthrough",
               "config": {"scene": scene, "wall": wall, "tiles": tiles, "rate": rate,
                          "duration": duration, "frames": frames, "mode": mode,
@@ -914,7 +931,10 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
     url, wid, gen = server, None, None
     try:
         if own:
-            await own.start()
+            try:
+                await own.start()
+            except RuntimeError as exc:
+                raise InputError(started(exc)) from None
         url = own.url if own else server
         await _reach(url, progress)
         async with Driver(url, token) as d:
@@ -1204,8 +1224,18 @@ def cmd_loadtest(args) -> int:
         raise InputError("--clients-procs and --tiles-per-node must be at least 1")
     if (args.tiles_per_node > 1 or args.transport == "nats") and args.mode != "ws":
         raise InputError("nodes of several tiles, and NATS, take node messages: --mode ws")
-    if args.duration <= 0 or args.rate < 0:
-        raise InputError("--duration must be positive and --rate at least 0")
+    if not 0 < args.duration < float("inf"):
+        raise InputError(f"--duration must be a positive number of seconds, got "
+                         f"{args.duration:g}")
+    if not 0 <= args.rate < float("inf"):
+        raise InputError(f"--rate must be 0 (as fast as it goes) or a positive number of "
+                         f"frames a second, got {args.rate:g}")
+    if args.nats and args.transport != "nats":
+        raise InputError("--nats is the broker of --transport nats: give both, or neither")
+    if args.transport == "nats" and args.server and not args.nats:
+        raise InputError("--transport nats with --server needs the server's broker: --nats URL "
+                         "(the one it was started with); a broker of our own would hear "
+                         "nothing from it")
     if args.requests is None and not 0 <= args.warmup < args.duration:
         raise InputError(f"--warmup must be 0 or more and less than --duration "
                          f"({args.duration:g} s), got {args.warmup:g}")
@@ -1248,6 +1278,13 @@ def cmd_loadtest(args) -> int:
             text = text.split("\n| tile |")[0]
         Console().print(Markdown(text))
     errors = report.get("errors", {})
+    if report["kind"] == "walkthrough" and not errors.get("process_errors") \
+            and not errors.get("tiles_missing") and not report["nodes"]["every_tile_got_packets"]:
+        silent = sum(not t["packets"] for t in report["tiles"])
+        print(f"wallcull: error: {silent} of {len(report['tiles'])} tiles got no packet: the "
+              f"nodes heard nothing from the server (with --server and --transport nats, is "
+              f"--nats the server's broker?)", file=sys.stderr)
+        return 1
     if errors.get("process_errors") or errors.get("tiles_missing"):
         # measured, but not the whole wall: the report says what is missing, and so does this
         first = (errors["process_errors"] or ["a node process left no records"])[0]
