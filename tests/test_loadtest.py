@@ -514,6 +514,47 @@ def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
     assert drawn >= 2  # the orbit keeps the model in the middle of the wall
 
 
+def test_render_nodes_of_a_screens_wall_draw_each_screen_at_its_own_size(server):
+    """--render on a CAVE (screens, each with its own resolution): every node draws at an
+    eighth of its screen's resolution (the nodes died on the wall's resolution, which only a
+    grid has)."""
+    render = pytest.importorskip("wallcull_clients.render")
+    try:
+        render.reversed_z_available()
+    except Exception as exc:  # noqa: BLE001 - no EGL here
+        pytest.skip(f"no headless OpenGL: {exc}")
+    from wallcull_clients.sim import run_wall
+
+    cave = json.loads((ROOT / "examples" / "wall-cave.json").read_text())
+    cave["screens"][1]["resolution"] = [960, 480]
+
+    async def go():
+        async with Driver(server, TOKEN) as d:
+            info = await d.create_wall("fatehpur", cave)
+            frames = await d.frames("fatehpur", info["wall"], "orbit", 3)
+            ready = asyncio.Event()
+            task = asyncio.create_task(run_wall(
+                server, info["id"], "all", mode="pull", token=TOKEN, render=True, until=2,
+                idle_timeout=10, ready=lambda clients: ready.set()))
+            await asyncio.wait([task, asyncio.ensure_future(ready.wait())],
+                               return_when=asyncio.FIRST_COMPLETED)
+            if task.done():  # the nodes failed before they were ready
+                return task.result()
+            await d.run(info["id"], frames, rate=0, barrier=True, barrier_timeout=10)
+            await d.call("DELETE", f"/walls/{info['id']}", auth=True)
+            return await task
+
+    clients = asyncio.run(go())
+    assert len(clients) == len(cave["screens"])
+    for c, screen in zip(clients, cave["screens"]):
+        w, h = screen["resolution"]
+        assert c.image.ids.shape == (h // 8, w // 8)
+        ids = np.unique(c.image.ids)
+        assert set(ids[ids > 0].tolist()) <= set((c.lists[2] + 1).tolist())
+        assert c.stats.errors == []
+    assert sum((c.image.ids > 0).any() for c in clients) >= 1
+
+
 # --------------------------------------------------------------------------- failures, told
 
 

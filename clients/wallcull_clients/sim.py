@@ -979,10 +979,16 @@ def node_tokens(path: str) -> dict[int, str]:
 
 
 def make_renderers(tiles, wall: dict, size: tuple[int, int] | None):
+    """A renderer for each tile: ``size``, else an eighth of the tile's resolution (a grid's
+    tiles share the wall's; each screen of a screens wall has its own)."""
     from .render import TileRenderer
 
-    w, h = size or (wall["resolution"][0] // 8, wall["resolution"][1] // 8)
-    return {t: TileRenderer(w, h) for t in tiles}
+    def eighth(t: int) -> tuple[int, int]:
+        w, h = wall["screens"][t].get("resolution", (1920, 1080)) if "screens" in wall \
+            else wall["resolution"]
+        return max(w // 8, 1), max(h // 8, 1)
+
+    return {t: TileRenderer(*(size or eighth(t))) for t in tiles}
 
 
 async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mode: str = "ws",
