@@ -383,6 +383,31 @@ def test_full_size_arithmetic_matches_the_server(server):
     asyncio.run(go())
 
 
+def test_fitted_frusta_bytes_count_a_stereo_packets_eyes(server):
+    """The fitted frusta of a stereo packet are its view and projection and each eye's: the
+    bytes a node counts are what they take in the server's packet (the eyes were left out,
+    a third of them)."""
+
+    async def go():
+        async with Driver(server, TOKEN) as d:
+            info = await d.create_wall("fatehpur", WALL_2x2)
+            frame = (await d.frames("fatehpur", info["wall"], "orbit", 1))[0]
+            await d.post(info["id"], {**frame, "stereo": {"ipd": 0.064}})
+        scene = await shared_scene(server, info["scene"])
+        client = TileClient(server, info["id"], 1, scene, mode="pull", token=TOKEN)
+        async with Connection(server, TOKEN) as conn:
+            got = await conn.request("GET", f"/walls/{info['id']}/tiles/1/packets/latest",
+                                     accept="application/msgpack", auth=True)
+        await client.receive(got.data(), len(got.body), 0.0)
+        await client.http.close()
+        return got.data(), client.stats.fit_bytes[-1]
+
+    pkt, fit = asyncio.run(go())
+    assert {"left", "right"} <= set(pkt)
+    rest = {k: v for k, v in pkt.items() if k not in ("view", "projection", "left", "right")}
+    assert fit == len(msgpack.packb(pkt)) - len(msgpack.packb(rest))
+
+
 def test_node_repairs_a_missing_base_with_a_full_list(server):
     """A delta against a frame the node no longer holds: it fetches the full list instead,
     rebuilds the right list and acknowledges it."""

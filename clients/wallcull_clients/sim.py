@@ -465,7 +465,7 @@ class TileClient:
                 s.list_bytes.append(_packed_len(pkt["added"], False)
                                     + _packed_len(pkt["removed"], False))
         s.full_list_bytes.append(whole)
-        s.fit_bytes.append(_packed_len({k: pkt[k] for k in ("view", "projection") if k in pkt},
+        s.fit_bytes.append(_packed_len({k: pkt[k] for k in FIT_KEYS if k in pkt},
                                        self.binary) - 1)  # less the map's own header
 
     async def _repair(self, number: int):
@@ -801,7 +801,8 @@ class NodeClient(TileClient):
         s.list_bytes.append(listed if "visible" in entry else
                             sum(sorted_ints_len(entry[k]) for k in ("added", "removed")
                                 if k in entry))
-        s.fit_bytes.append(sum(_packed_len(entry[k], True) for k in ("view", "extent", "depth")
+        s.fit_bytes.append(sum(_packed_len(entry[k], True)
+                               for k in ("view", "extent", "depth", "left", "right")
                                if k in entry))
 
     async def acknowledge(self, number: int) -> None:
@@ -928,6 +929,10 @@ class NodeClient(TileClient):
 
 
 # --------------------------------------------------------------------------- a wall of them
+
+
+#: A tile packet's fitted frusta: its view and projection, and a stereo tile's eyes' own.
+FIT_KEYS = ("view", "projection", "left", "right")
 
 
 async def find_wall(server: str, wall: str, timeout: float = 60.0) -> dict:
