@@ -92,9 +92,14 @@ def test_loadtest_render_nodes_size_full_lists_on_sampled_frames(tmp_path):
     from wallcull_clients.sim import FULL_SIZE_EVERY
 
     report = loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "60",
-                      "--duration", "3", "--tiles-per-node", "2", "--prefetch")
+                      "--duration", "3", "--tiles-per-node", "2", "--prefetch", "--warmup", "0")
     check_walkthrough(report, 4, 180)
     b = report["bytes"]
+    # the node messages, once each (they were counted once a tile), as the server sent them
+    sent = report["server_metrics"]["packets"]
+    assert b["counted"] == "node messages"
+    assert (b["full_packets"], b["delta_packets"]) == (sent["full/ws"], sent["delta/ws"])
+    assert "| node messages full / delta |" in (tmp_path / "report" / "report.md").read_text()
     measured = report["frames_measured"]
     assert 0 < b["sampled_frames"] <= measured // FULL_SIZE_EVERY + 1
     assert 0 < b["sampled_per_frame"] < b["per_frame_if_full"]

@@ -459,12 +459,22 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0,
             for key in ("full_bytes", "list_bytes", "full_list_bytes", "fit_bytes"):
                 if len(t.get(key, ())) == len(mask):
                     sums[key] += np.asarray(t[key], dtype=float)[sampled].sum()
+        if t.get("mode") == "node":  # a node's messages, once each (on its first tile)
+            if "messages" in t:
+                got = np.isin(np.asarray(t["messages"]["frame"], dtype=np.int64), measured)
+                sums["packets"] += int(got.sum())
+                sums["full_packets"] += int((got & np.asarray(t["messages"]["full"],
+                                                              dtype=bool)).sum())
+            continue
         sums["packets"] += int(mask.sum())
         sums["full_packets"] += int((mask & full).sum())
     # per frame received: a frame no tile got weighs nothing, and must not thin the mean
     n, m = max(len(received), 1), max(len(sampled_frames), 1)
     b = {"packets": sums["packets"], "full_packets": sums["full_packets"],
          "delta_packets": sums["packets"] - sums["full_packets"],
+         # what "packets" counts: a tile's packets, or a node's messages (once, not a tile)
+         "counted": ("node messages" if any(t.get("mode") == "node" for t in tiles)
+                     else "tile packets"),
          "per_frame": sums["bytes"] / n, "received_frames": len(received),
          "sampled_frames": len(sampled_frames),
          "sampled_per_frame": sums["sampled_bytes"] / m,
@@ -1100,7 +1110,8 @@ def markdown(report: dict) -> str:
               f"| leaf-id bytes/frame: deltas / full | {b['lists_per_frame']:.0f} / "
               f"{b['lists_per_frame_if_full']:.0f} ({_f(b['lists_reduction'])}x) |",
               f"| fitted-frusta bytes/frame (in every packet) | {b['fits_per_frame']:.0f} |",
-              f"| packets full / delta | {b['full_packets']} / {b['delta_packets']} |",
+              f"| {b.get('counted', 'packets')} full / delta | {b['full_packets']} / "
+              f"{b['delta_packets']} |",
               f"| tile-frames dropped | {report['dropped']['tile_frames']} "
               f"({report['dropped']['frames_not_on_every_tile']} frames not on every tile) |",
               f"| frames the driver skipped (behind its schedule) | "

@@ -733,11 +733,14 @@ class NodeClient(TileClient):
         # its name in acknowledgements and full requests over NATS: other nodes may take the
         # same subject, and each gets deltas against what all of them hold
         self.name = secrets.token_hex(4)
+        # the messages taken, once each (a tile's records hold one entry a tile)
+        self.messages = {"frame": [], "full": []}
 
     def records(self) -> list[dict]:
         cache = self.cache.stats()
         return [{**self.tile_stats[t].to_dict(), "cache": cache if t == self.tile else {},
-                 "mode": "node"} for t in self.tiles]
+                 "mode": "node", **({"messages": self.messages} if t == self.tile else {})}
+                for t in self.tiles]
 
     def stream_url(self, path: str | None = None, query: str = "") -> str:
         return super().stream_url(f"/walls/{self.wall_id}/nodes/stream",
@@ -764,6 +767,8 @@ class NodeClient(TileClient):
             await self._ask_full()
             return False
         self.move(message.get("transforms"))
+        self.messages["frame"].append(number)
+        self.messages["full"].append(message.get("base") is None)
         whole = full_size(message, size, frames, self.node.frusta.held[number]) \
             if self.measure_full and self.binary and number % FULL_SIZE_EVERY == 0 else None
         for frame in frames:
