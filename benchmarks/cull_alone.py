@@ -51,4 +51,4 @@ def main(scene_name: str = "powerplant", wall_file: str = "examples/wall-8x8.jso
 if __name__ == "__main__":
     run(main, __doc__, ("scene", "powerplant", str, "a scene name or file"),
         ("wall", "examples/wall-8x8.json", wall_file, "the wall file"),
-        ("frames", 200, count(1), "frames of the orbit"))
+        ("frames", 200, count(3), "frames of the orbit (three more first, compiling)"))

@@ -26,6 +26,7 @@ import time
 
 import msgpack
 import nats
+from _cli import count, run, wall_file  # beside this file
 from server_frame import wall_session
 from wallcull_clients.broker import Broker
 
@@ -149,4 +150,6 @@ if __name__ == "__main__":
     if sys.argv[1:2] == ["--nodes"]:
         asyncio.run(nodes_process(sys.argv[2], sys.argv[3], int(sys.argv[4])))
     else:
-        main(*(sys.argv[1:2]), *(int(a) for a in sys.argv[2:4]))
+        run(main, __doc__, ("wall", "examples/wall-8x8.json", wall_file, "the wall file"),
+            ("per_node", 4, count(1), "tiles a node draws"),
+            ("frames", 600, count(1, 600), "frames of the orbit"))

@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from wallcull.errors import InputError
 from wallcull.cull import Culler, _primary, _shared_planes, packed
 from wallcull.paths import camera_path
 from wallcull.scene import SceneState, load
@@ -79,8 +80,10 @@ def adaptive_frontier(scene, b, planes, fh, roots, behind, shared):
 
 
 def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100):
-    scene = load(scene_name)
     wall = Wall.from_dict(json.load(open(wall_path)))
+    if wall.kind != "grid":
+        raise InputError(f"{wall_path} is a wall of screens: the numpy frontier culls grids")
+    scene = load(scene_name)
     state = SceneState(scene, "obb")
     culler = Culler(state, wall, "adaptive")
     reference = Culler(state, wall, "fh")
@@ -122,4 +125,4 @@ def main(scene_name="powerplant", wall_path="examples/wall-4x4.json", frames=100
 if __name__ == "__main__":
     run(main, __doc__, ("scene", "powerplant", str, "a scene name or file"),
         ("wall", "examples/wall-4x4.json", wall_file, "the wall file"),
-        ("frames", 100, count(1), "frames of the path"))
+        ("frames", 100, count(4), "frames of the path (the first 3 are left out)"))

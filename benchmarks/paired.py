@@ -9,8 +9,8 @@ minute to the next, a ratio of paired frames by a few hundredths).
 
 ``REV``'s ``wallcull`` package is extracted once (``git archive``) as ``wallcull_base`` into
 ``$WALLCULL_CACHE/paired/`` (default ``~/.cache/wallcull``), where its compiled kernels are
-kept for the next run. Prints both medians and the median and mean of the paired ratios
-(working tree over ``REV``); below 1 is faster, over the frames where the stage ran on both
+kept for the next run. Prints both medians, the median of the paired ratios and the ratio of
+the means (each working tree over ``REV``); below 1 is faster, over the frames where the stage ran on both
 sides (``frames_paired``). ``total`` is the session's stages (cull, occlusion, leaf lists,
 fits), not the encoding. Both sides must make the same frames of the path.
 """
@@ -35,8 +35,11 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def base_package(rev: str) -> Path:
     """A folder holding ``REV``'s ``wallcull`` as the package ``wallcull_base``."""
-    sha = subprocess.run(["git", "rev-parse", "--verify", f"{rev}^{{commit}}"], cwd=ROOT,
-                         check=True, capture_output=True, text=True).stdout.strip()
+    found = subprocess.run(["git", "rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}"],
+                           cwd=ROOT, capture_output=True, text=True)
+    if found.returncode:
+        raise ValueError(f"unknown revision {rev!r} (no commit of this checkout)")
+    sha = found.stdout.strip()
     cache = Path(os.environ.get("WALLCULL_CACHE", Path.home() / ".cache" / "wallcull"))
     folder = cache / "paired" / sha
     if not (folder / "wallcull_base").is_dir():
@@ -88,7 +91,10 @@ def main() -> None:
     if args.settings:
         with open(args.settings) as f:
             settings = json.load(f)
-    sys.path.insert(0, str(base_package(args.rev)))
+    try:
+        sys.path.insert(0, str(base_package(args.rev)))
+    except ValueError as exc:
+        p.error(str(exc))
     pairs = [session("wallcull_base", args, settings), session("wallcull", args, settings)]
     poses = [np.array([np.r_[f.position, f.orientation] for f in frames[:args.frames]])
              for _, frames in pairs]

@@ -21,6 +21,18 @@ ROOT = Path(__file__).resolve().parent.parent
     ("stereo_passes.py", ["powerplant", "nowhere.json"], "no wall file nowhere.json"),
     ("numpy_frontier.py", ["nosuchscene"], "unknown scene 'nosuchscene'"),
     ("paired.py", ["HEAD", "--stage", "occlude"], "--stage occlude needs --occlusion"),
+    ("paired.py", ["nosuchrev", "--frames", "5"], "unknown revision 'nosuchrev'"),
+    ("nats_fanout.py", ["examples/wall-4x4.json", "abc"], "not a whole number: 'abc'"),
+    ("nats_fanout.py", ["examples/wall-4x4.json", "0", "10"], "must be at least 1, got 0"),
+    ("nats_fanout.py", ["examples/wall-4x4.json", "4", "0"], "must be 1 to 600, got 0"),
+    ("nats_fanout.py", ["nowhere.json"], "no wall file nowhere.json"),
+    ("cull_alone.py", ["powerplant", "examples/wall-4x4.json", "1"], "must be at least 3, got 1"),
+    ("stereo_passes.py", ["powerplant", "examples/wall-4x4.json", "1"],
+     "must be at least 4, got 1"),
+    ("numpy_frontier.py", ["powerplant", "examples/wall-4x4.json", "2"],
+     "must be at least 4, got 2"),
+    ("numpy_frontier.py", ["powerplant", "examples/wall-cave.json", "5"],
+     "is a wall of screens: the numpy frontier culls grids"),
 ])
 def test_careless_arguments_are_one_line(tmp_path, script, args, said):
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *args],

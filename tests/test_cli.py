@@ -97,6 +97,7 @@ def test_cull_files_and_text_output(capsys, glb, tmp_path):
     (["bench", "powerplant", "--wall", WALL, "--frames", "3", "--accuracy", "5"],
      "0 to 3 frames"),
     (["bench", "powerplant", "--wall", WALL, "--accuracy", "-3"], "not -3"),
+    (["bench", "powerplant", "--wall", WALL, "--branching", "0"], "branching must be at least 2"),
     (["walk", "scenes/TestScene.gltf", "--frames", "99999999999999999999"],
      "frames must be 1 to 10,000,000"),
     (["overdraw", "scenes/TestScene.gltf", "--visible-resolution", "10000000x10000000"],
@@ -187,6 +188,28 @@ def test_bench_times_the_methods_in_turns(capsys, glb, monkeypatch):
 def test_bench_refuses_a_negative_frame_count_for_what_it_is(capsys, glb):
     code, _, err = run(capsys, "bench", glb, "--wall", WALL, "--frames", "-5")
     assert code == 2 and "--frames must be at least 1, got -5" in err
+
+
+def test_bench_builds_the_hierarchy_of_its_branching(capsys, tmp_path):
+    """``bench --branching N`` times the tree of N, as ``cull`` culls it (it timed the default
+    tree whatever N was)."""
+    s = trimesh.Scene()
+    for k in range(40):
+        m = np.eye(4)
+        m[:3, 3] = [2.0 * (k % 8), 2.0 * (k // 8), -10]
+        s.add_geometry(trimesh.creation.box(extents=[1, 1, 1]), node_name=f"b{k}",
+                       geom_name=f"b{k}", transform=m)
+    s.export(tmp_path / "flat.glb")
+    internal = {}
+    for n in (2, 16):
+        code, out, err = run(capsys, "bench", str(tmp_path / "flat.glb"), "--wall", WALL,
+                             "--frames", "1", "--methods", "adaptive", "--json",
+                             "--branching", str(n), "--clusters", "off")
+        assert code == 0, err
+        internal[n] = json.loads(out)["scene"]["internal"]
+    assert internal[2] == load(str(tmp_path / "flat.glb"), branching=2,
+                               clusters=None).stats["internal"]
+    assert internal[2] > internal[16]
 
 
 def test_bench_dynamic_reports_refit_times(capsys, glb):

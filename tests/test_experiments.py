@@ -276,6 +276,18 @@ def test_all_assembles_the_report(tmp_path, monkeypatch):
     assert json.loads((out / "all.json").read_text())["total_s"] > 0
 
 
+def test_a_fragment_says_how_to_run_it_again_with_its_folders(tmp_path, monkeypatch):
+    """The "Reproduce:" line of a run into another folder names it (a quick run's line was
+    refused as printed: --quick needs --out)."""
+    def tiny(ctx):
+        return {"value": 1}, f"## Tiny {ctx.name}\n"
+
+    monkeypatch.setattr(E, "REGISTRY", {"one": tiny})
+    result = E.run("one", tmp_path, quick=True, progress=False, scenes_dir=tmp_path)
+    said = f"wallcull experiment one --quick --out {tmp_path} --scenes {tmp_path}"
+    assert result["command"] == said and f"Reproduce: `{said}`" in (tmp_path / "one.md").read_text()
+
+
 def test_unknown_experiment_is_bad_input(capsys):
     assert main(["experiment", "fig7", "--quick"]) == 2
     assert "invalid choice" in capsys.readouterr().err
@@ -284,7 +296,9 @@ def test_unknown_experiment_is_bad_input(capsys):
 @pytest.mark.parametrize("extra,said", [
     (["--seed", "-1", "--out", "OUT"], "--seed must be 0 or more"),
     (["--quick"], "--quick needs --out DIR"),
-    (["--out", "FILE"], "is a file, not a folder")])
+    (["--out", "FILE"], "is a file, not a folder"),
+    (["--out", "/proc/nope"], "cannot write into --out /proc/nope"),
+    (["--out", "OUT", "--report", "OUT"], "--report is where `all` writes BENCHMARKS.md")])
 def test_careless_experiment_options_are_one_line(tmp_path, capsys, extra, said):
     """A negative seed, a quick run into the published pages, an output folder that is a
     file: one line and status 2 (they were internal errors, or overwrote the docs' numbers)."""
@@ -321,3 +335,17 @@ def test_occluders(out):
         assert 0 < e["ratio"] < 1 and e["triangles"] < s["without"]
         assert 0 < e["occluder_triangles"] <= e["budget"] and e["occlude_ms_median"] > 0
     assert "## Choosing occluders" in (out / "occluders.md").read_text()
+
+
+def test_a_step_reports_its_own_peak_memory():
+    """A step started by a big parent (``experiment all`` after the other experiments) reports
+    its own peak, not the parent's: Linux keeps ``ru_maxrss`` across fork and exec (every
+    scene of the scale table said 4,307 MB)."""
+    import subprocess
+    import sys
+
+    ballast = np.ones(800 * 2**20 // 8)  # 800 MB, touched
+    done = subprocess.run([sys.executable, "-c", "from wallcull.bench import peak_rss_mb; "
+                           "print(peak_rss_mb())"], capture_output=True, text=True, check=True)
+    assert float(done.stdout) < 400 < bench.peak_rss_mb(), done.stdout
+    del ballast

@@ -92,9 +92,14 @@ def test_loadtest_render_nodes_size_full_lists_on_sampled_frames(tmp_path):
     from wallcull_clients.sim import FULL_SIZE_EVERY
 
     report = loadtest(tmp_path, "--wall", json.dumps(WALL_2x2), "--rate", "60",
-                      "--duration", "3", "--tiles-per-node", "2", "--prefetch")
+                      "--duration", "3", "--tiles-per-node", "2", "--prefetch", "--warmup", "0")
     check_walkthrough(report, 4, 180)
     b = report["bytes"]
+    # the node messages, once each (they were counted once a tile), as the server sent them
+    sent = report["server_metrics"]["packets"]
+    assert b["counted"] == "node messages"
+    assert (b["full_packets"], b["delta_packets"]) == (sent["full/ws"], sent["delta/ws"])
+    assert "| node messages full / delta |" in (tmp_path / "report" / "report.md").read_text()
     measured = report["frames_measured"]
     assert 0 < b["sampled_frames"] <= measured // FULL_SIZE_EVERY + 1
     assert 0 < b["sampled_per_frame"] < b["per_frame_if_full"]
@@ -161,6 +166,61 @@ def test_loadtest_bad_arguments(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "loadtest",
                            "--clients-procs", "0"], capture_output=True, text=True)
     assert proc.returncode == 2 and proc.stderr.startswith("wallcull: error:")
+
+
+@pytest.mark.parametrize("args,said", [
+    (["--duration", "inf"], "--duration must be a positive number of seconds, got inf"),
+    (["--duration", "nan"], "--duration must be a positive number of seconds, got nan"),
+    (["--rate", "inf", "--duration", "2"], "--rate must be 0 (as fast as it goes) or a "),
+    (["--nats", "nats://127.0.0.1:4222"], "--nats is the broker of --transport nats"),
+    (["--server", "http://127.0.0.1:9", "--transport", "nats"],
+     "--transport nats with --server needs the server's broker: --nats URL")])
+def test_loadtest_refuses_what_it_cannot_run_in_one_line(capsys, args, said):
+    """Infinite or NaN durations and rates were internal errors (or blamed --warmup); a
+    --nats without NATS was ignored; NATS on a --server with a broker of our own measured
+    nothing (the server never publishes there)."""
+    from wallcull.cli import main
+
+    assert main(["loadtest", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"wallcull: error: {said}"), err
+
+
+def test_loadtest_whose_server_cannot_reach_its_broker_says_so_in_one_line(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "loadtest", "--transport",
+                           "nats", "--nats", f"nats://127.0.0.1:{free_port()}"],
+                          capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(
+        "wallcull: error: the server exited with status 2: cannot reach the NATS broker"), \
+        proc.stderr
+
+
+def test_loadtest_whose_tiles_hear_nothing_fails(server, tmp_path):
+    """Nodes on a broker the server does not publish to: every tile-frame is dropped, and the
+    run fails (status 1, one line) instead of passing with nothing measured."""
+    from wallcull_clients.broker import Broker
+
+    with Broker() as broker:
+        proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "loadtest", "--server",
+                               server, "--token", TOKEN, "--wall", json.dumps(WALL_2x2),
+                               "--transport", "nats", "--nats", broker.url, "--rate", "20",
+                               "--duration", "1", "--warmup", "0", "--out",
+                               str(tmp_path / "report"), "--json"],
+                              capture_output=True, text=True, timeout=180, cwd=tmp_path)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr == ("wallcull: error: 4 of 4 tiles got no packet: the nodes heard "
+                           "nothing from the server (with --server and --transport nats, is "
+                           "--nats the server's broker?)\n")
+    assert json.loads(proc.stdout)["nodes"]["every_tile_got_packets"] is False
+
+
+def test_loadtest_as_fast_as_it_goes_keeps_its_warmup(server, tmp_path):
+    """--rate 0: the warm-up's seconds are frames at the rate achieved (they were none)."""
+    report = loadtest(tmp_path, "--server", server, "--token", TOKEN, "--wall",
+                      json.dumps(WALL_2x2), "--rate", "0", "--duration", "1", "--warmup", "0.5")
+    assert report["config"]["warmup_frames"] == min(
+        round(0.5 * report["driver"]["rate"]), report["config"]["frames"] - 2) > 0
 
 
 @pytest.mark.slow
@@ -328,6 +388,31 @@ def test_full_size_arithmetic_matches_the_server(server):
     asyncio.run(go())
 
 
+def test_fitted_frusta_bytes_count_a_stereo_packets_eyes(server):
+    """The fitted frusta of a stereo packet are its view and projection and each eye's: the
+    bytes a node counts are what they take in the server's packet (the eyes were left out,
+    a third of them)."""
+
+    async def go():
+        async with Driver(server, TOKEN) as d:
+            info = await d.create_wall("fatehpur", WALL_2x2)
+            frame = (await d.frames("fatehpur", info["wall"], "orbit", 1))[0]
+            await d.post(info["id"], {**frame, "stereo": {"ipd": 0.064}})
+        scene = await shared_scene(server, info["scene"])
+        client = TileClient(server, info["id"], 1, scene, mode="pull", token=TOKEN)
+        async with Connection(server, TOKEN) as conn:
+            got = await conn.request("GET", f"/walls/{info['id']}/tiles/1/packets/latest",
+                                     accept="application/msgpack", auth=True)
+        await client.receive(got.data(), len(got.body), 0.0)
+        await client.http.close()
+        return got.data(), client.stats.fit_bytes[-1]
+
+    pkt, fit = asyncio.run(go())
+    assert {"left", "right"} <= set(pkt)
+    rest = {k: v for k, v in pkt.items() if k not in ("view", "projection", "left", "right")}
+    assert fit == len(msgpack.packb(pkt)) - len(msgpack.packb(rest))
+
+
 def test_node_repairs_a_missing_base_with_a_full_list(server):
     """A delta against a frame the node no longer holds: it fetches the full list instead,
     rebuilds the right list and acknowledges it."""
@@ -457,6 +542,47 @@ def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
         drawn += (c.image.ids > 0).sum() > 0
         assert c.stats.triangles[-1] >= 0 and c.stats.errors == []
     assert drawn >= 2  # the orbit keeps the model in the middle of the wall
+
+
+def test_render_nodes_of_a_screens_wall_draw_each_screen_at_its_own_size(server):
+    """--render on a CAVE (screens, each with its own resolution): every node draws at an
+    eighth of its screen's resolution (the nodes died on the wall's resolution, which only a
+    grid has)."""
+    render = pytest.importorskip("wallcull_clients.render")
+    try:
+        render.reversed_z_available()
+    except Exception as exc:  # noqa: BLE001 - no EGL here
+        pytest.skip(f"no headless OpenGL: {exc}")
+    from wallcull_clients.sim import run_wall
+
+    cave = json.loads((ROOT / "examples" / "wall-cave.json").read_text())
+    cave["screens"][1]["resolution"] = [960, 480]
+
+    async def go():
+        async with Driver(server, TOKEN) as d:
+            info = await d.create_wall("fatehpur", cave)
+            frames = await d.frames("fatehpur", info["wall"], "orbit", 3)
+            ready = asyncio.Event()
+            task = asyncio.create_task(run_wall(
+                server, info["id"], "all", mode="pull", token=TOKEN, render=True, until=2,
+                idle_timeout=10, ready=lambda clients: ready.set()))
+            await asyncio.wait([task, asyncio.ensure_future(ready.wait())],
+                               return_when=asyncio.FIRST_COMPLETED)
+            if task.done():  # the nodes failed before they were ready
+                return task.result()
+            await d.run(info["id"], frames, rate=0, barrier=True, barrier_timeout=10)
+            await d.call("DELETE", f"/walls/{info['id']}", auth=True)
+            return await task
+
+    clients = asyncio.run(go())
+    assert len(clients) == len(cave["screens"])
+    for c, screen in zip(clients, cave["screens"]):
+        w, h = screen["resolution"]
+        assert c.image.ids.shape == (h // 8, w // 8)
+        ids = np.unique(c.image.ids)
+        assert set(ids[ids > 0].tolist()) <= set((c.lists[2] + 1).tolist())
+        assert c.stats.errors == []
+    assert sum((c.image.ids > 0).any() for c in clients) >= 1
 
 
 # --------------------------------------------------------------------------- failures, told
@@ -738,3 +864,31 @@ def test_a_retry_stops_when_its_tool_is_told_to_stop():
         return asyncio.get_running_loop().time() - t0
 
     assert asyncio.run(go()) < 5
+
+
+def test_the_driver_marks_its_posting_span(server):
+    """The driver says when its posts begin and end, with its CPU time at each, and the load
+    test samples every process's CPU at those two lines (the window began before the driver's
+    start-up and imports, which diluted every percentage and counted its imports)."""
+    from wallcull_clients.loadtest import _driving_span
+
+    info = asyncio.run(_wall_with_frames(server, 1))
+    proc = subprocess.run([sys.executable, "-m", "wallcull_clients.driver", "--server", server,
+                           "--wall-id", info["id"], "--token", TOKEN, "--frames", "3",
+                           "--rate", "0"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    lines = [strict_json(line) for line in proc.stdout.splitlines()]
+    driving, driven = lines[1], lines[2]
+    assert driving["driving"] and driven["driven"]
+    assert 0 < driving["cpu_seconds"] <= driven["cpu_seconds"]
+
+    async def go():
+        stream = asyncio.StreamReader()
+        stream.feed_data(proc.stdout.encode())
+        stream.feed_eof()
+        samples = iter(range(10))
+        return await _driving_span(stream, lambda: next(samples))
+
+    start, end, cpu = asyncio.run(go())
+    assert (start, end) == (0, 1)
+    assert cpu == pytest.approx(driven["cpu_seconds"] - driving["cpu_seconds"])

@@ -31,8 +31,17 @@ WARMUP_FRAMES = 3
 
 
 def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far, MB (Linux reports kB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    """Peak resident memory of this process so far, MB: Linux's ``VmHWM``, which is this
+    program's own (``ru_maxrss`` keeps the peak of the process that started it, across fork
+    and exec, so a step started by a big parent reported the parent's peak)."""
+    try:
+        with open("/proc/self/status") as status:
+            for line in status:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024  # kB
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
 
 
 def machine() -> dict:
@@ -255,12 +264,14 @@ def accuracy(scene: Scene, wall: Wall, frames, methods, bounds_kinds, progress=N
 
 def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=("obb",),
         path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
-        hierarchy: str = "auto", clusters: int | None = CLUSTERS, moving: float = 0.0,
+        hierarchy: str = "auto", branching: int | None = None,
+        clusters: int | None = CLUSTERS, moving: float = 0.0,
         refit: str | None = None,
         fit: FitOptions | None = None, settings: dict | None = None,
         progress: bool = True, shadow_fits: tuple = (), stereo: float | None = None,
         occlusion: str = "off") -> dict:
-    """The whole benchmark; returns the ``bench --json`` document. ``shadow_fits``: fitting
+    """The whole benchmark; returns the ``bench --json`` document. ``branching``: of the
+    automatic hierarchy (None: the default). ``shadow_fits``: fitting
     efforts (:data:`wallcull.lowilie.EFFORTS`) to compare, fit time against shadow-map
     coverage, with the main method. ``stereo``: the path's frames are stereo frames with this
     interpupillary distance (m), the head level with the display (SPEC section 3).
@@ -285,7 +296,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
         oracle.rotations()  # refused before any work when this install has no oracle
     t0 = time.perf_counter()
     scene = scene_mod.load(scene_spec, hierarchy=hierarchy, settings=settings,
-                           clusters=clusters)
+                           clusters=clusters, **({} if branching is None
+                                                 else {"branching": branching}))
     t1 = time.perf_counter()
     for kind in bounds:
         scene.bounds(kind)

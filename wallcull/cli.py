@@ -123,7 +123,7 @@ def cmd_bench(args) -> int:
     result = bench.run(args.scene, wall, frames=args.frames, methods=methods, bounds=bounds,
                        path=args.path, pseudo_groups=args.pseudo_groups,
                        accuracy_frames=args.accuracy, hierarchy=args.hierarchy,
-                       clusters=args.clusters,
+                       branching=args.branching, clusters=args.clusters,
                        moving=args.moving, refit=args.refit,
                        fit=fit, settings=read(args.settings) if args.settings else None,
                        progress=not args.json,

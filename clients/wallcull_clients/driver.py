@@ -368,8 +368,11 @@ async def _main(args) -> int:
             if args.post == "stream":
                 await driver.stream_frames(wid)
             driving[0] = True  # from now on a signal ends the run, with its summary
+            # the span of the posts, for whoever measures it (wallcull loadtest's CPU)
+            print(json.dumps({"driving": True, "cpu_seconds": time.process_time()}), flush=True)
             log = await driver.run(wid, frames, args.rate, args.barrier, args.barrier_timeout,
                                    stop=stop, skip=not args.no_skip)
+            print(json.dumps({"driven": True, "cpu_seconds": time.process_time()}), flush=True)
         except BaseException:
             if args.delete:  # the wall this run made or drove goes, whatever stopped it
                 await asyncio.shield(driver.call("DELETE", f"/walls/{wid}", auth=True))

@@ -21,7 +21,8 @@ posts ``rate x duration`` frames of the camera path. It then writes ``report.jso
   re-encodes every delta it gets as the full packet the server would have sent), in total and for
   the leaf-id lists alone, and the bytes of the fitted frusta that every packet carries;
 * CPU seconds and percent of the server, the node processes and the driver (psutil), over the
-  driving window;
+  span of the driver's posts (from its ``{"driving": ...}`` line to its ``{"driven": ...}``
+  line; its start-up and imports left out);
 * frames dropped (tile-frames a node never saw: conflation on the stream, or history loss;
   every measured frame of a tile whose node process left no records), errors, barrier
   timeouts, frames the driver skipped behind its schedule, and the server's own counters
@@ -257,6 +258,14 @@ def last_line(err: bytes | str) -> str:
     return lines[-1] if lines else ""
 
 
+def started(exc: RuntimeError) -> str:
+    """A server or broker that would not start, in one line: what happened and the last line
+    it said (``the server exited with status 2: cannot reach the NATS broker ...``)."""
+    what, _, said = str(exc).partition(": ")
+    why = last_line(said).removeprefix("wallcull: error: ")
+    return f"{what}: {why}" if why else what
+
+
 def exit_text(status: int) -> str:
     """``exited 2``, or ``was killed by SIGKILL``."""
     import signal
@@ -450,12 +459,22 @@ def analyze(driver: dict, tiles: list[dict], warmup_frames: int = 0,
             for key in ("full_bytes", "list_bytes", "full_list_bytes", "fit_bytes"):
                 if len(t.get(key, ())) == len(mask):
                     sums[key] += np.asarray(t[key], dtype=float)[sampled].sum()
+        if t.get("mode") == "node":  # a node's messages, once each (on its first tile)
+            if "messages" in t:
+                got = np.isin(np.asarray(t["messages"]["frame"], dtype=np.int64), measured)
+                sums["packets"] += int(got.sum())
+                sums["full_packets"] += int((got & np.asarray(t["messages"]["full"],
+                                                              dtype=bool)).sum())
+            continue
         sums["packets"] += int(mask.sum())
         sums["full_packets"] += int((mask & full).sum())
     # per frame received: a frame no tile got weighs nothing, and must not thin the mean
     n, m = max(len(received), 1), max(len(sampled_frames), 1)
     b = {"packets": sums["packets"], "full_packets": sums["full_packets"],
          "delta_packets": sums["packets"] - sums["full_packets"],
+         # what "packets" counts: a tile's packets, or a node's messages (once, not a tile)
+         "counted": ("node messages" if any(t.get("mode") == "node" for t in tiles)
+                     else "tile packets"),
          "per_frame": sums["bytes"] / n, "received_frames": len(received),
          "sampled_frames": len(sampled_frames),
          "sampled_per_frame": sums["sampled_bytes"] / m,
@@ -535,7 +554,11 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     tmp = tempfile.TemporaryDirectory(dir=workdir)
     broker = Broker() if transport == "nats" and nats is None else None
     if broker is not None:
-        nats = broker.start().url
+        try:
+            nats = broker.start().url
+        except RuntimeError as exc:
+            broker.stop()
+            raise InputError(started(exc)) from None
     own = Server(token, args=["--nats", nats] if transport == "nats" else ()) \
         if server is None else None
     procs: list = []
@@ -543,7 +566,10 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     url = server
     try:
         if own:
-            await own.start()
+            try:
+                await own.start()
+            except RuntimeError as exc:
+                raise InputError(started(exc)) from None
         url = own.url if own else server
         await _reach(url, progress)
         async with Driver(url, token, retry_for=retry_for) as d:
@@ -591,22 +617,27 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
         if barrier:
             cmd += ["--barrier", "--barrier-timeout", str(barrier_timeout)]
-        cpu0 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
-                "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
-                "clients": sum(cpu_seconds(p) for p in client_ps),
-                "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process())}
-        t0 = time.monotonic()
+        def sample() -> dict:
+            return {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
+                    "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
+                    "clients": [cpu_seconds(p) for p in client_ps],  # nan for those gone
+                    "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process()),
+                    "t": time.monotonic()}
+
+        before = sample()
         drv = await asyncio.create_subprocess_exec(*cmd, stdout=asyncio.subprocess.PIPE,
                                                    stderr=asyncio.subprocess.PIPE,
                                                    cwd=str(ROOT))
-        drv_cpu0 = cpu_seconds(psutil.Process(drv.pid))
+        # the window is the span of the posts: from the driver's "driving" line (its start-up,
+        # imports and path building left out) to its "driven" line
+        span = asyncio.ensure_future(_driving_span(drv.stdout, sample))
         await _watch(url, wid, frames, drv, progress)
-        wall_s = time.monotonic() - t0
-        cpu1 = {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
-                "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
-                "machine": machine_busy(), "loadtest": cpu_seconds(psutil.Process())}
-        clients_at_end = [cpu_seconds(p) for p in client_ps]  # nan for those already gone
-        drv_out, drv_err = await drv.communicate()
+        cpu0, cpu1, drv_cpu = await span
+        cpu0, cpu1 = cpu0 or before, cpu1 or sample()  # (a driver that never drove: its run)
+        wall_s = max(cpu1["t"] - cpu0["t"], 1e-9)
+        clients_at_end = cpu1["clients"]
+        cpu0["clients"] = sum(cpu0["clients"])
+        _, drv_err = await drv.communicate()
         if drv.returncode != 0:
             raise InputError(f"the driver {exit_text(drv.returncode)}: {last_line(drv_err)}")
         driver = json.loads(Path(f"{tmp.name}/driver.json").read_text())
@@ -631,9 +662,9 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                 why = last_line(err)
                 node_errors.append(f"node process {k} (tiles {ranges[k][0]}-{ranges[k][1]}) "
                                    f"{exit_text(p.returncode)}{': ' + why if why else ''}")
-        # the processes report their own CPU time when they finish (they may exit before
-        # anyone could sample them); less what they had used when the driver started
-        drv_cpu = driver["cpu_seconds"] - (drv_cpu0 if drv_cpu0 == drv_cpu0 else 0.0)
+        # the driver's CPU over the span, as it reported it; the node processes report their
+        # own CPU time when they finish (they may exit before anyone could sample them)
+        drv_cpu = drv_cpu if drv_cpu is not None else driver["cpu_seconds"]
         nodes, cpu1["clients"] = [], 0.0
         for k in range(len(procs)):
             f = Path(f"{tmp.name}/nodes-{k}.json")
@@ -661,7 +692,9 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
         if broker is not None:
             broker.stop()
         tmp.cleanup()
-    warm = min(int(round(warmup * rate)) if rate > 0 else 0, max(frames - 2, 0))
+    # (--rate 0, as fast as it goes: the warm-up's frames at the rate the driver achieved)
+    per_s = rate if rate > 0 else driver["summary"].get("rate") or 0.0
+    warm = min(int(round(warmup * per_s)), max(frames - 2, 0))
     report = {"kind": "walkthrough",
               "config": {"scene": scene, "wall": wall, "tiles": tiles, "rate": rate,
                          "duration": duration, "frames": frames, "mode": mode,
@@ -676,7 +709,7 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
     report["driver"] = driver["summary"]
     report["cpu"] = {name: {"seconds": cpu1[name] - cpu0[name],
                             "percent": 100 * (cpu1[name] - cpu0[name]) / wall_s}
-                     for name in cpu0}
+                     for name in cpu0 if name != "t"}
     report["cpu"]["driver"] = {"seconds": drv_cpu, "percent": 100 * drv_cpu / wall_s}
     # everything else the machine did meanwhile (with --server, the server among it: its CPU
     # is not sampled)
@@ -766,6 +799,24 @@ async def kernels_loaded(url: str, show: bool = False, timeout: float = KERNELS_
                                        f"after {timeout:g} s")
                 await asyncio.sleep(0.1)
     return time.monotonic() - t0
+
+
+async def _driving_span(stdout, sample) -> tuple:
+    """Read the driver's JSON lines to its end; ``(sample() at "driving", sample() at
+    "driven", the driver's CPU seconds between the two)``, None for a line that never came."""
+    start = end = cpu = None
+    async for line in stdout:
+        try:
+            said = json.loads(line)
+        except ValueError:
+            continue
+        if not isinstance(said, dict):
+            continue
+        if said.get("driving"):
+            start, cpu = sample(), said["cpu_seconds"]
+        elif said.get("driven") and start is not None:
+            end, cpu = sample(), said["cpu_seconds"] - cpu
+    return start, end, (cpu if end is not None else None)
 
 
 async def _watch(url, wid, frames, drv, show: bool) -> None:
@@ -890,7 +941,10 @@ async def requests_test(requests: int = 20000, concurrency: int = 64,
     url, wid, gen = server, None, None
     try:
         if own:
-            await own.start()
+            try:
+                await own.start()
+            except RuntimeError as exc:
+                raise InputError(started(exc)) from None
         url = own.url if own else server
         await _reach(url, progress)
         async with Driver(url, token) as d:
@@ -1056,7 +1110,8 @@ def markdown(report: dict) -> str:
               f"| leaf-id bytes/frame: deltas / full | {b['lists_per_frame']:.0f} / "
               f"{b['lists_per_frame_if_full']:.0f} ({_f(b['lists_reduction'])}x) |",
               f"| fitted-frusta bytes/frame (in every packet) | {b['fits_per_frame']:.0f} |",
-              f"| packets full / delta | {b['full_packets']} / {b['delta_packets']} |",
+              f"| {b.get('counted', 'packets')} full / delta | {b['full_packets']} / "
+              f"{b['delta_packets']} |",
               f"| tile-frames dropped | {report['dropped']['tile_frames']} "
               f"({report['dropped']['frames_not_on_every_tile']} frames not on every tile) |",
               f"| frames the driver skipped (behind its schedule) | "
@@ -1180,8 +1235,18 @@ def cmd_loadtest(args) -> int:
         raise InputError("--clients-procs and --tiles-per-node must be at least 1")
     if (args.tiles_per_node > 1 or args.transport == "nats") and args.mode != "ws":
         raise InputError("nodes of several tiles, and NATS, take node messages: --mode ws")
-    if args.duration <= 0 or args.rate < 0:
-        raise InputError("--duration must be positive and --rate at least 0")
+    if not 0 < args.duration < float("inf"):
+        raise InputError(f"--duration must be a positive number of seconds, got "
+                         f"{args.duration:g}")
+    if not 0 <= args.rate < float("inf"):
+        raise InputError(f"--rate must be 0 (as fast as it goes) or a positive number of "
+                         f"frames a second, got {args.rate:g}")
+    if args.nats and args.transport != "nats":
+        raise InputError("--nats is the broker of --transport nats: give both, or neither")
+    if args.transport == "nats" and args.server and not args.nats:
+        raise InputError("--transport nats with --server needs the server's broker: --nats URL "
+                         "(the one it was started with); a broker of our own would hear "
+                         "nothing from it")
     if args.requests is None and not 0 <= args.warmup < args.duration:
         raise InputError(f"--warmup must be 0 or more and less than --duration "
                          f"({args.duration:g} s), got {args.warmup:g}")
@@ -1224,6 +1289,13 @@ def cmd_loadtest(args) -> int:
             text = text.split("\n| tile |")[0]
         Console().print(Markdown(text))
     errors = report.get("errors", {})
+    if report["kind"] == "walkthrough" and not errors.get("process_errors") \
+            and not errors.get("tiles_missing") and not report["nodes"]["every_tile_got_packets"]:
+        silent = sum(not t["packets"] for t in report["tiles"])
+        print(f"wallcull: error: {silent} of {len(report['tiles'])} tiles got no packet: the "
+              f"nodes heard nothing from the server (with --server and --transport nats, is "
+              f"--nats the server's broker?)", file=sys.stderr)
+        return 1
     if errors.get("process_errors") or errors.get("tiles_missing"):
         # measured, but not the whole wall: the report says what is missing, and so does this
         first = (errors["process_errors"] or ["a node process left no records"])[0]

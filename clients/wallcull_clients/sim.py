@@ -466,7 +466,7 @@ class TileClient:
                 s.list_bytes.append(_packed_len(pkt["added"], False)
                                     + _packed_len(pkt["removed"], False))
         s.full_list_bytes.append(whole)
-        s.fit_bytes.append(_packed_len({k: pkt[k] for k in ("view", "projection") if k in pkt},
+        s.fit_bytes.append(_packed_len({k: pkt[k] for k in FIT_KEYS if k in pkt},
                                        self.binary) - 1)  # less the map's own header
 
     async def _repair(self, number: int):
@@ -740,11 +740,14 @@ class NodeClient(TileClient):
         # its name in acknowledgements and full requests over NATS: other nodes may take the
         # same subject, and each gets deltas against what all of them hold
         self.name = secrets.token_hex(4)
+        # the messages taken, once each (a tile's records hold one entry a tile)
+        self.messages = {"frame": [], "full": []}
 
     def records(self) -> list[dict]:
         cache = self.cache.stats()
         return [{**self.tile_stats[t].to_dict(), "cache": cache if t == self.tile else {},
-                 "mode": "node"} for t in self.tiles]
+                 "mode": "node", **({"messages": self.messages} if t == self.tile else {})}
+                for t in self.tiles]
 
     def stream_url(self, path: str | None = None, query: str = "") -> str:
         return super().stream_url(f"/walls/{self.wall_id}/nodes/stream",
@@ -771,6 +774,8 @@ class NodeClient(TileClient):
             await self._ask_full()
             return False
         self.move(message.get("transforms"))
+        self.messages["frame"].append(number)
+        self.messages["full"].append(message.get("base") is None)
         whole = full_size(message, size, frames, self.node.frusta.held[number]) \
             if self.measure_full and self.binary and number % FULL_SIZE_EVERY == 0 else None
         for frame in frames:
@@ -808,7 +813,8 @@ class NodeClient(TileClient):
         s.list_bytes.append(listed if "visible" in entry else
                             sum(sorted_ints_len(entry[k]) for k in ("added", "removed")
                                 if k in entry))
-        s.fit_bytes.append(sum(_packed_len(entry[k], True) for k in ("view", "extent", "depth")
+        s.fit_bytes.append(sum(_packed_len(entry[k], True)
+                               for k in ("view", "extent", "depth", "left", "right")
                                if k in entry))
 
     async def acknowledge(self, number: int) -> None:
@@ -949,6 +955,10 @@ class NodeClient(TileClient):
 # --------------------------------------------------------------------------- a wall of them
 
 
+#: A tile packet's fitted frusta: its view and projection, and a stereo tile's eyes' own.
+FIT_KEYS = ("view", "projection", "left", "right")
+
+
 async def find_wall(server: str, wall: str, timeout: float = 60.0) -> dict:
     """The info of wall ``wall``, waiting up to ``timeout`` seconds for the server. ``"auto"``
     waits for a wall, and takes the newest with no frame yet (the one a driver has just made
@@ -998,10 +1008,16 @@ def node_tokens(path: str) -> dict[int, str]:
 
 
 def make_renderers(tiles, wall: dict, size: tuple[int, int] | None):
+    """A renderer for each tile: ``size``, else an eighth of the tile's resolution (a grid's
+    tiles share the wall's; each screen of a screens wall has its own)."""
     from .render import TileRenderer
 
-    w, h = size or (wall["resolution"][0] // 8, wall["resolution"][1] // 8)
-    return {t: TileRenderer(w, h) for t in tiles}
+    def eighth(t: int) -> tuple[int, int]:
+        w, h = wall["screens"][t].get("resolution", (1920, 1080)) if "screens" in wall \
+            else wall["resolution"]
+        return max(w // 8, 1), max(h // 8, 1)
+
+    return {t: TileRenderer(*(size or eighth(t))) for t in tiles}
 
 
 async def run_wall(server: str, wall: str, tiles: str | list[int] = "all", *, mode: str = "ws",

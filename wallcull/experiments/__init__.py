@@ -14,6 +14,7 @@ one line to :data:`REGISTRY`; ``all`` and the command line pick it up.
 from __future__ import annotations
 
 import importlib
+import os
 import re
 import time
 from contextlib import nullcontext
@@ -57,7 +58,9 @@ INTRO = """\
 Every table and plot on this page is produced by `wallcull experiment all`, which runs the
 experiments below and writes this page from their fragments (`docs/experiments/NAME.md`, with the
 raw numbers in `NAME.json` beside them). Nothing here is edited by hand: to change the text, change
-`wallcull/experiments/`, then run the command again.
+`wallcull/experiments/`, then run the command again. A single `wallcull experiment NAME`
+rewrites its own files in `docs/experiments/`, not this page: until `all` runs again, the page
+shows that experiment's new plots beside its old tables.
 
 The experiments follow section 5 of Nirnimesh, Harish and Narayanan, *Culling an Object Hierarchy
 to a Frustum Hierarchy* (2006): its Figs. 4, 5 and 6, then what the paper does not measure, the
@@ -113,9 +116,18 @@ def cmd_experiment(args) -> int:
     if args.quick and not args.out:
         raise InputError(f"--quick needs --out DIR: a quick run would replace the published "
                          f"{DEFAULT_OUT}/ pages with its tiny numbers")
+    if args.report and args.name != "all":
+        raise InputError(f"--report is where `all` writes {REPORT}: one experiment writes its "
+                         f"fragment, {args.name}.md, into --out")
     out = Path(args.out) if args.out else ROOT / DEFAULT_OUT
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file, not a folder")
+    try:  # refused before any work, not after it
+        out.mkdir(parents=True, exist_ok=True)
+        if not os.access(out, os.W_OK):
+            raise PermissionError(13, "Permission denied")
+    except OSError as exc:
+        raise InputError(f"cannot write into --out {out}: {exc.strerror or exc}") from None
     scenes = Path(args.scenes) if args.scenes else None
     if args.name == "all":
         report = Path(args.report) if args.report else (
@@ -126,9 +138,14 @@ def cmd_experiment(args) -> int:
     return 0
 
 
-def command(name: str, quick: bool, seed: int) -> str:
+def command(name: str, quick: bool, seed: int, out: Path | None = None,
+            scenes: Path | None = None) -> str:
+    """The command line that runs it again: with ``--out`` and ``--scenes`` when they were
+    not the project's (a quick run needs its ``--out``)."""
+    mine = out is not None and Path(out).resolve() != (ROOT / DEFAULT_OUT).resolve()
     return ("wallcull experiment " + name + (" --quick" if quick else "")
-            + (f" --seed {seed}" if seed else ""))
+            + (f" --seed {seed}" if seed else "") + (f" --out {out}" if mine else "")
+            + (f" --scenes {scenes}" if scenes is not None else ""))
 
 
 def run(name: str, out: Path, quick: bool = False, seed: int = 0, scenes_dir: Path | None = None,
@@ -146,7 +163,7 @@ def run(name: str, out: Path, quick: bool = False, seed: int = 0, scenes_dir: Pa
         data, md = REGISTRY[name](ctx)
     seconds = time.perf_counter() - t0
     meta = {"experiment": name, "seed": seed, "quick": quick, "wall_clock_s": seconds,
-            "command": command(name, quick, seed), "machine": machine(),
+            "command": command(name, quick, seed, out, scenes_dir), "machine": machine(),
             "loadavg_before": load_before, "loadavg_after": loadavg(), "plots": ctx.plots}
     result = {**meta, "results": data}
     write_json(out / f"{name}.json", result)
@@ -194,7 +211,7 @@ def assemble(out: Path, report: Path, results: dict, summary: dict) -> str:
            f"{', '.join(str(x[0]) for x in loads)}." if loads else "") + "\n\n"
         "From the root of a checkout installed as the README says (`pip install -e "
         "'.[test]'` in its virtual environment, which brings matplotlib):\n\n"
-        "    " + command("all", summary["quick"], summary["seed"])
+        "    " + command("all", summary["quick"], summary["seed"], out)
         + f"      # everything, {summary['total_s'] / 60:.1f} min here\n\n"
         + "\n".join(f"    {r['command']}" for r in results.values()) + "\n\n"
         + "| experiment | wall-clock |\n| --- | ---: |\n"
