@@ -376,18 +376,54 @@ def test_the_settings_name_what_never_occludes_and_may_set_the_budget():
         Session(scene, wall, settings={"occlusion": {"budget": -1}}, occlusion=OcclusionOptions())
 
 
-@pytest.mark.parametrize("mode, hides", [("OPAQUE", True), ("BLEND", False), ("MASK", False)])
+def _glb_with(data: bytes, edit) -> bytes:
+    """A GLB's bytes with its JSON document edited by ``edit(doc)``."""
+    import json
+    import struct
+
+    from wallcull.gltf import _split_glb
+
+    doc, binary = _split_glb(data)
+    edit(doc)
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text
+    if binary:
+        binary += b"\0" * (-len(binary) % 4)
+        chunks += struct.pack("<I4s", len(binary), b"BIN\0") + binary
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
+
+
+#: A material's transmission, as Blender writes glass (``alphaMode`` left opaque).
+TRANSMITS = {"transmission": {"KHR_materials_transmission": {"transmissionFactor": 1.0}},
+             "diffuse": {"KHR_materials_diffuse_transmission":
+                         {"diffuseTransmissionFactor": 0.5}},
+             "none": {"KHR_materials_transmission": {"transmissionFactor": 0}}}
+
+
+@pytest.mark.parametrize("mode, hides", [("OPAQUE", True), ("BLEND", False), ("MASK", False),
+                                         ("transmission", False), ("diffuse", False),
+                                         ("none", True)])
 def test_a_see_through_material_never_occludes(mode, hides, tmp_path, monkeypatch):
-    """A wall of glass (glTF ``alphaMode`` BLEND) or of alpha-tested leaves (MASK) hides
-    nothing behind it, loaded from its file and from the file's prepared copy; the same wall
-    opaque hides the boxes."""
+    """A wall of glass (glTF ``alphaMode`` BLEND, or an opaque one that transmits light by
+    ``KHR_materials_transmission`` or ``KHR_materials_diffuse_transmission``) or of
+    alpha-tested leaves (MASK) hides nothing behind it, loaded from its file and from the
+    file's prepared copy; the same wall opaque (or transmitting nothing) hides the boxes."""
     monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
     source = boxes_behind_a_wall_file()
     source.geometry["w"].visual = trimesh.visual.TextureVisuals(
-        material=trimesh.visual.material.PBRMaterial(baseColorFactor=[200, 220, 255, 90],
-                                                     alphaMode=mode))
+        material=trimesh.visual.material.PBRMaterial(
+            baseColorFactor=[200, 220, 255, 90],
+            alphaMode=mode if mode in ("OPAQUE", "BLEND", "MASK") else "OPAQUE"))
     path = tmp_path / "glass.glb"
-    path.write_bytes(source.export(file_type="glb"))
+    data = source.export(file_type="glb")
+    if mode in TRANSMITS:
+        def edit(doc):
+            (material,) = doc["materials"]
+            material["extensions"] = TRANSMITS[mode]
+            doc["extensionsUsed"] = list(TRANSMITS[mode])
+        data = _glb_with(data, edit)
+    path.write_bytes(data)
     wall = Wall.from_dict(WALL)
     frame = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
     hidden = {f"hidden{k}" for k in range(6)}

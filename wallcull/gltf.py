@@ -10,7 +10,11 @@ Made plain (trimesh alone dropped, left out or misplaced them):
 * normalized integer positions (``KHR_mesh_quantization``: read 32767 times too large) and
   sparse positions or indices (their values never applied), as plain arrays;
 * Draco-compressed primitives (``KHR_draco_mesh_compression``: read as zeros), decoded by
-  DracoPy (the ``formats`` extra), positions and triangles alone.
+  DracoPy (the ``formats`` extra), positions and triangles alone;
+* a material that transmits light (``KHR_materials_transmission`` or
+  ``KHR_materials_diffuse_transmission`` with a factor above 0: glass as Blender writes it,
+  its ``alphaMode`` left opaque; trimesh drops the extension), as ``alphaMode`` ``BLEND``:
+  what shows through it is never occlusion-culled.
 
 Refused, each having lost or misplaced what a tile shows:
 
@@ -171,6 +175,9 @@ def check_file(path: Path) -> None:
 #: as they are: trimesh reads integers, and a node's scale dequantizes positions), Draco
 #: decoded.
 MADE_PLAIN = (INSTANCING, "KHR_mesh_quantization", DRACO)
+#: Material extensions that let light through, and their factor (0 by default: opaque).
+TRANSMISSION = {"KHR_materials_transmission": "transmissionFactor",
+                "KHR_materials_diffuse_transmission": "diffuseTransmissionFactor"}
 
 _DTYPES = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
@@ -199,9 +206,24 @@ def needs_plain(doc: dict) -> bool:
                         "POSITION")) or odd(p.get("indices")) or \
                         DRACO in (p.get("extensions") or {}):
                     return True
-        return any(INSTANCING in (n.get("extensions") or {}) for n in doc.get("nodes") or [])
+        return any(INSTANCING in (n.get("extensions") or {}) for n in doc.get("nodes") or []) \
+            or any(map(_transmits, doc.get("materials") or []))
     except (TypeError, AttributeError):
         return False  # malformed: the reader says what is wrong
+
+
+def _transmits(material: dict) -> bool:
+    """Whether a glTF material, blended by no ``alphaMode``, lets light through by an
+    extension of :data:`TRANSMISSION` (a factor that is not a number counts as above 0)."""
+    if str(material.get("alphaMode", "OPAQUE")).upper() in ("BLEND", "MASK"):
+        return False
+    for name, factor in TRANSMISSION.items():
+        ext = (material.get("extensions") or {}).get(name)
+        if isinstance(ext, dict):
+            value = ext.get(factor, 0.0)
+            if not (isinstance(value, (int, float)) and value <= 0):
+                return True
+    return False
 
 
 def plain(doc: dict, buffers: list[bytes], what: str) -> bytes:
@@ -237,6 +259,9 @@ def plain(doc: dict, buffers: list[bytes], what: str) -> bytes:
             if p.get("mode") == TRIANGLE_FAN:
                 _fan(p, out)
     _instances(doc, out, what)
+    for material in doc.get("materials") or []:
+        if _transmits(material):  # (trimesh drops the extension: see the module docstring)
+            material["alphaMode"] = "BLEND"
     for key in ("extensionsRequired", "extensionsUsed"):
         if key in doc:
             doc[key] = [e for e in doc[key] if e not in (INSTANCING, DRACO)]
