@@ -167,8 +167,16 @@ class Driver:
             return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame},
                                    auth=True, body_format="msgpack")
         except HTTPError as exc:
-            if exc.status == 404 and exc.detail in (f"no wall {wid!r}",
-                                                    f"wall {wid} was deleted"):
+            gone = exc.status == 404 and exc.detail in (f"no wall {wid!r}",
+                                                        f"wall {wid} was deleted")
+            if exc.status == 401:  # its credential forgotten with its wall? (asked openly)
+                try:
+                    await self.conn.call("GET", f"/walls/{wid}")
+                except HTTPError as missing:
+                    gone = missing.status == 404
+                except (ConnectionError, OSError, asyncio.TimeoutError):
+                    pass
+            if gone:
                 raise ClientFailure(f"wall {wid} was deleted") from None
             raise
 

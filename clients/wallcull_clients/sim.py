@@ -629,6 +629,8 @@ class TileClient:
                 if status == 404 and f'"no wall {self.wall_id!r}"' in detail:
                     raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted"
                                         ) from None
+                if status == 401:  # a credential forgotten with its wall?
+                    await self._check_wall()
                 if status not in (429, 500, 502, 503, 504):
                     raise ClientFailure(f"tile {self.tile}: the server refused the stream: "
                                         f"HTTP {status}: {detail}") from None
@@ -707,15 +709,27 @@ class TileClient:
                                                     f"wall {self.wall_id} was deleted"):
                 raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
             elif r.status in (401, 403, 404):
+                if r.status == 401:  # a credential forgotten with its wall?
+                    await self._check_wall()
                 raise ClientFailure(f"tile {self.tile}: GET packet {target}: HTTP {r.status}: "
                                     f"{r.detail()}")
             else:
                 self.stats.errors.append(f"GET packet {target}: HTTP {r.status}: {r.detail()}")
                 await asyncio.sleep(0.05)
 
+    async def _check_wall(self) -> None:
+        """ClientFailure if the server says the wall is gone (``GET /walls/{wid}``, which needs
+        no token: a deleted wall's credentials are refused 401, and its NATS subjects are
+        answered by no one)."""
+        try:
+            r = await self.http.request("GET", f"/walls/{self.wall_id}")
+        except (ConnectionError, OSError, asyncio.TimeoutError):
+            return  # the server is away too: its wall may come back with it
+        if r.status == 404:
+            raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
+
 
 # --------------------------------------------------------------------------- a node of tiles
-
 
 class NodeClient(TileClient):
     """A render node driving several tiles over one connection: the node stream (one message
@@ -931,16 +945,6 @@ class NodeClient(TileClient):
             except asyncio.CancelledError:
                 await leaving
                 raise
-
-    async def _check_wall(self) -> None:
-        """ClientFailure if the server says the wall is gone (a deleted wall's subjects are
-        answered by no one)."""
-        try:
-            r = await self.http.request("GET", f"/walls/{self.wall_id}")
-        except (ConnectionError, OSError, asyncio.TimeoutError):
-            return  # the server is away too: its wall may come back with it
-        if r.status == 404:
-            raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
 
     async def _take(self, data: bytes) -> None:
         recv = time.time()

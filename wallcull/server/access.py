@@ -74,11 +74,9 @@ def bearer(authorization: str | None) -> str | None:
 
 def check(state: ServerState, role: str, token: str | None, params: Mapping[str, str]) -> None:
     """Refuse (401: no or unknown token; 403: a token that does not hold this) unless
-    ``token`` may call a route needing ``role`` with these path parameters. A wall the
-    server does not hold (``wid``) is a 404 whatever the token, as the operator is told: a
-    deleted wall's credentials are forgotten with it, and its driver and nodes are told the
-    wall is gone, not that their token is unknown (which wall ids exist, ``GET /walls``
-    says to anyone; nothing here says whether a token was ever issued)."""
+    ``token`` may call a route needing ``role`` with these path parameters. The token is
+    checked first: a deleted wall's credentials are forgotten with it (401), and its driver
+    and nodes then ask ``GET /walls/{wid}`` (open to anyone) whether the wall is gone."""
     if state.open or role == OPEN:
         return
     if token is None:
@@ -86,10 +84,6 @@ def check(state: ServerState, role: str, token: str | None, params: Mapping[str,
                            "operator's, or a credential issued with its wall")
     if state.is_operator(token):
         return
-    wid = params.get("wid")
-    if wid is not None and wid not in state.walls.sessions and \
-            wid not in state.walls.unavailable:
-        raise Refused(404, f"no wall {wid!r}")
     grant = state.walls.grant(token)
     if grant is None:
         raise Refused(401, "the token is not one this server holds")
