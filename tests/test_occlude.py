@@ -797,3 +797,13 @@ def test_a_lone_flat_mesh_is_never_hidden(case):
     lists = [bare.names(k, leaves=True) for k in range(wall.tiles)]
     assert [culled.names(k, leaves=True) for k in range(wall.tiles)] == lists
     assert case > 1 or any(lists), lists
+
+
+def test_a_scene_of_no_mesh_culls_with_occlusion():
+    """A scene made in code with no mesh (files without one are refused as they load) culls
+    to empty lists with occlusion on, as without (it raised IndexError)."""
+    scene = Scene.from_trimesh(trimesh.Scene())
+    wall = Wall.from_dict(WALL)
+    frame = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
+    vis = Session(scene, wall, occlusion=OcclusionOptions()).frame(frame).visibility
+    assert all(vis.names(t, leaves=True) == [] for t in range(wall.tiles))

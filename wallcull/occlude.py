@@ -400,7 +400,8 @@ def _occluding(scene, exclude: Sequence[str]) -> np.ndarray:
     where its mesh's material may show what lies behind it (``MeshTable.see_through``)."""
     flag = np.ones(len(scene), np.uint8)
     template = scene.mesh_of[_leaf_of(scene)]
-    flag[(template >= 0) & scene.meshes.see_through[np.maximum(template, 0)]] = 0
+    if len(scene.meshes.see_through):  # (a scene of no mesh: nothing to see through)
+        flag[(template >= 0) & scene.meshes.see_through[np.maximum(template, 0)]] = 0
     for name in exclude:
         node = scene.index.get(name)
         if node is None:
