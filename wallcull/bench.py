@@ -24,7 +24,7 @@ from .occlude import PARTS, OcclusionOptions
 from .paths import scene_path
 from .pipeline import Session
 from .protocol import FrameRecord, History
-from .scene import CLUSTERS, Scene
+from .scene import BRANCHING, CLUSTERS, Scene
 from .wall import Frame, Wall
 
 WARMUP_FRAMES = 3
@@ -264,14 +264,14 @@ def accuracy(scene: Scene, wall: Wall, frames, methods, bounds_kinds, progress=N
 
 def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=("obb",),
         path: str = "orbit", pseudo_groups: bool = False, accuracy_frames: int = 0,
-        hierarchy: str = "auto", branching: int | None = None,
+        hierarchy: str = "auto", branching: int = BRANCHING,
         clusters: int | None = CLUSTERS, moving: float = 0.0,
         refit: str | None = None,
         fit: FitOptions | None = None, settings: dict | None = None,
         progress: bool = True, shadow_fits: tuple = (), stereo: float | None = None,
         occlusion: str = "off") -> dict:
     """The whole benchmark; returns the ``bench --json`` document. ``branching``: of the
-    automatic hierarchy (None: the default). ``shadow_fits``: fitting
+    automatic hierarchy. ``shadow_fits``: fitting
     efforts (:data:`wallcull.lowilie.EFFORTS`) to compare, fit time against shadow-map
     coverage, with the main method. ``stereo``: the path's frames are stereo frames with this
     interpupillary distance (m), the head level with the display (SPEC section 3).
@@ -295,9 +295,8 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     if accuracy_frames:
         oracle.rotations()  # refused before any work when this install has no oracle
     t0 = time.perf_counter()
-    scene = scene_mod.load(scene_spec, hierarchy=hierarchy, settings=settings,
-                           clusters=clusters, **({} if branching is None
-                                                 else {"branching": branching}))
+    scene = scene_mod.load(scene_spec, hierarchy=hierarchy, branching=branching,
+                           settings=settings, clusters=clusters)
     t1 = time.perf_counter()
     for kind in bounds:
         scene.bounds(kind)
