@@ -167,17 +167,14 @@ class Driver:
             return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame},
                                    auth=True, body_format="msgpack")
         except HTTPError as exc:
-            gone = exc.status == 404 and exc.detail in (f"no wall {wid!r}",
-                                                        f"wall {wid} was deleted")
-            if exc.status == 401:  # its credential forgotten with its wall? (asked openly)
-                try:
+            if exc.status in (401, 404):  # its wall gone (its credential forgotten with it)?
+                try:  # asked openly: GET /walls/{wid} needs no token
                     await self.conn.call("GET", f"/walls/{wid}")
                 except HTTPError as missing:
-                    gone = missing.status == 404
+                    if missing.status == 404:
+                        raise ClientFailure(f"wall {wid} was deleted") from None
                 except (ConnectionError, OSError, asyncio.TimeoutError):
                     pass
-            if gone:
-                raise ClientFailure(f"wall {wid} was deleted") from None
             raise
 
     async def stream_frames(self, wid: str) -> None:

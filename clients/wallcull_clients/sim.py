@@ -626,10 +626,7 @@ class TileClient:
             except InvalidStatus as exc:
                 status, body = exc.response.status_code, exc.response.body or b""
                 detail = body.decode(errors="replace")[:300]
-                if status == 404 and f'"no wall {self.wall_id!r}"' in detail:
-                    raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted"
-                                        ) from None
-                if status == 401:  # a credential forgotten with its wall?
+                if status in (401, 404):  # its wall gone (a credential forgotten with it)?
                     await self._check_wall()
                 if status not in (429, 500, 502, 503, 504):
                     raise ClientFailure(f"tile {self.tile}: the server refused the stream: "
@@ -705,11 +702,8 @@ class TileClient:
                     return
             elif r.status in (410, 404) and r.detail().startswith(("frame", "there is no")):
                 number = None  # fell out of the history, or a number never posted: the newest
-            elif r.status == 404 and r.detail() in (f"no wall {self.wall_id!r}",
-                                                    f"wall {self.wall_id} was deleted"):
-                raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
             elif r.status in (401, 403, 404):
-                if r.status == 401:  # a credential forgotten with its wall?
+                if r.status != 403:  # its wall gone (a credential forgotten with it)?
                     await self._check_wall()
                 raise ClientFailure(f"tile {self.tile}: GET packet {target}: HTTP {r.status}: "
                                     f"{r.detail()}")
@@ -730,6 +724,7 @@ class TileClient:
 
 
 # --------------------------------------------------------------------------- a node of tiles
+
 
 class NodeClient(TileClient):
     """A render node driving several tiles over one connection: the node stream (one message
