@@ -509,10 +509,10 @@ def test_protocol_apply_is_what_the_nodes_use():
     assert protocol.apply(np.array([1]), {**bad, "count": 2}).tolist() == [1, 2]
 
 
-def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
-    """--render: each node draws its leaves with the real OpenGL renderer, with the view and
-    projection of its packet. Every pixel drawn belongs to a leaf of the tile's list, and tiles
-    with leaves in view draw some."""
+def _rendered(server, wall: dict, **options) -> list:
+    """Three orbit frames of a wall on fatehpur, drawn by pulling nodes with the real OpenGL
+    renderer (``--render``; skipped without headless OpenGL); the nodes, once they stop (the
+    wall then deleted)."""
     render = pytest.importorskip("wallcull_clients.render")
     try:
         render.reversed_z_available()
@@ -522,18 +522,28 @@ def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
 
     async def go():
         async with Driver(server, TOKEN) as d:
-            info = await d.create_wall("fatehpur", WALL_2x2)
+            info = await d.create_wall("fatehpur", wall)
             frames = await d.frames("fatehpur", info["wall"], "orbit", 3)
             ready = asyncio.Event()
             task = asyncio.create_task(run_wall(
-                server, info["id"], "all", mode="pull", token=TOKEN, render=True,
-                render_size=(96, 54), until=2, idle_timeout=10,
-                ready=lambda clients: ready.set()))
-            await ready.wait()
+                server, info["id"], "all", mode="pull", token=TOKEN, render=True, until=2,
+                idle_timeout=10, ready=lambda clients: ready.set(), **options))
+            await asyncio.wait([task, asyncio.ensure_future(ready.wait())],
+                               return_when=asyncio.FIRST_COMPLETED)
+            if task.done():  # the nodes failed before they were ready
+                return task.result()
             await d.run(info["id"], frames, rate=0, barrier=True, barrier_timeout=10)
+            await d.call("DELETE", f"/walls/{info['id']}", auth=True)
             return await task
 
-    clients = asyncio.run(go())
+    return asyncio.run(go())
+
+
+def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
+    """--render: each node draws its leaves with the real OpenGL renderer, with the view and
+    projection of its packet. Every pixel drawn belongs to a leaf of the tile's list, and tiles
+    with leaves in view draw some."""
+    clients = _rendered(server, WALL_2x2, render_size=(96, 54))
     drawn = 0
     for c in clients:
         ids = np.unique(c.image.ids)
@@ -548,33 +558,9 @@ def test_render_nodes_of_a_screens_wall_draw_each_screen_at_its_own_size(server)
     """--render on a CAVE (screens, each with its own resolution): every node draws at an
     eighth of its screen's resolution (the nodes died on the wall's resolution, which only a
     grid has)."""
-    render = pytest.importorskip("wallcull_clients.render")
-    try:
-        render.reversed_z_available()
-    except Exception as exc:  # noqa: BLE001 - no EGL here
-        pytest.skip(f"no headless OpenGL: {exc}")
-    from wallcull_clients.sim import run_wall
-
     cave = json.loads((ROOT / "examples" / "wall-cave.json").read_text())
     cave["screens"][1]["resolution"] = [960, 480]
-
-    async def go():
-        async with Driver(server, TOKEN) as d:
-            info = await d.create_wall("fatehpur", cave)
-            frames = await d.frames("fatehpur", info["wall"], "orbit", 3)
-            ready = asyncio.Event()
-            task = asyncio.create_task(run_wall(
-                server, info["id"], "all", mode="pull", token=TOKEN, render=True, until=2,
-                idle_timeout=10, ready=lambda clients: ready.set()))
-            await asyncio.wait([task, asyncio.ensure_future(ready.wait())],
-                               return_when=asyncio.FIRST_COMPLETED)
-            if task.done():  # the nodes failed before they were ready
-                return task.result()
-            await d.run(info["id"], frames, rate=0, barrier=True, barrier_timeout=10)
-            await d.call("DELETE", f"/walls/{info['id']}", auth=True)
-            return await task
-
-    clients = asyncio.run(go())
+    clients = _rendered(server, cave)
     assert len(clients) == len(cave["screens"])
     for c, screen in zip(clients, cave["screens"]):
         w, h = screen["resolution"]
