@@ -535,6 +535,28 @@ def test_a_room_of_one_closed_mesh_hides_what_lies_outside_it(winding):
     assert occluded >= 5
 
 
+@pytest.mark.parametrize("near,dist,gap", [(0.05, 2000.0, 0.002), (1e-4, 10.0, 0.002)])
+def test_what_a_depth_buffer_cannot_tell_from_its_occluder_is_kept(near, dist, gap):
+    """Boxes a hair beyond a room's far wall, the eye inside the room (so every tile keeps the
+    wall's near plane): a 24-bit depth buffer gives them the wall's depth, and drawn first
+    they show through it. Dropped as hidden by a relative margin alone (less than one step
+    of the buffer at such depths), the tiles lost the pixels where they show."""
+    s = trimesh.Scene()
+    rng = np.random.default_rng(0)
+    size = dist / 20
+    for k in range(30):  # listed before the room: drawn first, they win its depth
+        m = np.eye(4)
+        m[:3, 3] = [rng.uniform(-0.3, 0.3) * dist, rng.uniform(-0.2, 0.2) * dist,
+                    -dist * (1 + gap) - size / 2]
+        s.add_geometry(trimesh.creation.box(extents=[size] * 3), node_name=f"a{k}",
+                       geom_name=f"b{k}", transform=m)
+    s.add_geometry(trimesh.creation.box(extents=[2 * dist] * 3), node_name="room",
+                   geom_name="room")
+    scene = Scene.from_trimesh(s, hierarchy="file", clusters=None)
+    wall = {**WALL, "cols": 2, "rows": 2, "resolution": [96, 64], "near": near, "far": 1e5}
+    check_pixels(scene, wall, {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]})
+
+
 @pytest.mark.parametrize("name,frame", [
     ("powerplant", {"position": [30, 12, 20], "orientation": [0.9238795, 0, 0.3826834, 0]}),
     ("fatehpur", {"position": [40, 8, 60], "orientation": [1, 0, 0, 0]})])
@@ -732,7 +754,7 @@ def test_an_outline_holds_every_corner_of_its_box(kind):
         rec, half = np.zeros((1, occlude._R_SIZE)), np.zeros((3, 3))
         depth = np.zeros(w * h)
         if occlude._project(packed(SceneState(scene)), 1, np.eye(3, 4)[None], rect[None],
-                            np.array([[w, h]]), 0.05, depth, depth,
+                            np.array([[w, h]]), 0.05, 0.0, depth, depth,
                             np.zeros((1, 8), np.int64), np.array([0]), rec, half) \
                 == occlude._NEAR:
             continue

@@ -31,7 +31,8 @@ Conservative on both sides, so that dropping never removes a pixel:
   beyond the buffer's farthest over the rectangle (read from a max pyramid of the buffer, at the
   level where the rectangle spans two texels), or else over every texel its box's outline
   touches, at the box's own depth there (blocks of texels first, from the min pyramid), by a
-  relative margin that keeps a 24-bit depth buffer's rounding from letting it through. A bound
+  margin that keeps a 24-bit depth buffer's rounding from letting it through (relative, plus
+  a few of the buffer's steps at the wall's near plane, for far depths). A bound
   reaching behind the near plane is never hidden. In stereo a node must be hidden from both
   eyes.
 
@@ -70,8 +71,12 @@ MODES = ("on", "auto")
 #: The occlusion setting's words, ``off`` among them (no occlusion culling).
 SETTINGS = ("off", *MODES)
 
-#: Nodes are hidden only this far (relative) beyond the occluders' depth.
+#: Nodes are hidden only this far (relative) beyond the occluders' depth ...
 DEPTH_MARGIN = 1e-3
+#: ... and this much more in 1 / depth, times 1 / the wall's near: four steps of a 24-bit
+#: depth buffer, whose step in 1 / depth is 2^-24 / near (with any far plane, standard or
+#: reversed), beyond the relative margin at depths over about 4,000 times the near plane's.
+DEPTH_STEPS = 4 * 2.0**-24
 #: The most texels on a side of one buffer.
 MAX_TEXELS = 1024
 #: Occluder triangles, and listed nodes to test, a thread is given at least: handing less
@@ -1513,6 +1518,7 @@ def _prune(start, nodes, first_tile, box, child_start, child_count, children, af
     cap = rec.shape[0]
     verdict = np.empty(cap, np.int64)
     half = np.empty((3, 3))
+    step = DEPTH_STEPS / near
     seen = 0
     k = 0
     hidden = 0
@@ -1528,7 +1534,8 @@ def _prune(start, nodes, first_tile, box, child_start, child_count, children, af
             sp -= 1
             i = stack[sp]
             if child_count[i] == 0 and _centre_shows(box, i, affine, rect, size, tile_view,
-                                                      tile_texels, t, near, izlo, offsets):
+                                                      tile_texels, t, near, step, izlo,
+                                                      offsets):
                 state = _CLEAR
             elif slot[i, 0] != stamp or slot[i, 2] != tile_view[0, t]:
                 if seen == cap:
@@ -1538,15 +1545,15 @@ def _prune(start, nodes, first_tile, box, child_start, child_count, children, af
                     rec = rec2
                     verdict = np.concatenate((verdict, np.empty(seen, np.int64)))
                 slot[i, 0], slot[i, 1], slot[i, 2] = stamp, seen, tile_view[0, t]
-                verdict[seen] = _project(box, i, affine, rect, size, near, izlo, izhi, offsets,
-                                         tile_view[:, t], rec[seen], half)
+                verdict[seen] = _project(box, i, affine, rect, size, near, step, izlo, izhi,
+                                         offsets, tile_view[:, t], rec[seen], half)
                 seen += 1
                 state = verdict[slot[i, 1]]
             else:
                 state = verdict[slot[i, 1]]
             if state == _TEST:
-                state = _judge(rec[slot[i, 1]], rect, size, tile_view, tile_texels, t, izlo,
-                               izhi, offsets)
+                state = _judge(rec[slot[i, 1]], rect, size, tile_view, tile_texels, t, step,
+                               izlo, izhi, offsets)
             if state == _HIDDEN:
                 hidden += 1
                 continue
@@ -1566,7 +1573,8 @@ def _prune(start, nodes, first_tile, box, child_start, child_count, children, af
 
 
 @njit(cache=True, inline="always")
-def _centre_shows(box, i, affine, rect, size, tile_view, tile_texels, t, near, izlo, offsets):
+def _centre_shows(box, i, affine, rect, size, tile_view, tile_texels, t, near, step, izlo,
+                  offsets):
     """Whether node ``i``'s centre lies in tile ``t`` (a texel of it) from some eye, with
     nothing nearer there in the buffer: then neither it nor any part of it can be hidden
     there, and projecting it is not needed."""
@@ -1581,13 +1589,13 @@ def _centre_shows(box, i, affine, rect, size, tile_view, tile_texels, t, near, i
         fj = (y / d - rect[v, 2]) * size[v, 1] / (rect[v, 3] - rect[v, 2])
         if tile_texels[e, t, 0] <= fi < tile_texels[e, t, 1] and \
                 tile_texels[e, t, 2] <= fj < tile_texels[e, t, 3]:
-            if not d * izlo[offsets[v, 0] + int(fj) * w + int(fi)] > 1 + DEPTH_MARGIN:
+            if not _behind(d, izlo[offsets[v, 0] + int(fj) * w + int(fi)], step):
                 return True
     return False
 
 
 @njit(cache=True, inline="always")
-def _project(box, i, affine, rect, size, near, izlo, izhi, offsets, views, rec, half):
+def _project(box, i, affine, rect, size, near, step, izlo, izhi, offsets, views, rec, half):
     """Node ``i``'s bound in each eye's view (``views[e]``), into ``rec[e]`` (see
     ``_R_...``), and what that says of it over the whole view (``_HIDDEN`` ...). Its bound:
     its box grown by its ball (the half vectors lengthened by the ball)."""
@@ -1636,13 +1644,26 @@ def _project(box, i, affine, rect, size, near, izlo, izhi, offsets, views, rec, 
         i0, i1, j0, j1 = _clip(re, 0, w, 0, h)
         if i1 <= i0 or j1 <= j0:
             continue  # not in this view
-        if not d_near * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) > 1 + DEPTH_MARGIN:
+        if not _behind(d_near, _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False), step):
             hidden = False
-        if d_far * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) > 1 + DEPTH_MARGIN:
+        if _behind(d_far, _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True), step):
             clear = False
     if hidden:
         return _HIDDEN
     return _CLEAR if clear else _TEST
+
+
+@njit(cache=True, inline="always")
+def _hides(iz, bound, step):
+    """Whether an occluder at ``1 / iz`` hides what lies at ``1 / bound`` or beyond, by the
+    margins (``DEPTH_MARGIN``, and ``step``: ``DEPTH_STEPS`` over the wall's near)."""
+    return iz > (1 + DEPTH_MARGIN) * bound + step
+
+
+@njit(cache=True, inline="always")
+def _behind(d, iz, step):
+    """:func:`_hides` for what lies at depth ``d`` (> 0) or beyond."""
+    return d * iz > 1 + DEPTH_MARGIN + d * step
 
 
 @njit(cache=True, inline="always")
@@ -1666,7 +1687,7 @@ def _clip(re, i0, i1, j0, j1):
 
 
 @njit(cache=True, inline="always")
-def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
+def _judge(rec, rect, size, tile_view, tile_texels, t, step, izlo, izhi, offsets):
     """``_HIDDEN``: the node of record ``rec`` (see :func:`_project`) is hidden in tile ``t``
     from every eye; ``_CLEAR``: it is not, and no part of it can be; else ``_TEST``: a part of
     it might be."""
@@ -1683,16 +1704,16 @@ def _judge(rec, rect, size, tile_view, tile_texels, t, izlo, izhi, offsets):
         # hidden beyond 1 / iz: over every texel (the smallest iz), or over some (the largest);
         # as over the whole view (:func:`_project`) when all of it lies in this tile
         if (i0, i1, j0, j1) != _clip(re, 0, w, 0, h):
-            if re[_R_NEAR] * _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False) \
-                    > 1 + DEPTH_MARGIN:
+            if _behind(re[_R_NEAR], _extreme(izlo, offsets, v, w, h, i0, i1, j0, j1, False),
+                       step):
                 continue
-            if not re[_R_FAR] * _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True) \
-                    > 1 + DEPTH_MARGIN:
+            if not _behind(re[_R_FAR], _extreme(izhi, offsets, v, w, h, i0, i1, j0, j1, True),
+                           step):
                 hidden = False  # nowhere hidden
                 continue
         partly = True
         # texel by texel: those its outline touches, at its nearest depth there
-        if hidden and not _texels_hidden(re, rect[v], w, h, i0, i1, j0, j1, izlo,
+        if hidden and not _texels_hidden(re, rect[v], w, h, i0, i1, j0, j1, step, izlo,
                                          offsets[v]):
             hidden = False
     if hidden:
@@ -1798,7 +1819,7 @@ def _bound(re, i, j, s):
 
 
 @njit(cache=True, inline="always")
-def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
+def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, step, izlo, offsets):
     """Whether the node of record ``re`` lies behind ``izlo`` over every texel of ``[i0, i1) x
     [j0, j1)`` that its outline touches, at its depth there (:func:`_bound`). The texel of its
     centre first (its outline always touches it); then blocks of texels, read at a level of
@@ -1815,14 +1836,14 @@ def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
     jc = int(math.floor((re[_R_CENTRE + 1] / d - rect[2]) * sy))
     if i0 <= ic < i1 and j0 <= jc < j1:
         bound = _bound(re, ic, jc, 1)
-        if bound > 0 and not izlo[at + jc * w + ic] > (1 + DEPTH_MARGIN) * bound:
+        if bound > 0 and not _hides(izlo[at + jc * w + ic], bound, step):
             return False
     l = min(BLOCK, offsets.shape[0] - 1)
     s = 1 << l
     wl = -(-w // s)
     for J in range(j0 >> l, ((j1 - 1) >> l) + 1):
         for I in range(i0 >> l, ((i1 - 1) >> l) + 1):
-            if izlo[offsets[l] + J * wl + I] > (1 + DEPTH_MARGIN) * _bound(re, I * s, J * s, s):
+            if _hides(izlo[offsets[l] + J * wl + I], _bound(re, I * s, J * s, s), step):
                 continue  # hidden over the whole block
             if re[_R_READY] == 1.0:
                 _outline_of(re, rect, w, h)
@@ -1831,17 +1852,17 @@ def _texels_hidden(re, rect, w, h, i0, i1, j0, j1, izlo, offsets):
                 continue  # the block is out of its outline
             for j in range(ya, yb):
                 for i in range(xa, xb):
-                    if _touches(re, i, j, izlo[at + j * w + i]):
+                    if _touches(re, i, j, izlo[at + j * w + i], step):
                         return False
     return True
 
 
 @njit(cache=True, inline="always")
-def _touches(re, i, j, iz):
+def _touches(re, i, j, iz, step):
     """Whether the node of record ``re`` (its outline ready) may show in texel ``(i, j)``
     before ``1 / iz``: some of it is there, nearer, and its outline touches the texel."""
     bound = _bound(re, i, j, 1)
-    if not bound > 0 or iz > (1 + DEPTH_MARGIN) * bound:
+    if not bound > 0 or _hides(iz, bound, step):
         return False  # hidden there, or none of it there
     return not _beyond(re, i, j, i + 1.0, j + 1.0)
 
