@@ -557,6 +557,29 @@ def test_what_a_depth_buffer_cannot_tell_from_its_occluder_is_kept(near, dist, g
     check_pixels(scene, wall, {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]})
 
 
+def test_a_huge_face_through_the_near_plane_hides_nothing():
+    """A ground of two 200 km triangles under the eye, boxes buried beneath it, a near plane
+    of 1 mm: a render node clips the ground in float32, a few mm off, and draws it nowhere,
+    so the buried boxes show. As an occluder, the ground hid them: the tiles lost their
+    pixels. A nearer ground hides them, and each tile loses no pixel."""
+    for size, hides in ((1e5, False), (50.0, True)):
+        v = np.array([[-1, 0, -1], [1, 0, -1], [-1, 0, 1], [1, 0, 1]]) * size
+        s = trimesh.Scene()
+        s.add_geometry(trimesh.Trimesh(v, [[0, 2, 1], [1, 2, 3]], process=False),
+                       node_name="ground", geom_name="ground")
+        rng = np.random.default_rng(0)
+        for k in range(40):
+            m = np.eye(4)
+            m[:3, 3] = [rng.uniform(-15, 15), -1.25, -rng.uniform(3, 60)]
+            s.add_geometry(trimesh.creation.box(extents=[1, 0.5, 1]), node_name=f"buried{k}",
+                           geom_name=f"b{k}", transform=m)
+        scene = Scene.from_trimesh(s, hierarchy="file", clusters=None)
+        wall = {**WALL, "cols": 2, "rows": 2, "near": 1e-3, "far": 1e4}
+        pitch = [0.9914449, -0.1305262, 0, 0]  # 15 degrees down
+        occluded = check_pixels(scene, wall, {"position": [0, 1.7, 0], "orientation": pitch})
+        assert (occluded > 0) == hides
+
+
 @pytest.mark.parametrize("name,frame", [
     ("powerplant", {"position": [30, 12, 20], "orientation": [0.9238795, 0, 0.3826834, 0]}),
     ("fatehpur", {"position": [40, 8, 60], "orientation": [1, 0, 0, 0]})])

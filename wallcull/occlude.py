@@ -929,6 +929,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
                         label[s, c] = c
                     sides[s] = 3
                 else:
+                    if _reaches(vview, corner[s], CUT_REACH * near):
+                        continue
                     sides[s] = _clip_near(vview, corner[s], poly[s], label[s], cut, rect[v],
                                           sx, sy)
                     if sides[s] == 0:
@@ -1030,6 +1032,11 @@ _ROW = np.uint64((1 << SUB) - 1)
 AREA_MIN = 1e-9
 #: Occluders are cut this far (relative) beyond the near plane.
 NEAR_MARGIN = 1e-4
+#: A face the near plane cuts occludes nothing when a corner lies this many times the near
+#: distance away (along any axis of the view): a render node clips it in float32, off by
+#: about its corners' distance times 6e-8, which then passes the near plane (a 200 km ground
+#: through a 1 mm near plane was drawn nowhere, and what it hid showed).
+CUT_REACH = 1e5
 #: The far vertex of a neighbour face counts as across an edge only this far (relative).
 SIDE_MARGIN = 1e-9
 #: Texels and cells count as touched by a line within this distance (texels): rounding
@@ -1380,6 +1387,16 @@ def _across(f, e, g, s, t, faces, corner, vview):
             scale = ((abs(p[0]) + abs(p[1]) + abs(p[2])) * (abs(q[0]) + abs(q[1]) + abs(q[2]))
                      * (abs(far[0]) + abs(far[1]) + abs(far[2])))
             return own * other < 0 and abs(other) > SIDE_MARGIN * scale
+    return False
+
+
+@njit(cache=True, inline="always")
+def _reaches(vview, corners, reach):
+    """Whether a corner of a face lies ``reach`` or farther along an axis of the view."""
+    for c in range(3):
+        p = vview[corners[c]]
+        if max(abs(p[0]), abs(p[1]), abs(p[2])) >= reach:
+            return True
     return False
 
 
