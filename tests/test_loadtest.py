@@ -173,6 +173,8 @@ def test_loadtest_bad_arguments(tmp_path):
     (["--duration", "nan"], "--duration must be a positive number of seconds, got nan"),
     (["--rate", "inf", "--duration", "2"], "--rate must be 0 (as fast as it goes) or a "),
     (["--nats", "nats://127.0.0.1:4222"], "--nats is the broker of --transport nats"),
+    (["--stereo", "2"], "argument --stereo: an interpupillary distance is over 0 and at most "
+                        "1 m, got 2"),
     (["--server", "http://127.0.0.1:9", "--transport", "nats"],
      "--transport nats with --server needs the server's broker: --nats URL")])
 def test_loadtest_refuses_what_it_cannot_run_in_one_line(capsys, args, said):
@@ -509,10 +511,10 @@ def test_protocol_apply_is_what_the_nodes_use():
     assert protocol.apply(np.array([1]), {**bad, "count": 2}).tolist() == [1, 2]
 
 
-def _rendered(server, wall: dict, **options) -> list:
-    """Three orbit frames of a wall on fatehpur, drawn by pulling nodes with the real OpenGL
-    renderer (``--render``; skipped without headless OpenGL); the nodes, once they stop (the
-    wall then deleted)."""
+def _rendered(server, wall: dict, stereo: float | None = None, **options) -> list:
+    """Three orbit frames of a wall on fatehpur (``stereo``: stereo frames, the eyes this far
+    apart), drawn by pulling nodes with the real OpenGL renderer (``--render``; skipped
+    without headless OpenGL); the nodes, once they stop (the wall then deleted)."""
     render = pytest.importorskip("wallcull_clients.render")
     try:
         render.reversed_z_available()
@@ -523,7 +525,7 @@ def _rendered(server, wall: dict, **options) -> list:
     async def go():
         async with Driver(server, TOKEN) as d:
             info = await d.create_wall("fatehpur", wall)
-            frames = await d.frames("fatehpur", info["wall"], "orbit", 3)
+            frames = await d.frames("fatehpur", info["wall"], "orbit", 3, stereo=stereo)
             ready = asyncio.Event()
             task = asyncio.create_task(run_wall(
                 server, info["id"], "all", mode="pull", token=TOKEN, render=True, until=2,
@@ -552,6 +554,21 @@ def test_render_nodes_draw_their_lists_with_the_packet_matrices(server):
         drawn += (c.image.ids > 0).sum() > 0
         assert c.stats.triangles[-1] >= 0 and c.stats.errors == []
     assert drawn >= 2  # the orbit keeps the model in the middle of the wall
+
+
+def test_render_nodes_draw_both_eyes_of_stereo_frames(server):
+    """A driver posting stereo frames (``--stereo``): each node draws its tile once per eye,
+    with that eye's matrices (it drew the centre's view alone), and only its list's leaves."""
+    clients = _rendered(server, WALL_2x2, stereo=0.5, render_size=(96, 54))
+    differ = 0
+    for c in clients:
+        assert c.stats.errors == [] and c.image is None
+        left, right = c.images[c.tile, "left"].ids, c.images[c.tile, "right"].ids
+        leaves = set((c.lists[2] + 1).tolist())
+        for ids in (left, right):
+            assert set(np.unique(ids[ids > 0]).tolist()) <= leaves
+        differ += not np.array_equal(left, right)
+    assert differ >= 2  # eyes half a metre apart see the model from two sides
 
 
 def test_render_nodes_of_a_screens_wall_draw_each_screen_at_its_own_size(server):

@@ -70,12 +70,30 @@ class FrameLog:
 
 
 def path_frames(kind: str, lo, hi, wall: dict, count: int, loop: int = PATH_FRAMES,
-                up=(0.0, 1.0, 0.0)) -> list[dict]:
-    """``count`` frame dicts (SPEC section 3) of path ``kind``, repeating every ``loop``."""
+                up=(0.0, 1.0, 0.0), stereo: float | None = None) -> list[dict]:
+    """``count`` frame dicts (SPEC section 3) of path ``kind``, repeating every ``loop``;
+    ``stereo``: stereo frames, the eyes this far apart (m) across an untracked head."""
     loop = max(1, min(loop, count)) if loop else count
-    frames = camera_path(kind, np.asarray(lo, float), np.asarray(hi, float),
-                         Wall.from_dict(wall), loop, up=up)
-    return [frames[k % loop].to_dict() for k in range(count)]
+    frames = [f.to_dict() for f in camera_path(kind, np.asarray(lo, float),
+                                               np.asarray(hi, float), Wall.from_dict(wall),
+                                               loop, up=up)]
+    if stereo is not None:
+        for f in frames:
+            f["stereo"] = {"ipd": stereo, "head": [1.0, 0.0, 0.0, 0.0]}
+    return [frames[k % loop] for k in range(count)]
+
+
+def ipd(text: str) -> float:
+    """An interpupillary distance from the command line: over 0 and at most 1 m, as the
+    server takes it."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"an interpupillary distance is over 0 and at most "
+                                         f"1 m, got {text}")
+    return value
 
 
 class Driver:
@@ -133,11 +151,12 @@ class Driver:
         return await self.call("GET", f"/walls/{wid}")
 
     async def frames(self, scene: str, wall: dict, kind: str, count: int,
-                     loop: int = PATH_FRAMES) -> list[dict]:
-        """The walkthrough's frames around the scene's bounds, as the server reports them."""
+                     loop: int = PATH_FRAMES, stereo: float | None = None) -> list[dict]:
+        """The walkthrough's frames around the scene's bounds, as the server reports them
+        (``stereo``: see :func:`path_frames`)."""
         info = await self.call("GET", f"/scenes/{quote(scene, safe='')}")
         return path_frames(kind, info["bounds"]["min"], info["bounds"]["max"], wall, count,
-                           loop, info.get("settings", {}).get("up", (0.0, 1.0, 0.0)))
+                           loop, info.get("settings", {}).get("up", (0.0, 1.0, 0.0)), stereo)
 
     async def wait_clients(self, wid: str, count: int, timeout: float) -> int:
         """Wait until ``count`` nodes stream from the wall; returns how many do."""
@@ -303,6 +322,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--path", choices=PATHS, default="orbit")
     p.add_argument("--path-frames", type=int, default=PATH_FRAMES,
                    help="frames per loop of the path")
+    p.add_argument("--stereo", type=ipd, metavar="IPD",
+                   help="post stereo frames, the eyes this far apart (m, e.g. 0.064)")
     p.add_argument("--post", choices=("stream", "http"), default="stream",
                    help="post frames over one WebSocket (the frame stream) or one request each")
     p.add_argument("--no-skip", action="store_true",
@@ -362,7 +383,7 @@ async def _main(args) -> int:
             print(json.dumps({"wall": wid, "tiles": info["tiles"], "scene": info["scene"]}),
                   flush=True)
             frames = await driver.frames(info["scene"], info["wall"], args.path, args.frames,
-                                         args.path_frames)
+                                         args.path_frames, args.stereo)
             if args.wait_clients:
                 want = info["tiles"] if args.wait_clients == "all" else args.wait_clients
                 n = await driver.wait_clients(wid, want, args.wait_timeout)

@@ -531,12 +531,14 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                       settings: dict | None = None, shadow_fit: str = "refined",
                       tiles_per_node: int = 1, transport: str = "ws",
                       nats: str | None = None, prefetch: bool = False,
-                      barrier_timeout: float = 1.0, retry_for: float = 60.0) -> dict:
+                      barrier_timeout: float = 1.0, retry_for: float = 60.0,
+                      stereo: float | None = None) -> dict:
     """Run one walkthrough load test (see the module docstring) and return its report.
     ``transport`` "nats": the nodes take their messages from a NATS broker (``nats``, or one
     started here), the server publishing there. ``prefetch``: every node fetches the scene's
     meshes before the first frame, as a render PC loads its scene before it joins a wall.
     ``retry_for``: how long the driver and the nodes wait for a server that went away.
+    ``stereo``: the driver posts stereo frames, the eyes this far apart (m).
     A wall made on a ``server`` this run did not start is deleted when the run ends, however
     it ends."""
     import psutil
@@ -617,6 +619,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                "--token", info["credentials"]["driver"], "--out", f"{tmp.name}/driver.json"]
         if barrier:
             cmd += ["--barrier", "--barrier-timeout", str(barrier_timeout)]
+        if stereo is not None:
+            cmd += ["--stereo", repr(stereo)]
         def sample() -> dict:
             return {"server": cpu_seconds(server_ps) if server_ps else float("nan"),
                     "broker": cpu_seconds(broker_ps) if broker_ps else 0.0,
@@ -703,7 +707,8 @@ async def walkthrough(scene: str = "powerplant", wall: dict | str = DEFAULT_WALL
                          "path_frames": path_frames or PATH_FRAMES, "warmup_frames": warm,
                          "cache_bytes": cache_bytes, "method": method, "render": render,
                          "draw_time": draw_time, "tiles_per_node": tiles_per_node,
-                         "nodes": len(groups), "transport": transport, "prefetch": prefetch},
+                         "nodes": len(groups), "transport": transport, "prefetch": prefetch,
+                         "stereo": stereo},
               "machine": host}
     report.update(analyze(driver, nodes, warm, count=tiles))
     report["driver"] = driver["summary"]
@@ -1084,8 +1089,10 @@ def markdown(report: dict) -> str:
               f"tile(s) in {c['clients_procs']} process(es), mode {c['mode']}, over "
               f"{c['transport']}), "
               f"{c['frames']} frames of the "
-              f"{c['path']} path (a loop every {c['path_frames']} frames) at {c['rate']:g} "
-              f"frames/s{', swap barrier every frame' if c['barrier'] else ''}; first "
+              f"{c['path']} path (a loop every {c['path_frames']} frames"
+              f"{', stereo, ipd %g m' % c['stereo'] if c.get('stereo') else ''}) at "
+              f"{c['rate']:g} frames/s{', swap barrier every frame' if c['barrier'] else ''}; "
+              f"first "
               f"{c['warmup_frames']} frames left out of latency and bytes; {m['cores']} cores.",
               "", "| metric | value |", "|---|---|",
               f"| frames/s achieved | {_f(report.get('frames_per_s'))} |",
@@ -1176,6 +1183,8 @@ def write(report: dict, out: str | None) -> None:
 
 def register(sub) -> None:
     """Add ``wallcull loadtest`` to the CLI's subparsers."""
+    from .driver import ipd
+
     q = sub.add_parser("loadtest", help="measure a real server with simulated render nodes")
     q.add_argument("--scene", default="powerplant")
     q.add_argument("--wall", default=DEFAULT_WALL, help="WALL.json, or the JSON inline")
@@ -1199,6 +1208,8 @@ def register(sub) -> None:
                         "frame anyway (at most 10)")
     q.add_argument("--path", choices=("orbit", "fly"), default="orbit")
     q.add_argument("--path-frames", type=int, help="frames per loop of the path (default 600)")
+    q.add_argument("--stereo", type=ipd, metavar="IPD",
+                   help="the driver posts stereo frames, the eyes this far apart (m, e.g. 0.064)")
     q.add_argument("--warmup", type=float, default=0.5,
                    help="seconds of first frames left out of latency and bytes")
     q.add_argument("--cache-bytes", default="256M", help="mesh cache budget per node")
@@ -1276,7 +1287,8 @@ def cmd_loadtest(args) -> int:
             render=args.render, draw_time=args.draw_time,
             settings=settings, shadow_fit=args.shadow_fit, tiles_per_node=args.tiles_per_node,
             transport=args.transport, nats=args.nats, prefetch=args.prefetch,
-            barrier_timeout=args.barrier_timeout, retry_for=args.retry_for))
+            barrier_timeout=args.barrier_timeout, retry_for=args.retry_for,
+            stereo=args.stereo))
     write(report, args.out)
     if args.json:
         print(to_json(report))

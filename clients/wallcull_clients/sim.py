@@ -67,6 +67,7 @@ from wallcull.credentials import shown
 from wallcull.errors import InputError
 from wallcull.validate import parse_tiles, tiles_text
 
+from .frusta import EYES
 from .node import NodeState, full_size, sorted_ints_len
 from .rawhttp import MSGPACK, Connection, HTTPError, run
 from .retry import Backoff, ClientFailure, retrying, stop_on_signals
@@ -358,7 +359,7 @@ class TileClient:
         self.stats = TileStats(tile)
         self.http = Connection(server, token)
         self.last_frame = -1
-        self.images = {}  # the last frame drawn per tile, with a renderer
+        self.images = {}  # the last frame drawn per tile (per eye: (tile, eye)), with a renderer
         self._counted = {}  # tile -> (its list, triangles, cache evictions) when last counted
         self.connected = asyncio.Event()
         self.idle_stop = False  # it stopped because no packet came for idle_timeout seconds
@@ -491,8 +492,7 @@ class TileClient:
     async def draw(self, leaves: np.ndarray, parts: dict, pkt: dict) -> int:
         """Make sure every mesh is cached, then count (or render) the triangles."""
         self.move(pkt.get("transforms"))
-        triangles = await self.draw_tile(self.tile, self.stats, leaves, parts, pkt["view"],
-                                         pkt["projection"])
+        triangles = await self.draw_tile(self.tile, self.stats, leaves, parts, pkt)
         if self.draw_time:  # a GPU busy for this long: the node's own time, not the process's
             await asyncio.sleep(self.draw_time)
         return triangles
@@ -507,9 +507,10 @@ class TileClient:
             transforms["matrices"], dtype=np.float64).reshape(-1, 4, 4)
 
     async def draw_tile(self, tile: int, stats: TileStats, leaves: np.ndarray, parts: dict,
-                        view, projection) -> int:
+                        matrices: dict) -> int:
         """One tile's list: its meshes cached (fetched once per node), its triangles counted
-        (a leaf drawn in part: its ranges'), and drawn when the tile has a renderer. A list a
+        (a leaf drawn in part: its ranges'), and drawn when the tile has a renderer, with the
+        ``view`` and ``projection`` of ``matrices`` (a stereo tile's: each eye's). A list a
         node message left as it was (the same arrays), with nothing evicted since, has its
         meshes and its count."""
         renderer = self.renderers.get(tile)
@@ -528,15 +529,18 @@ class TileClient:
         stats.triangles.append(counted[2])
         if renderer is not None:
             keys = self.scene.keys
-            self.images[tile] = renderer.render(
-                [(keys[m], self.world[leaf], leaf + 1, parts.get(leaf))
-                 for leaf, m in zip(leaves.tolist(), self.scene.mesh_of[leaves].tolist())],
-                np.asarray(view), np.asarray(projection))
+            draws = [(keys[m], self.world[leaf], leaf + 1, parts.get(leaf))
+                     for leaf, m in zip(leaves.tolist(), self.scene.mesh_of[leaves].tolist())]
+            for eye in [e for e in EYES if e in matrices] or [None]:
+                m = matrices if eye is None else matrices[eye]
+                self.images[tile if eye is None else (tile, eye)] = renderer.render(
+                    draws, np.asarray(m["view"]), np.asarray(m["projection"]))
         return counted[2]
 
     @property
     def image(self):
-        """The last frame drawn of this client's tile, with a renderer (clients.render.Image)."""
+        """The last frame drawn of this client's tile, with a renderer (clients.render.Image;
+        of a stereo frame, ``images[tile, eye]``)."""
         return self.images.get(self.tile)
 
     async def fetch_mesh(self, number: int) -> Mesh:
@@ -792,8 +796,7 @@ class NodeClient(TileClient):
             self._record_tile(stats, message, frame, size, whole, recv)
             if self.on_list is not None:
                 self.on_list(frame.tile, number, frame.leaves)
-            await self.draw_tile(frame.tile, stats, frame.leaves, frame.ranges,
-                                 frame.matrices["view"], frame.matrices["projection"])
+            await self.draw_tile(frame.tile, stats, frame.leaves, frame.ranges, frame.matrices)
         if self.draw_time:
             await asyncio.sleep(self.draw_time)
         await self.acknowledge(number)
