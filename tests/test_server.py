@@ -498,6 +498,25 @@ def test_bad_input_gets_a_clear_4xx_and_the_server_keeps_serving(client, wid, fa
     assert client.get("/health").json()["status"] == "ok"
 
 
+def test_a_wall_shows_every_option_it_was_made_with_and_is_made_again_from_them(client):
+    """Revoking a leaked credential is deleting its wall and making it again from what
+    ``GET /walls/{wid}`` shows (deployment.md): the depth range and reversed Z were left
+    out, and a wall made again from it sent its nodes other projections."""
+    from wallcull.server.models import WallCreate, WallInfo
+
+    assert set(WallCreate.model_fields) <= set(WallInfo.model_fields)
+    options = {"method": "oh", "bounds": "aabb", "pseudo_groups": True, "history": 8,
+               "depth": "wall", "reversed_z": True, "shadow_fit": "greedy",
+               "occlusion": "auto", "nodes": [[0, 1], [2], [3], [4, 5]]}
+    first = client.get(f"/walls/{new_wall(client, **options)}").json()
+    made = new_wall(client, **{k: first[k] for k in WallCreate.model_fields})
+    again = client.get(f"/walls/{made}").json()
+    mine = {"id", "latest", "subscribers"}
+    assert {k: v for k, v in again.items() if k not in mine} == \
+        {k: v for k, v in first.items() if k not in mine}
+    assert {k: first[k] for k in options} == options
+
+
 def test_frames_in_order_with_numbers(client, wid):
     assert post_frame(client, wid, number=5)["frame"] == 5
     for number in (5, 3, 0):

@@ -168,6 +168,8 @@ class WallInfo(BaseModel):
     method: str
     bounds: str
     pseudo_groups: bool
+    depth: str
+    reversed_z: bool
     shadow_fit: str
     occlusion: str
     settings: Optional[dict] = None
