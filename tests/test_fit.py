@@ -433,3 +433,61 @@ def test_a_mirror_between_the_eyes_is_seen_by_the_eye_before_it():
     eye_space = homog(np.asarray(right["view"]), on_mirror)  # the reflection fixes the plane
     np.testing.assert_allclose(homog(np.asarray(right["projection"]), eye_space)[:, 2], -1,
                                atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
+    """The shadow pass's caster cull (``fit._cull_casters``: each region's leaves and nearest
+    caster worked out as each node is listed) gives what the ``oh`` kernel's pairs, expanded
+    to leaves (``cull._expand``) and their depths taken (``cull._depth_ranges``), give: the
+    same leaves in the same order, the same nearest depths to the bit, NaN for a region that
+    lists nothing; and -1 when its output cannot hold them."""
+    from wallcull.cull import _depth_ranges, _expand, _oh, packed, stack_depth
+    from wallcull.projection import frustum, look_at
+
+    rng = np.random.default_rng(seed)
+    scene = Scene.from_trimesh(random_scene(seed, leaves=40, big=0.3), hierarchy="file")
+    state = Session(scene, Wall.from_dict(WALL)).state
+    box = packed(state)
+    reach = box[0, 3] + np.linalg.norm(box[0, 4:13].reshape(3, 3), axis=1).sum()
+    away = rng.normal(size=3)
+    light = box[0, :3] + away / np.linalg.norm(away) * (2 * reach + 1)  # outside the scene
+    count = 9
+    kind = np.full(count, fitmod.FRUSTUM)
+    kind[rng.integers(1, count)] = fitmod.CUBE  # the cube around the light
+    pv, far = np.zeros((count, 4, 4)), rng.uniform(1, 4 * reach + 2, count)
+    for k in range(count):  # region 0 looks away from the scene: it lists nothing
+        target = box[rng.integers(len(box)), :3] + rng.normal(size=3) if k \
+            else 2 * light - box[0, :3]
+        w, h = rng.uniform(0.05, 1.5, 2) if k else (0.1, 0.1)
+        pv[k] = frustum(-w, w, -h, h, 0.1, far[k]) @ look_at(light, target)
+    lit = np.arange(count)
+    planes, regions, sizes = fitmod._caster_regions(pv, kind, lit, far, light)
+    forward = rng.normal(size=(count, 3))
+    forward /= np.linalg.norm(forward, axis=1, keepdims=True)
+    stack = stack_depth(state)
+    leaf_start, leaf_count = scene.leaf_range
+    tree = (scene.child_start, scene.leaf_child_count, scene.children)
+    lists = (leaf_start, leaf_count, scene.leaves, scene.cluster_leaf)
+
+    root = np.zeros(1, np.int64)
+    out_n, out_t = np.empty(1 << 16, np.int64), np.empty(1 << 16, np.int64)
+    pairs, _ = _oh(root, root, *tree, box, planes, regions, sizes, (np.int64(1) << sizes) - 1,
+                   np.zeros(count, np.int64), np.empty(stack, np.int64),
+                   np.empty(stack, np.int64), out_n, out_t)
+    culled = np.concatenate([[0], np.cumsum(np.bincount(out_t[:pairs], minlength=count))])
+    first, leaves = _expand(culled, out_n[:pairs], *lists)
+    lo, _ = _depth_ranges(culled, out_n[:pairs], box, forward, light[None], np.nan, np.nan)
+
+    out, nearest, starts = np.empty(1 << 16, np.int64), np.full(count, np.nan), \
+        np.zeros(count + 1, np.int64)
+    written = fitmod._cull_casters(*tree, box, planes, sizes, forward, light, *lists,
+                                   np.empty(stack, np.int64), np.empty(stack, np.int64), out,
+                                   nearest, starts)
+    assert written == len(leaves) > 0
+    assert np.array_equal(out[:written], leaves) and np.array_equal(starts, first)
+    assert np.array_equal(nearest, lo, equal_nan=True)
+    assert np.isnan(nearest[0]) and not np.isnan(nearest).all()  # none behind the light
+    assert fitmod._cull_casters(*tree, box, planes, sizes, forward, light, *lists,
+                                np.empty(stack, np.int64), np.empty(stack, np.int64),
+                                out[:written - 1], nearest, starts) == -1

@@ -40,7 +40,7 @@ from numba import njit
 
 from . import lowilie, workers
 from . import settings as cfg
-from .cull import (Culler, Visibility, _Buffers, _depth_ranges, _expand, _farthest, _oh,
+from .cull import (Culler, Visibility, _Buffers, _farthest, _sr,
                    depth_ranges as node_depths, packed, stack_depth)
 from .projection import as_reversed_z, look_at, mirrored_views, view_matrix
 from .scene import SceneState
@@ -285,7 +285,7 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
 
     def part(k, a, z):  # tiles [a, z) of the lights' sequence
-        buf, leaves = pool[k], []
+        buf, leaves, used = pool[k], [], 0  # each light's leaves after the one's before
         for j in range(a // tiles, (z - 1) // tiles + 1):
             lo, hi = max(a - j * tiles, 0), min(z - j * tiles, tiles)
             light = lights[j]
@@ -302,15 +302,18 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
                     projection[j, lo:hi], near[j, lo:hi], far[j, lo:hi], coverage[j, lo:hi],
                     status[j, lo:hi], kind[j, lo:hi], casters[j, lo:hi],
                     buf.get("stack_n", stack), buf.get("stack_m", stack),
-                    buf.get("out_n", CASTERS), buf.get("out_t", CASTERS))
+                    buf.get("out_n", CASTERS)[used:])
                 if got is not None:
                     break
-                for name in ("out_n", "out_t"):  # the casters overflowed: again, with room
-                    buf.arrays[name] = np.empty(2 * len(buf.arrays[name]), np.int64)
+                # the casters overflowed: again, with room (the lights' before keep theirs)
+                buf.arrays["out_n"], used = np.empty(2 * len(buf.arrays["out_n"]),
+                                                       np.int64), 0
             leaves.append(got)
+            used += len(got)
         return leaves
 
     parts = workers.run(part, ranges)
+    # (a copy: the parts' leaves lie in buffers that the next frame writes again)
     leaves = np.concatenate([a for p in parts for a in p]) if parts else np.zeros(0, np.int64)
     edges = np.concatenate([[0], np.cumsum(casters.ravel())])
     out = []
@@ -323,8 +326,8 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     return out
 
 
-#: Caster pairs (node, tile) a part of :func:`shadow_sets` has room for at first: doubled
-#: while they overflow, and kept from frame to frame.
+#: Caster leaves a part of :func:`shadow_sets` has room for at first: doubled while they
+#: overflow, and kept from frame to frame.
 CASTERS = 4096
 
 #: A fit's status (:mod:`wallcull.lowilie`) to the kind of shadow it gives: ``OK`` a frustum,
@@ -337,13 +340,13 @@ _KIND_OF_STATUS[[lowilie.OK, lowilie.EMPTY, lowilie.UNLIT]] = FRUSTUM, NONE, NON
 def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center, axes, half,
                  radius, start, nodes, box, child_start, child_count, children, leaf_start,
                  leaf_count, leaves, cluster_leaf, view, projection, near, far, coverage,
-                 status, kind, casters, stack_n, stack_m, out_n, out_t):
+                 status, kind, casters, stack_n, stack_m, out):
     """One light's shadows for a run of tiles (receivers ``nodes[start[t]:start[t + 1]]``),
     written into its rows of the frame's arrays: the Low-Ilie fits, a cube map where none
-    holds the receivers, the caster culls (the ``oh`` kernel, ``out_n``/``out_t`` its room),
-    each frustum's near plane pulled in to its nearest caster, and ``casters[t]``, how many
-    leaves each tile's casters are. Returns those leaves, tile after tile (sorted in each), or
-    None when the casters did not fit in ``out_n`` (nothing is then complete)."""
+    holds the receivers, the caster culls (:func:`_cull_casters`), each frustum's near plane
+    pulled in to its nearest caster, and ``casters[t]``, how many leaves each tile's casters
+    are. Returns those leaves, tile after tile (sorted in each): the start of ``out``, or None
+    when they did not fit in it (nothing is then complete)."""
     n = start.shape[0] - 1
     lowilie._fit_boxes(light, center, axes, half, radius, start, nodes, width, height, effort,
                        spot, spot_dir, spot_cos, view, projection, near, far, coverage, status)
@@ -377,25 +380,89 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
                 pv[k, r, c] = total
         for a in range(3):
             forward[k, a] = -view[t, 2, a]
-    planes, regions, sizes = _caster_regions(pv, kind, lit, far, light)
-    root = np.zeros(1, np.int64)
-    pairs, _ = _oh(root, root, child_start, child_count, children, box, planes, regions, sizes,
-                   (np.int64(1) << sizes) - 1, np.zeros(shaded, np.int64), stack_n, stack_m,
-                   out_n, out_t)
-    if pairs < 0:
+    planes, _, sizes = _caster_regions(pv, kind, lit, far, light)
+    lo = np.full(shaded, np.nan)  # each region's nearest caster (none: NaN)
+    first = np.zeros(shaded + 1, np.int64)
+    if _cull_casters(child_start, child_count, children, box, planes, sizes, forward, light,
+                     leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
+                     lo, first) < 0:
         return None
-    culled = np.zeros(shaded + 1, np.int64)  # the pairs come region after region
-    for j in range(pairs):
-        culled[out_t[j] + 1] += 1
-    for k in range(shaded):
-        culled[k + 1] += culled[k]
-    lo, _ = _depth_ranges(culled, out_n, box, forward, light.reshape(1, 3), np.nan, np.nan)
     _pull_near(lo, kind, lit, near, far, projection)
-    first, out = _expand(culled, out_n, leaf_start, leaf_count, leaves, cluster_leaf)
     casters[:] = 0
     for k in range(shaded):
         casters[lit[k]] = first[k + 1] - first[k]
-    return out
+    return out[:first[shaded]]
+
+
+@njit(cache=True, nogil=True)
+def _cull_casters(child_start, child_count, children, box, planes, sizes, forward, origin,
+                  leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out, nearest,
+                  first):
+    """The caster regions of :func:`_caster_regions` (region ``q``: the planes from ``6 q``,
+    ``sizes[q]`` of them) culled as the ``oh`` kernel culls them (:func:`wallcull.cull._oh`:
+    the same tests, in the same order), each listed node's leaves written out as it is
+    listed, as :func:`wallcull.cull._expand` writes them from the kernel's pairs: region ``q``'s
+    leaves are ``out[first[q]:first[q + 1]]``. ``nearest[q]`` gets the region's least depth
+    along ``forward[q]`` from ``origin`` that its listed bounds reach, the sums of
+    :func:`wallcull.cull._depth_ranges` (left as it is when it lists nothing). Both are worked
+    out while the node's record is at hand, not in passes over the pairs afterwards. Returns
+    the leaves written, or -1 when ``out`` cannot hold them."""
+    w = 0
+    cap = out.shape[0]
+    for q in range(sizes.shape[0]):
+        size = sizes[q]
+        fx, fy, fz = forward[q, 0], forward[q, 1], forward[q, 2]
+        least = np.inf
+        last = -1  # the cluster's leaf written last (a leaf's clusters come one after another)
+        listed = False
+        stack_n[0] = 0
+        stack_m[0] = (np.int64(1) << size) - 1
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            i = stack_n[sp]
+            m = stack_m[sp]
+            outside = False
+            for p in range(size):
+                if m & (1 << p):
+                    s, r = _sr(box, i, planes, 6 * q + p)
+                    if s < -r:
+                        outside = True
+                        break
+                    if s >= r:
+                        m &= ~(1 << p)
+            if outside:
+                continue
+            if m == 0 or child_count[i] == 0:
+                listed = True
+                c = cluster_leaf[i]
+                if c < 0:
+                    if w + leaf_count[i] > cap:
+                        return -1
+                    for j in range(leaf_start[i], leaf_start[i] + leaf_count[i]):
+                        out[w] = leaves[j]
+                        w += 1
+                elif c != last:
+                    if w == cap:
+                        return -1
+                    out[w] = c
+                    w += 1
+                    last = c
+                depth = ((box[i, 0] - origin[0]) * fx + (box[i, 1] - origin[1]) * fy
+                         + (box[i, 2] - origin[2]) * fz)
+                r = (abs(fx * box[i, 4] + fy * box[i, 5] + fz * box[i, 6])
+                     + abs(fx * box[i, 7] + fy * box[i, 8] + fz * box[i, 9])
+                     + abs(fx * box[i, 10] + fy * box[i, 11] + fz * box[i, 12]) + box[i, 3])
+                least = min(least, depth - r)
+                continue
+            for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
+                stack_n[sp] = children[c]
+                stack_m[sp] = m
+                sp += 1
+        if listed:
+            nearest[q] = least
+        first[q + 1] = w
+    return w
 
 
 @njit(cache=True)
