@@ -481,13 +481,13 @@ def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
 
     out, nearest, starts = np.empty(1 << 16, np.int64), np.full(count, np.nan), \
         np.zeros(count + 1, np.int64)
-    written = fitmod._cull_casters(*tree, box, planes, sizes, forward, light, *lists,
+    written = fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, light, *lists,
                                    np.empty(stack, np.int64), np.empty(stack, np.int64), out,
                                    nearest, starts)
     assert written == len(leaves) > 0
     assert np.array_equal(out[:written], leaves) and np.array_equal(starts, first)
     assert np.array_equal(nearest, lo, equal_nan=True)
     assert np.isnan(nearest[0]) and not np.isnan(nearest).all()  # none behind the light
-    assert fitmod._cull_casters(*tree, box, planes, sizes, forward, light, *lists,
+    assert fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, light, *lists,
                                 np.empty(stack, np.int64), np.empty(stack, np.int64),
                                 out[:written - 1], nearest, starts) == -1

@@ -156,6 +156,34 @@ def _sr(box, i, planes, p):
 
 
 @njit(cache=True, inline="always")
+def _masked(box, i, planes, ids, size, m):
+    """Bound ``i`` against the planes ``ids[p]`` whose bit ``p`` (``p < size``) mask ``m``
+    holds: ``(outside, m, tests)``, outside some plane, or ``m`` less the planes it lies wholly
+    inside (plane masking), and the tests made."""
+    tests = 0
+    for p in range(size):
+        if m & (1 << p):
+            s, r = _sr(box, i, planes, ids[p])
+            tests += 1
+            if s < -r:
+                return True, m, tests
+            if s >= r:
+                m &= ~(1 << p)
+    return False, m, tests
+
+
+@njit(cache=True, inline="always")
+def _along(box, i, fx, fy, fz, ox, oy, oz):
+    """``(c, r)``: bound ``i``'s centre's depth along unit ``(fx, fy, fz)`` from ``(ox, oy,
+    oz)``, and how far the bound reaches either side of it along that direction."""
+    c = (box[i, 0] - ox) * fx + (box[i, 1] - oy) * fy + (box[i, 2] - oz) * fz
+    r = (abs(fx * box[i, 4] + fy * box[i, 5] + fz * box[i, 6])
+         + abs(fx * box[i, 7] + fy * box[i, 8] + fz * box[i, 9])
+         + abs(fx * box[i, 10] + fy * box[i, 11] + fz * box[i, 12]) + box[i, 3])
+    return c, r
+
+
+@njit(cache=True, inline="always")
 def _state(s, r):
     if s < -r:
         return _OUT
@@ -234,17 +262,8 @@ def _primary(child_start, child_count, children, box, planes, plane_ids, roots, 
     while sp > 0:
         sp -= 1
         i = stack_n[sp]
-        m = stack_m[sp]
-        outside = False
-        for p in range(count):
-            if m & (1 << p):
-                s, r = _sr(box, i, planes, plane_ids[p])
-                tests += 1
-                if s < -r:
-                    outside = True
-                    break
-                if s >= r:
-                    m &= ~(1 << p)
+        outside, m, made = _masked(box, i, planes, plane_ids, count, stack_m[sp])
+        tests += made
         if outside:
             continue
         if m == 0 or child_count[i] == 0:
@@ -307,20 +326,12 @@ def _oh(roots, masks, child_start, child_count, children, box, planes, region_pl
             stack_m[sp] = force[q] | (masks[j] & inherit[q])
             sp += 1
         size = region_size[q]
+        ids = region_planes[q]
         while sp > 0:
             sp -= 1
             i = stack_n[sp]
-            m = stack_m[sp]
-            outside = False
-            for p in range(size):
-                if m & (1 << p):
-                    s, r = _sr(box, i, planes, region_planes[q, p])
-                    tests += 1
-                    if s < -r:
-                        outside = True
-                        break
-                    if s >= r:
-                        m &= ~(1 << p)
+            outside, m, made = _masked(box, i, planes, ids, size, stack_m[sp])
+            tests += made
             if outside:
                 continue
             if m == 0 or child_count[i] == 0:
@@ -894,11 +905,7 @@ def _depth_ranges(start, nodes, box, forward, origin, lo_default, hi_default):
         a = np.inf
         b = -np.inf
         for j in range(start[t], start[t + 1]):
-            i = nodes[j]
-            c = (box[i, 0] - ox) * fx + (box[i, 1] - oy) * fy + (box[i, 2] - oz) * fz
-            r = (abs(fx * box[i, 4] + fy * box[i, 5] + fz * box[i, 6])
-                 + abs(fx * box[i, 7] + fy * box[i, 8] + fz * box[i, 9])
-                 + abs(fx * box[i, 10] + fy * box[i, 11] + fz * box[i, 12]) + box[i, 3])
+            c, r = _along(box, nodes[j], fx, fy, fz, ox, oy, oz)
             a = min(a, c - r)
             b = max(b, c + r)
         lo[t] = a

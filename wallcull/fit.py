@@ -40,7 +40,7 @@ from numba import njit
 
 from . import lowilie, workers
 from . import settings as cfg
-from .cull import (Culler, Visibility, _Buffers, _farthest, _sr,
+from .cull import (Culler, Visibility, _Buffers, _along, _farthest, _masked,
                    depth_ranges as node_depths, packed, stack_depth)
 from .projection import as_reversed_z, look_at, mirrored_views, view_matrix
 from .scene import SceneState
@@ -380,10 +380,11 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
                 pv[k, r, c] = total
         for a in range(3):
             forward[k, a] = -view[t, 2, a]
-    planes, _, sizes = _caster_regions(pv, kind, lit, far, light)
+    planes, regions, sizes = _caster_regions(pv, kind, lit, far, light)
     lo = np.full(shaded, np.nan)  # each region's nearest caster (none: NaN)
     first = np.zeros(shaded + 1, np.int64)
-    if _cull_casters(child_start, child_count, children, box, planes, sizes, forward, light,
+    if _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
+                     light,
                      leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
                      lo, first) < 0:
         return None
@@ -395,11 +396,11 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
 
 
 @njit(cache=True, nogil=True)
-def _cull_casters(child_start, child_count, children, box, planes, sizes, forward, origin,
-                  leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out, nearest,
-                  first):
-    """The caster regions of :func:`_caster_regions` (region ``q``: the planes from ``6 q``,
-    ``sizes[q]`` of them) culled as the ``oh`` kernel culls them (:func:`wallcull.cull._oh`:
+def _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
+                  origin, leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
+                  nearest, first):
+    """The caster regions of :func:`_caster_regions` (region ``q``: the planes
+    ``regions[q, :sizes[q]]``) culled as the ``oh`` kernel culls them (:func:`wallcull.cull._oh`:
     the same tests, in the same order), each listed node's leaves written out as it is
     listed, as :func:`wallcull.cull._expand` writes them from the kernel's pairs: region ``q``'s
     leaves are ``out[first[q]:first[q + 1]]``. ``nearest[q]`` gets the region's least depth
@@ -410,7 +411,7 @@ def _cull_casters(child_start, child_count, children, box, planes, sizes, forwar
     w = 0
     cap = out.shape[0]
     for q in range(sizes.shape[0]):
-        size = sizes[q]
+        size, ids = sizes[q], regions[q]
         fx, fy, fz = forward[q, 0], forward[q, 1], forward[q, 2]
         least = np.inf
         last = -1  # the cluster's leaf written last (a leaf's clusters come one after another)
@@ -421,16 +422,7 @@ def _cull_casters(child_start, child_count, children, box, planes, sizes, forwar
         while sp > 0:
             sp -= 1
             i = stack_n[sp]
-            m = stack_m[sp]
-            outside = False
-            for p in range(size):
-                if m & (1 << p):
-                    s, r = _sr(box, i, planes, 6 * q + p)
-                    if s < -r:
-                        outside = True
-                        break
-                    if s >= r:
-                        m &= ~(1 << p)
+            outside, m, _ = _masked(box, i, planes, ids, size, stack_m[sp])
             if outside:
                 continue
             if m == 0 or child_count[i] == 0:
@@ -448,11 +440,7 @@ def _cull_casters(child_start, child_count, children, box, planes, sizes, forwar
                     out[w] = c
                     w += 1
                     last = c
-                depth = ((box[i, 0] - origin[0]) * fx + (box[i, 1] - origin[1]) * fy
-                         + (box[i, 2] - origin[2]) * fz)
-                r = (abs(fx * box[i, 4] + fy * box[i, 5] + fz * box[i, 6])
-                     + abs(fx * box[i, 7] + fy * box[i, 8] + fz * box[i, 9])
-                     + abs(fx * box[i, 10] + fy * box[i, 11] + fz * box[i, 12]) + box[i, 3])
+                depth, r = _along(box, i, fx, fy, fz, origin[0], origin[1], origin[2])
                 least = min(least, depth - r)
                 continue
             for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
