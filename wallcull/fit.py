@@ -384,8 +384,7 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
     lo = np.full(shaded, np.nan)  # each region's nearest caster (none: NaN)
     first = np.zeros(shaded + 1, np.int64)
     if _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
-                     light,
-                     leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
+                     light, leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
                      lo, first) < 0:
         return None
     _pull_near(lo, kind, lit, near, far, projection)
