@@ -562,17 +562,11 @@ class WallSession:
         return max(self.history.latest, self.floor)
 
     def info(self) -> dict:
-        """What ``GET /walls/{wid}`` shows: among it every option the wall was created with,
-        so that it can be created again as it was (a leaked credential's revocation)."""
-        s = self.session
-        fit = s.fit_options or FitOptions()
-        return {"id": self.id, "scene": self.scene.name, "wall": self.wall.to_dict(),
-                "tiles": self.wall.tiles, "method": s.method, "bounds": s.state.kind,
-                "pseudo_groups": s.culler.pseudo_groups, "depth": fit.depth,
-                "reversed_z": fit.reversed_z, "shadow_fit": fit.shadow_fit,
-                "occlusion": s.occlusion, "settings": s.raw_settings, "latest": self.newest,
-                "history": self.history.size, "subscribers": self.subscribers,
-                "nodes": self.nodes}
+        """What ``GET /walls/{wid}`` shows: among it every option the wall was created with
+        (:func:`spec_of`, what a restart makes it again from), so that it can be created again
+        as it was (a leaked credential's revocation)."""
+        return {"id": self.id, **spec_of(self), "tiles": self.wall.tiles,
+                "latest": self.newest, "subscribers": self.subscribers, "nodes": self.nodes}
 
     def check_tile(self, tile: int) -> None:
         if not 0 <= tile < self.wall.tiles:
