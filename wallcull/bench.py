@@ -17,6 +17,7 @@ import numpy as np
 
 from . import oracle, workers
 from .cull import METHODS
+from .documents import MAX_IPD
 from .errors import InputError
 from .encode import frame_packets, node_entries
 from .fit import FRUSTUM, FitOptions
@@ -289,9 +290,9 @@ def run(scene_spec: str, wall: Wall, frames: int = 200, methods=METHODS, bounds=
     if not 0 <= accuracy_frames <= frames:
         raise InputError(f"the oracle can check 0 to {frames} frames (the frames timed), "
                          f"not {accuracy_frames}")
-    if stereo is not None and not 0 < stereo <= 1:
-        raise InputError(f"stereo needs an interpupillary distance over 0 and at most 1 m, "
-                         f"got {stereo:g}")
+    if stereo is not None and not 0 < stereo <= MAX_IPD:
+        raise InputError(f"stereo needs an interpupillary distance over 0 and at most "
+                         f"{MAX_IPD:g} m, got {stereo:g}")
     if accuracy_frames:
         oracle.rotations()  # refused before any work when this install has no oracle
     t0 = time.perf_counter()

@@ -176,11 +176,16 @@ def _unit_quaternion(cls, value):
     return value
 
 
+#: The farthest apart two eyes may be (m): an interpupillary distance is over 0 and at most
+#: this, wherever one is given (a frame, ``bench --stereo``, the driver's ``--stereo``).
+MAX_IPD = 1.0
+
+
 class StereoSpec(Document):
     """Two eyes ``ipd`` apart across the tracked head (SPEC section 3): ``head`` is a unit
     quaternion."""
 
-    ipd: Annotated[Num, Field(gt=0, le=1.0)]
+    ipd: Annotated[Num, Field(gt=0, le=MAX_IPD)]
     head: Quaternion = (1.0, 0.0, 0.0, 0.0)
 
     _unit = field_validator("head")(_unit_quaternion)

@@ -41,6 +41,7 @@ import numpy as np
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
+from wallcull.documents import MAX_IPD
 from wallcull.errors import InputError
 from wallcull.paths import PATHS, camera_path
 from wallcull.wall import Wall
@@ -84,15 +85,15 @@ def path_frames(kind: str, lo, hi, wall: dict, count: int, loop: int = PATH_FRAM
 
 
 def ipd(text: str) -> float:
-    """An interpupillary distance from the command line: over 0 and at most 1 m, as the
-    server takes it."""
+    """An interpupillary distance from the command line: over 0 and at most ``MAX_IPD`` m,
+    as the server takes it."""
     try:
         value = float(text)
     except ValueError:
         value = float("nan")
-    if not 0 < value <= 1:
+    if not 0 < value <= MAX_IPD:
         raise argparse.ArgumentTypeError(f"an interpupillary distance is over 0 and at most "
-                                         f"1 m, got {text}")
+                                         f"{MAX_IPD:g} m, got {text}")
     return value
 
 
