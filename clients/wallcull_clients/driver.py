@@ -187,14 +187,9 @@ class Driver:
             return await self.call("POST", f"/walls/{wid}/frames", {"frame": frame},
                                    auth=True, body_format="msgpack")
         except HTTPError as exc:
-            if exc.status in (401, 404):  # its wall gone (its credential forgotten with it)?
-                try:  # asked openly: GET /walls/{wid} needs no token
-                    await self.conn.call("GET", f"/walls/{wid}")
-                except HTTPError as missing:
-                    if missing.status == 404:
-                        raise ClientFailure(f"wall {wid} was deleted") from None
-                except (ConnectionError, OSError, asyncio.TimeoutError):
-                    pass
+            # its wall gone (its credential forgotten with it)?
+            if exc.status in (401, 404) and await self.conn.wall_deleted(wid):
+                raise ClientFailure(f"wall {wid} was deleted") from None
             raise
 
     async def stream_frames(self, wid: str) -> None:

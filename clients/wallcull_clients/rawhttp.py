@@ -185,6 +185,17 @@ class Connection:
             raise HTTPError(r.status, r.detail(), method, target)
         return r.data()
 
+    async def wall_deleted(self, wid: str) -> bool:
+        """Whether the server says wall ``wid`` is gone: ``GET /walls/{wid}``, which needs no
+        token, answers 404 (a deleted wall's credentials are refused 401, and so are asked
+        after this way). False when the server does not answer: the wall may come back with
+        it."""
+        try:
+            r = await self.request("GET", f"/walls/{wid}")
+        except (ConnectionError, OSError, asyncio.TimeoutError):
+            return False
+        return r.status == 404
+
     async def __aenter__(self):
         return self
 

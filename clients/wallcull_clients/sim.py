@@ -716,14 +716,9 @@ class TileClient:
                 await asyncio.sleep(0.05)
 
     async def _check_wall(self) -> None:
-        """ClientFailure if the server says the wall is gone (``GET /walls/{wid}``, which needs
-        no token: a deleted wall's credentials are refused 401, and its NATS subjects are
-        answered by no one)."""
-        try:
-            r = await self.http.request("GET", f"/walls/{self.wall_id}")
-        except (ConnectionError, OSError, asyncio.TimeoutError):
-            return  # the server is away too: its wall may come back with it
-        if r.status == 404:
+        """ClientFailure if the server says the wall is gone (:meth:`.rawhttp.Connection.
+        wall_deleted`; its NATS subjects are answered by no one too)."""
+        if await self.http.wall_deleted(self.wall_id):
             raise ClientFailure(f"tile {self.tile}: wall {self.wall_id} was deleted")
 
 
