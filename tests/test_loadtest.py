@@ -162,6 +162,33 @@ def test_load_tests_wait_for_the_servers_kernels():
     asyncio.run(main())
 
 
+def test_a_load_test_without_its_progress_bar_asks_the_server_nothing_while_it_runs():
+    """The progress bar asks the server for the wall's latest frame twice a second; without
+    the bar (``--json``, a measured run) nothing is asked, so that the server's measured CPU
+    is the wall's alone."""
+    from wallcull_clients.loadtest import _watch
+
+    async def main():
+        counted = [0, 0]
+        server = await _health_server(counted)
+        url = f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+        async with server:
+            for show in (False, True):
+                counted[1] = 0
+                drv = await asyncio.create_subprocess_exec(
+                    sys.executable, "-c", "import sys; sys.stdin.read()",
+                    stdin=asyncio.subprocess.PIPE)
+                watch = asyncio.create_task(_watch(url, "w", 10, drv, show))
+                if show:  # the bar asks at once: the driver ends once it has
+                    while counted[1] == 0:
+                        await asyncio.sleep(0.01)
+                drv.stdin.close()
+                await watch
+                assert (counted[1] > 0) == show
+
+    asyncio.run(main())
+
+
 def test_loadtest_bad_arguments(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "wallcull.cli", "loadtest",
                            "--clients-procs", "0"], capture_output=True, text=True)

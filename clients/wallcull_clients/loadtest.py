@@ -825,7 +825,12 @@ async def _driving_span(stdout, sample) -> tuple:
 
 
 async def _watch(url, wid, frames, drv, show: bool) -> None:
-    """Wait for the driver to finish, with a progress bar of the wall's latest frame."""
+    """Wait for the driver to finish, with a progress bar of the wall's latest frame (asked
+    of the server twice a second; not asked at all without the bar, so that a measured run's
+    server serves the wall alone)."""
+    if not show:
+        await drv.wait()
+        return
     from rich.console import Console
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                                TimeElapsedColumn)
@@ -848,7 +853,7 @@ async def _watch(url, wid, frames, drv, show: bool) -> None:
                 bar.update(task, completed=latest,
                            rate=f"{latest / elapsed:5.1f} frames/s" if elapsed > 0 else "")
                 try:
-                    await asyncio.wait_for(drv.wait(), 0.25)
+                    await asyncio.wait_for(drv.wait(), 0.5)
                 except asyncio.TimeoutError:
                     pass
 
