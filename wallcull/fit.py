@@ -558,9 +558,12 @@ class MirrorSight:
         if not (eyes @ plane[:3] + plane[3] > 1e-9 * scale).any():
             return None
         outline = [plane[None]]
-        if mirror.polygon is not None and frame.stereo is None:
-            # the pyramid from the reflected eye through the outline (two eyes: the plane only)
-            outline.append(_pyramid(mirror.reflection @ np.append(eyes[0], 1.0), mirror.polygon))
+        if mirror.polygon is not None:
+            # the pyramid through the outline from each reflected eye that sees the mirror
+            # (a stereo frame's eye behind its plane sees nothing in it)
+            seeing = eyes[eyes @ plane[:3] + plane[3] > 0] if len(eyes) > 1 else eyes
+            outline.append(_pyramid([mirror.reflection @ np.append(e, 1.0) for e in seeing],
+                                    mirror.polygon))
         return cls(mirror, np.concatenate(outline))
 
     def matrices(self, views: np.ndarray, projections: np.ndarray, reversed_z: bool = False
@@ -597,21 +600,35 @@ class MirrorSight:
                          np.concatenate([[0], np.cumsum(counts)]), leaves[keep])
 
 
-def _pyramid(apex: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """Planes through ``apex`` and each edge of a convex polygon, facing its inside, the
-    longest edges' first (a view holds 63 planes: those past them are left out)."""
-    apex = apex[:3]
+def _pyramid(apexes: list[np.ndarray], polygon: np.ndarray) -> np.ndarray:
+    """Planes through each edge of a convex polygon, facing its inside, that hold what the
+    polygon shows seen from any of ``apexes`` (points on its far side: the reflected eyes),
+    the longest edges' first (a view holds 63 planes: those past them are left out).
+
+    Each plane through an edge and an apex bounds a wedge past the polygon's plane; the
+    planes of one edge share its line, so of two such wedges one holds the other: the plane
+    kept for the edge is the one whose inside holds the others' (the union of the pyramids
+    past the polygon lies within the planes kept)."""
     center = polygon.mean(axis=0)
     edges = np.roll(polygon, -1, axis=0) - polygon
     longest = np.argsort(-np.linalg.norm(edges, axis=1), kind="stable")
     polygon, edges = polygon[longest], edges[longest]
-    normals = np.cross(polygon - apex, edges)
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    d = -np.einsum("ij,ij->i", normals, polygon)
-    flip = normals @ center + d < 0
-    normals[flip] *= -1
-    d[flip] *= -1
-    return np.concatenate([normals, d[:, None]], axis=1)
+    kept = None
+    for apex in apexes:
+        apex = np.asarray(apex, dtype=float)[:3]
+        normals = np.cross(polygon - apex, edges)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        d = -np.einsum("ij,ij->i", normals, polygon)
+        flip = normals @ center + d < 0
+        normals[flip] *= -1
+        d[flip] *= -1
+        planes = np.concatenate([normals, d[:, None]], axis=1)
+        if kept is not None:  # a point of this plane past the polygon, beyond each edge's middle
+            past = 2 * (polygon + edges / 2) - apex
+            holds = np.einsum("ij,ij->i", kept[:, :3], past) + kept[:, 3] >= 0
+            planes = np.where(holds[:, None], kept, planes)
+        kept = planes
+    return kept
 
 
 # --------------------------------------------------------------------------- a frame
