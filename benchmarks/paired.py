@@ -5,14 +5,16 @@ minute to the next, a ratio of paired frames by a few hundredths).
 
     python benchmarks/paired.py REV [--settings SETTINGS.json] [--path orbit|fly]
         [--frames 200] [--stage fit|cull|occlude|total] [--occlusion on|auto]
-        [--wall WALL.json] [--scene powerplant]
+        [--wall WALL.json] [--scene powerplant] [--stereo IPD]
 
 ``REV``'s ``wallcull`` package is extracted once (``git archive``) as ``wallcull_base`` into
 ``$WALLCULL_CACHE/paired/`` (default ``~/.cache/wallcull``), where its compiled kernels are
 kept for the next run. Prints both medians, the median of the paired ratios and the ratio of
 the means (each working tree over ``REV``); below 1 is faster, over the frames where the stage ran on both
 sides (``frames_paired``). ``total`` is the session's stages (cull, occlusion, leaf lists,
-fits), not the encoding. Both sides must make the same frames of the path.
+fits), not the encoding. Both sides must make the same frames of the path. With ``--stereo``
+the path's frames are stereo frames of that interpupillary distance. The fit stage also
+reports the leaves the tiles' mirror passes list a frame, ``REV``'s then the working tree's.
 """
 
 from __future__ import annotations
@@ -65,6 +67,10 @@ def session(package: str, args, settings):
         wall = mod("wall").Wall.from_dict(json.load(f))
     scene = mod("scene").load(args.scene, settings=settings)
     frames = mod("paths").scene_path(scene, wall, args.path, args.frames)
+    if args.stereo:
+        Frame = mod("wall").Frame
+        frames = [Frame.from_dict({**f.to_dict(), "stereo": {"ipd": args.stereo}}, wall)
+                  for f in frames]
     occlusion = mod("occlude").OcclusionOptions.parse(args.occlusion) if args.occlusion \
         else None
     s = mod("pipeline").Session(scene, wall, "adaptive", "obb", False,
@@ -84,7 +90,12 @@ def main() -> None:
     p.add_argument("--occlusion", choices=("on", "auto"))
     p.add_argument("--wall", default=str(ROOT / "examples" / "wall-8x8.json"))
     p.add_argument("--scene", default="powerplant")
+    p.add_argument("--stereo", type=float, help="interpupillary distance, m: stereo frames")
     args = p.parse_args()
+    from wallcull.documents import MAX_IPD
+
+    if args.stereo is not None and not 0 < args.stereo <= MAX_IPD:
+        p.error(f"--stereo is an interpupillary distance over 0 and at most {MAX_IPD:g} m")
     if args.stage == "occlude" and not args.occlusion:
         p.error("--stage occlude needs --occlusion on or auto (without it nothing is timed)")
     settings = None
@@ -102,13 +113,17 @@ def main() -> None:
         sys.exit(f"paired.py: {args.rev} makes other frames of the {args.path} path than the "
                  "working tree (its paths or scene loading differ): no pairs to compare")
     key = f"{args.stage}_ms"
-    times = [[], []]
+    times, mirrored = [[], []], [0, 0]
     for k in range(args.frames):
         for which in ((0, 1) if k % 2 else (1, 0)):  # who goes first alternates
             s, frames = pairs[which]
-            timings = s.frame(frames[k]).timings
+            result = s.frame(frames[k])
+            timings = result.timings
             times[which].append(sum(v for n, v in timings.items() if n.endswith("_ms"))
                                 if args.stage == "total" else timings.get(key, 0.0))
+            if args.stage == "fit":
+                mirrored[which] += sum(len(m["visible"]) for t in range(len(result.fits))
+                                       for m in result.fits[t].get("mirrors", []))
     base, new = np.array(times[0]), np.array(times[1])
     ran = (base > 0) & (new > 0)  # a stage skipped on a frame (occlusion's auto) is no pair
     if not ran.any():
@@ -121,7 +136,10 @@ def main() -> None:
                       "base_median_ms": round(float(np.median(base)), 3),
                       "new_median_ms": round(float(np.median(new)), 3),
                       "paired_ratio_median": round(float(np.median(ratio)), 3),
-                      "ratio_of_means": round(float(new.mean() / base.mean()), 3)},
+                      "ratio_of_means": round(float(new.mean() / base.mean()), 3),
+                      **({"mirror_leaves_per_frame": [round(m / args.frames, 1)
+                                                      for m in mirrored]}
+                         if args.stage == "fit" else {})},
                      allow_nan=False))
 
 
