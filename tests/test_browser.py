@@ -112,10 +112,10 @@ def renderer_available():
         pytest.skip(f"no headless OpenGL (EGL) context for clients.render: {exc}")
 
 
-def blocks_glb(size: float = 1.0, more: int = 0) -> bytes:
+def blocks_glb(size: float = 1.0, more: int = 0, points: bool = False) -> bytes:
     """Boxes and spheres on a 4 m lattice around the origin (the viewer), none touching; their
     meshes named by their order whatever their ``size``; ``more`` blocks on a wall behind them
-    (z = -32 m)."""
+    (z = -32 m); ``points``: and a glTF primitive of points among them (node ``points``)."""
     import trimesh
 
     rng = np.random.default_rng(7)
@@ -133,6 +133,9 @@ def blocks_glb(size: float = 1.0, more: int = 0) -> bytes:
         scene.add_geometry(shapes[k % 2], node_name=f"b{k}", geom_name=("sphere", "box")[k % 2],
                            transform=m)
         k += 1
+    if points:
+        cloud = rng.uniform([-6, -6, -4], [10, 6, 8], (200, 3))
+        scene.add_geometry(trimesh.PointCloud(cloud), node_name="points", geom_name="points")
     return scene.export(file_type="glb")
 
 
@@ -337,6 +340,32 @@ def test_grid_tiles_match_the_reference_renderer(server, http, browser, referenc
     assert canvas == [1280, 360]
     b0 = references(blocks).names.index("b0")
     assert (drawn[5] == b0 + 1).mean() > 0.01  # the block moved into view, where it went
+
+
+def test_a_leaf_of_points_is_drawn_as_nothing(server, http, browser, references):
+    """A glTF primitive of points among the blocks: the server lists its leaf, a mesh of no
+    triangles, and the page draws it as nothing, as ``clients.render`` does (whose upload of
+    it raised, taking its render nodes down)."""
+    r = http.post("/scenes?name=blocks-points", content=blocks_glb(points=True),
+                  headers={**AUTH, "Content-Type": "model/gltf-binary"})
+    assert r.status_code == 201, r.text
+    scene = r.json()["name"]
+    info = create_wall(http, GRID, nodes=[[5, 6]], scene=scene)
+    token = next(n["token"] for n in info["credentials"]["nodes"] if n["tiles"] == [5, 6])
+    points = references(scene).names.index("points")
+    assert len(references(scene).meshes[references(scene).mesh[points]].faces) == 0
+    listed = []
+    real = references(scene).packet
+
+    def packet(wid, tile, number):  # the packets compared, and whether they list the points
+        pkt = real(wid, tile, number)
+        listed.append(points in pkt["visible"])
+        return pkt
+
+    references(scene).packet = packet
+    compare_frames(http, browser, server, references, scene, info["id"], BLOCK_FRAMES[:2],
+                   (5, 6), (640, 360), token, "grid tile")
+    assert any(listed)
 
 
 def test_a_page_that_lost_its_lists_asks_for_full_ones(server, http, browser, references,

@@ -353,3 +353,64 @@ def test_upload_evict_bookkeeping():
     assert r.cached_bytes == 0
     assert isinstance(r.render([], np.eye(4), PROJ), Image)
     r.release()
+
+
+def test_a_mesh_of_no_triangles_draws_nothing(renderer):
+    """A mesh of vertices and no faces (a glTF primitive of points) is cached and draws
+    nothing, whole, by no range or by triangle ids; its upload raised (a GL buffer cannot be
+    empty), and took down the render nodes and the picture tool that fetched it."""
+    points = np.random.default_rng(0).random((20, 3)) - 0.5
+    r = TileRenderer(W, H)
+    r.upload("cube", *cube())
+    before = r.cached_bytes
+    r.upload("points", points, np.zeros((0, 3), np.int64))
+    assert r.cached_bytes == before
+    model = translation(0, 0, -4)
+    alone = r.render([("cube", model, 1)], np.eye(4), PROJ)
+    for extra in (("points", model, 2), ("points", model, 2, []), ("points", model, 2, None)):
+        image = r.render([("cube", model, 1), extra], np.eye(4), PROJ)
+        np.testing.assert_array_equal(image.ids, alone.ids)
+        np.testing.assert_array_equal(image.color, alone.color)
+    image = r.render([("points", model, 5)], np.eye(4), PROJ, triangle_ids=True)
+    assert not image.ids.any()
+    with pytest.raises(ValueError):
+        r.render([("points", model, 2, [[0, 1]])], np.eye(4), PROJ)  # no triangle to draw
+    r.upload("points", *quad())  # replaced by a mesh of triangles, and back
+    r.upload("points", points, np.zeros((0, 3), np.int64))
+    r.evict("points")
+    assert r.cached_bytes == before
+    r.release()
+
+
+def test_a_leaf_of_points_the_server_lists_is_drawn_as_nothing(tmp_path, monkeypatch):
+    """A glTF of a point primitive beside a box: the server lists the points' leaf (it is
+    bounded and in view), and a tile drawn from its list equals the whole scene drawn."""
+    import trimesh
+
+    from wallcull.fit import FitOptions
+    from wallcull.pipeline import Session
+    from wallcull.scene import load
+    from wallcull.wall import Wall
+
+    from .drawing import Draws
+
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    s = trimesh.Scene()
+    cloud = np.random.default_rng(0).random((20, 3)) - [0.5, 0.5, 0]
+    s.add_geometry(trimesh.PointCloud(cloud), node_name="points", geom_name="points")
+    s.add_geometry(trimesh.creation.box(extents=[1, 1, 1]), node_name="box", geom_name="box")
+    path = tmp_path / "points.glb"
+    path.write_bytes(s.export(file_type="glb"))
+    scene = load(str(path))
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+                           "resolution": [64, 36]})
+    result = Session(scene, wall, fit=FitOptions()).frame(
+        {"position": [0, 0, 4], "orientation": [1, 0, 0, 0]})
+    assert sorted(result.visibility.names(0, leaves=True)) == ["box", "points"]
+    r = TileRenderer(64, 36)
+    draws = Draws(scene, r)
+    view, proj = (np.asarray(result.fits[0][k]) for k in ("view", "projection"))
+    culled = r.render(draws.tile(result.visibility, 0), view, proj).ids
+    np.testing.assert_array_equal(culled, r.render(draws.everything(), view, proj).ids)
+    assert (culled == scene.index["box"] + 1).sum() > 100
+    r.release()

@@ -155,7 +155,7 @@ class Image:
 
 @dataclass
 class _Mesh:
-    vao: object
+    vao: object  # None, with vbo and ibo, for a mesh of no triangles: it draws nothing
     vbo: object
     ibo: object
     center: np.ndarray  # float64 local origin subtracted before the float32 conversion
@@ -208,12 +208,13 @@ class TileRenderer:
     @property
     def cached_bytes(self) -> int:
         """GPU bytes of the cached meshes (float32 vertices + uint32 indices)."""
-        return sum(m.vbo.size + m.ibo.size for m in self._meshes.values())
+        return sum(m.vbo.size + m.ibo.size for m in self._meshes.values() if m.vao is not None)
 
     def upload(self, key: Hashable, vertices: np.ndarray, faces: np.ndarray) -> None:
         """Cache a mesh under ``key``, replacing any mesh cached under it.
 
-        ``vertices``: ``(n, 3)`` float, object space. ``faces``: ``(m, 3)`` int indices into them.
+        ``vertices``: ``(n, 3)`` float, object space. ``faces``: ``(m, 3)`` int indices into them;
+        a mesh of no faces (a glTF primitive of points) is cached and draws nothing.
         The vertices are stored as float32 relative to their bounding-box centre (subtracted in
         float64; the draw's model matrix gets it back), so a mesh baked far from the origin keeps
         its float32 precision.
@@ -228,6 +229,9 @@ class TileRenderer:
             raise ValueError("faces index outside the vertices")
         center = (vertices.min(0) + vertices.max(0)) / 2 if len(vertices) else np.zeros(3)
         self.evict(key)
+        if not len(faces):  # (a GL buffer cannot be empty)
+            self._meshes[key] = _Mesh(None, None, None, center, 0)
+            return
         with self._ctx as ctx:
             vbo = ctx.buffer((vertices - center).astype(np.float32).tobytes())
             ibo = ctx.buffer(faces.astype(np.uint32).tobytes())
@@ -238,7 +242,7 @@ class TileRenderer:
     def evict(self, key: Hashable) -> None:
         """Free the mesh cached under ``key`` (no-op if none)."""
         mesh = self._meshes.pop(key, None)
-        if mesh is not None:
+        if mesh is not None and mesh.vao is not None:
             with self._ctx:
                 for obj in (mesh.vao, mesh.vbo, mesh.ibo):
                     obj.release()
@@ -319,6 +323,8 @@ class TileRenderer:
             program["triangle_ids"].value = triangle_ids
             for key, model, draw_id, ranges in draws:
                 mesh = self._meshes[key]
+                if mesh.vao is None:
+                    continue  # no triangles
                 world = to_world @ model @ _translation(mesh.center)
                 modelview = view @ world
                 program["mvp"].write(_gl(projection @ modelview))
