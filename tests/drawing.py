@@ -7,10 +7,13 @@ import numpy as np
 
 
 class Draws:
-    """Uploads each mesh once to ``renderer``; draw ids are leaf id + 1."""
+    """Uploads each mesh once to ``renderer``; draw ids are leaf id + 1. ``single_sided``: the
+    keys of the meshes whose back faces the renderer culls (as a glTF renderer does where a
+    material is not ``doubleSided``); the others show both faces."""
 
-    def __init__(self, scene, renderer):
+    def __init__(self, scene, renderer, single_sided=()):
         self.scene, self.renderer, self.uploaded = scene, renderer, set()
+        self.single_sided = set(single_sided)
 
     def leaves(self, leaves, ranges: dict | None = None) -> list[tuple]:
         ranges = ranges or {}
@@ -18,7 +21,8 @@ class Draws:
         for leaf in leaves:
             key = self.scene.geometry[leaf]
             if key not in self.uploaded:
-                self.renderer.upload(key, *self.scene.meshes[key])
+                self.renderer.upload(key, *self.scene.meshes[key],
+                                     single_sided=key in self.single_sided)
                 self.uploaded.add(key)
             out.append((key, self.scene.world[leaf], int(leaf) + 1, ranges.get(int(leaf))))
         return out

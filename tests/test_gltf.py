@@ -17,7 +17,7 @@ import pytest
 from wallcull_clients.hostile import glb
 from wallcull.errors import InputError
 from wallcull.limits import Limits
-from wallcull.scene import load
+from wallcull.scene import load, prepare
 from wallcull.uploads import check_glb, parse_glb
 
 BOX_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], "<f4")
@@ -258,3 +258,48 @@ def test_draco_that_cannot_be_decoded_is_refused_in_one_line(tmp_path, monkeypat
     monkeypatch.setitem(__import__("sys").modules, "DracoPy", None)
     with pytest.raises(InputError, match=r"needs DracoPy: pip install 'wallcull\[formats\]'"):
         load(str(path), cache="off")
+
+
+@pytest.mark.parametrize("plain", [False, True])
+def test_which_meshes_are_single_sided_is_read_on_every_path(tmp_path, monkeypatch, plain):
+    """A glTF material's ``doubleSided`` (false by default, and for a primitive of no
+    material: glTF's default material) is kept per mesh on every path, with the file made
+    plain first or not (``plain``: a fan in it), and in its prepared file: a single-sided mesh
+    occludes with its front faces alone. An OBJ says nothing of sides: double-sided."""
+    d = Doc()
+    d.doc["materials"] = [{"doubleSided": True}, {"doubleSided": False}, {}]
+    triangles_ = d.accessor(BOX_F.ravel(), 5125, "SCALAR")
+    for k, material in enumerate([0, 1, 2, None]):
+        prim = {"attributes": {"POSITION": positions(d, BOX_V + [2 * k, 0, 0])},
+                "indices": triangles_}
+        if material is not None:
+            prim["material"] = material
+        if plain and k == 3:
+            prim["mode"], prim["indices"] = 6, d.accessor(np.arange(6, dtype="<u2"), 5123,
+                                                          "SCALAR")
+        d.doc["meshes"].append({"name": f"m{k}", "primitives": [prim]})
+        d.doc["nodes"].append({"name": f"n{k}", "mesh": k})
+    d.doc["scenes"] = [{"nodes": [0, 1, 2, 3]}]
+    data = d.glb()
+    (tmp_path / "a.glb").write_bytes(data)
+    gltf_doc = json.loads(json.dumps(d.doc))
+    gltf_doc["buffers"][0]["uri"] = "a.bin"
+    (tmp_path / "a.bin").write_bytes(d.data)
+    (tmp_path / "a.gltf").write_text(json.dumps(gltf_doc))
+    with zipfile.ZipFile(tmp_path / "a.zip", "w") as z:  # (at its root: trimesh finds no
+        z.writestr("a.gltf", json.dumps(gltf_doc))  # buffer under a folder, unless plain)
+        z.writestr("a.bin", d.data)
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    want = {"m0": False, "m1": True, "m2": True, "m3": True}
+    scenes = []
+    for name in ("a.glb", "a.gltf", "a.zip"):
+        scenes.append(load(str(tmp_path / name), cache="off"))
+        prepare(str(tmp_path / name))
+        scenes.append(load(str(tmp_path / name)))
+        assert scenes[-1].prepared is not None
+    check_glb(data, Limits())
+    scenes.append(parse_glb(str(tmp_path / "a.glb"), "a", Limits()))
+    for scene in scenes:
+        assert dict(zip(scene.meshes, scene.meshes.single_sided.tolist())) == want
+    (tmp_path / "a.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\no t\nf 1 2 3\n")
+    assert not load(str(tmp_path / "a.obj"), cache="off").meshes.single_sided.any()

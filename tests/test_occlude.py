@@ -11,7 +11,7 @@ from hypothesis import given, settings, strategies as st
 from wallcull import occlude
 from wallcull.cull import RECORD, cull
 from wallcull.errors import InputError
-from wallcull.fit import FitOptions
+from wallcull.fit import FitOptions, tile_projections
 from wallcull.occlude import PARTS, Occluder, OcclusionOptions
 from wallcull.pipeline import Session
 from wallcull.scene import Scene, SceneState, load, prepare
@@ -70,9 +70,9 @@ def raster(meshes, w=24, h=16, rect=(-0.6, 0.6, -0.4, 0.4), near=NEAR, units=Non
         buf = np.zeros(w * h)
         occlude._raster(np.arange(len(owner)), owner, first, count, np.arange(len(meshes)),
                         np.repeat(np.eye(4)[None], len(meshes), 0), box, table,
-                        occlude._outward(table), np.eye(3, 4)[None], frame[None],
-                        np.array([[w, h]]), near, buf, np.array([0]), [(0, w * h)], scratch,
-                        canvas, threads)
+                        occlude._outward(table), table.single_sided, np.eye(3, 4)[None],
+                        frame[None], np.array([[w, h]]), near, buf, np.array([0]),
+                        [(0, w * h)], scratch, canvas, threads)
     return buf, rect
 
 
@@ -487,10 +487,13 @@ def render_or_skip(w, h):
 
 
 def check_pixels(scene, wall_spec, frame_spec, eyes=(None,), options=OcclusionOptions(),
-                 before=()):
+                 before=(), single_sided=()):
     """Every tile (and eye) drawn from its occlusion-culled list and ranges equals the whole
     scene drawn; returns how many (tile, node) pairs occlusion dropped. ``before``: frames the
-    session culls first (what ``options`` may carry over)."""
+    session culls first (what ``options`` may carry over); ``single_sided``: the keys of the
+    meshes drawn with their back faces culled (a glTF material not ``doubleSided``), and the
+    whole scene drawn at the wall's depth range too (mono: ``eyes`` None), as what shows
+    through a culled face may lie beyond the depth range fitted to the culled list."""
     wall = Wall.from_dict(wall_spec)
     session = Session(scene, wall, fit=FitOptions(), occlusion=options)
     for frame in before:
@@ -498,15 +501,18 @@ def check_pixels(scene, wall_spec, frame_spec, eyes=(None,), options=OcclusionOp
     result = session.frame(Frame.from_dict(frame_spec, wall))
     res = wall.resolutions[0]
     r = render_or_skip(int(res[0]), int(res[1]))
-    draws = Draws(scene, r)
+    draws = Draws(scene, r, single_sided)
     everything = draws.everything()
     for t in range(wall.tiles):
         culled = draws.tile(result.visibility, t)
         for eye in eyes:
             fit = result.fits[t] if eye is None else result.fits[t][eye]
             view, proj = np.asarray(fit["view"]), np.asarray(fit["projection"])
-            np.testing.assert_array_equal(r.render(culled, view, proj).ids,
-                                          r.render(everything, view, proj).ids)
+            ids = r.render(culled, view, proj).ids
+            np.testing.assert_array_equal(ids, r.render(everything, view, proj).ids)
+            if single_sided:
+                wide = tile_projections(wall, result.frame, wall.near, wall.far)[t]
+                np.testing.assert_array_equal(ids, r.render(everything, view, wide).ids)
     r.release()
     return result.visibility.stats["occluded"]
 
@@ -520,7 +526,9 @@ def test_a_grid_drawn_from_occlusion_culled_lists_loses_no_pixel():
 def test_a_room_of_one_closed_mesh_hides_what_lies_outside_it(winding):
     """The eye inside a room modelled as one closed box (wound either way: a mirroring
     placement), objects outside its walls: its faces, all back faces from inside, hide them
-    (skipped as back faces, the room hid nothing), and no pixel is lost."""
+    (skipped as back faces, the room hid nothing), and no pixel is lost. The room is
+    double-sided (made in code: only a glTF material may be single-sided), as a render node
+    draws both faces of it; a single-sided one: below."""
     s = trimesh.Scene()
     room = np.diag([winding, 1.0, 1.0, 1.0])
     s.add_geometry(trimesh.creation.box(extents=[12, 6, 16]), node_name="room",
@@ -531,8 +539,130 @@ def test_a_room_of_one_closed_mesh_hides_what_lies_outside_it(winding):
         s.add_geometry(trimesh.creation.icosphere(2, radius=0.5), node_name=f"outside{k}",
                        geom_name=f"o{k}", transform=m)
     scene = Scene.from_trimesh(s, hierarchy="file", clusters=32)
+    assert not scene.meshes.single_sided.any()
     occluded = check_pixels(scene, WALL, {"position": [0, 0, 2], "orientation": [1, 0, 0, 0]})
     assert occluded >= 5
+
+
+def _glb_scene(tmp_path, s: trimesh.Scene, name: str, edit=None, mapped=False, **kwargs):
+    """``s`` written as a GLB (its JSON document edited by ``edit(doc)``) and loaded from the
+    file (``kwargs``: :func:`wallcull.scene.load`'s; ``mapped``: from its prepared file,
+    written first unless a current one is there), and the keys of its meshes a glTF
+    renderer draws single-sided: those whose material is not ``doubleSided`` (or that have
+    none: glTF's default material is not), as trimesh reads the file (an oracle that does not
+    ask wallcull)."""
+    from wallcull.scene import load_trimesh
+
+    data = s.export(file_type="glb")
+    path = tmp_path / f"{name}.glb"
+    path.write_bytes(data if edit is None else _glb_with(data, edit))
+    single = {k for k, g in load_trimesh(path).geometry.items()
+              if getattr(getattr(g.visual, "material", None), "doubleSided", None) is not True}
+    if mapped:
+        prepare(str(path), **kwargs)
+        scene = load(str(path), **kwargs)
+        assert scene.prepared is not None
+        return scene, single
+    return load(str(path), cache="off", **kwargs), single
+
+
+def _backdrop_and_spheres(facing: bool, double_sided: bool = False) -> trimesh.Scene:
+    """A 6 x 4 quad at z = -3 whose front faces the eye at the origin (``facing``) or away
+    from it, three spheres behind it (the audit's case); the quad's material double-sided
+    or not (the spheres have none: single-sided)."""
+    s = trimesh.Scene()
+    faces = [[0, 1, 2], [0, 2, 3]] if facing else [[0, 2, 1], [0, 3, 2]]
+    quad = trimesh.Trimesh([[-3, -2, -3], [3, -2, -3], [3, 2, -3], [-3, 2, -3]], faces,
+                           process=False)
+    if double_sided:
+        quad.visual = trimesh.visual.TextureVisuals(
+            material=trimesh.visual.material.PBRMaterial(doubleSided=True))
+    s.add_geometry(quad, node_name="backdrop", geom_name="backdrop")
+    for k in range(3):
+        m = np.eye(4)
+        m[:3, 3] = [k - 1, 0, -6]
+        s.add_geometry(trimesh.creation.icosphere(2, radius=0.4), node_name=f"behind{k}",
+                       geom_name=f"b{k}", transform=m)
+    return s
+
+
+ONE_TILE = {"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+            "resolution": [160, 90]}
+AT_ORIGIN = {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]}
+
+
+def test_a_single_sided_surface_hides_nothing_behind_its_back(tmp_path, monkeypatch):
+    """A glTF quad of no material (glTF's default material: not ``doubleSided``) turned away
+    from the eye, spheres behind it: a glTF renderer culls its back faces and the spheres
+    show. It hid them (its back faces occluded), and such a tile lost 416 pixels; now it
+    hides nothing, loaded from its file and from its prepared copy, and each tile drawn with
+    back faces culled equals the whole scene drawn so. Turned to the eye it hides them."""
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    for facing in (False, True):
+        fresh, single = _glb_scene(tmp_path, _backdrop_and_spheres(facing), f"q{facing}")
+        assert single == {"backdrop", "b0", "b1", "b2"}
+        mapped, _ = _glb_scene(tmp_path, _backdrop_and_spheres(facing), f"q{facing}",
+                               mapped=True)
+        for scene in (fresh, mapped):
+            occluded = check_pixels(scene, ONE_TILE, AT_ORIGIN, single_sided=single)
+            vis = Session(scene, Wall.from_dict(ONE_TILE),
+                          occlusion=OcclusionOptions()).frame(AT_ORIGIN).visibility
+            names = set(vis.names(0, leaves=True))
+            assert (occluded >= 3 and names == {"backdrop"}) if facing else \
+                (occluded == 0 and names == {"backdrop", "behind0", "behind1", "behind2"})
+            assert dict(zip(scene.meshes, scene.meshes.single_sided.tolist())) == \
+                dict.fromkeys(single, True)
+
+
+def test_a_double_sided_surface_hides_what_lies_behind_either_face(tmp_path, monkeypatch):
+    """The same quad turned away, its material ``doubleSided``: a glTF renderer draws its
+    back faces, and it hides the spheres behind it (back faces do occlude, where they are
+    drawn), loaded from its file and its prepared copy. The same file with ``doubleSided``
+    taken out of it is prepared anew (its key is the file's), single-sided: it hides none."""
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    source = _backdrop_and_spheres(facing=False, double_sided=True)
+
+    def single_sided(doc):
+        (material,) = doc["materials"]
+        assert material.pop("doubleSided") is True
+
+    for edit, hides in ((None, True), (single_sided, False)):
+        for mapped in (False, True):
+            scene, single = _glb_scene(tmp_path, source, "double", edit, mapped)
+            assert single == ({"b0", "b1", "b2"} if hides else {"backdrop", "b0", "b1", "b2"})
+            occluded = check_pixels(scene, ONE_TILE, AT_ORIGIN, single_sided=single)
+            assert occluded >= 3 if hides else occluded == 0
+            assert dict(zip(scene.meshes, scene.meshes.single_sided.tolist())) == \
+                {k: k in single for k in scene.meshes}
+
+
+@pytest.mark.parametrize("winding", [1, -1])
+@pytest.mark.parametrize("inward", [False, True])
+def test_a_room_of_one_closed_single_sided_mesh_hides_by_its_inner_faces_alone(
+        winding, inward, tmp_path, monkeypatch):
+    """The room above as a glTF of no material: single-sided. Its faces wound outward (either
+    placement: a mirroring one turns glTF's front with it), from inside all are back faces,
+    which a glTF renderer culls: the objects outside show, and the room hides nothing (it hid
+    them, and their pixels were lost). Its faces wound inward (a room modelled to be seen from
+    inside), its walls are front faces and hide them. No pixel is lost either way, drawn with
+    back faces culled."""
+    monkeypatch.setenv("WALLCULL_CACHE", str(tmp_path / "cache"))
+    s = trimesh.Scene()
+    box = trimesh.creation.box(extents=[12, 6, 16])
+    if inward:
+        box.invert()
+    s.add_geometry(box, node_name="room", geom_name="room",
+                   transform=np.diag([winding, 1.0, 1.0, 1.0]))
+    for k, x in enumerate(np.linspace(-4, 4, 5)):
+        m = np.eye(4)
+        m[:3, 3] = [x, 0.4 * k - 1, -12]  # beyond the far wall (z = -8)
+        s.add_geometry(trimesh.creation.icosphere(2, radius=0.5), node_name=f"outside{k}",
+                       geom_name=f"o{k}", transform=m)
+    scene, single = _glb_scene(tmp_path, s, "room", clusters=32)
+    assert "room" in single
+    occluded = check_pixels(scene, WALL, {"position": [0, 0, 2], "orientation": [1, 0, 0, 0]},
+                            single_sided=single)
+    assert occluded >= 5 if inward else occluded == 0
 
 
 @pytest.mark.parametrize("near,dist,gap", [(0.05, 2000.0, 0.002), (1e-4, 10.0, 0.002)])

@@ -414,3 +414,28 @@ def test_a_leaf_of_points_the_server_lists_is_drawn_as_nothing(tmp_path, monkeyp
     np.testing.assert_array_equal(culled, r.render(draws.everything(), view, proj).ids)
     assert (culled == scene.index["box"] + 1).sum() > 100
     r.release()
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_a_single_sided_mesh_shows_its_front_faces_alone(mirrored):
+    """A mesh uploaded ``single_sided`` has its back faces culled, as glTF asks where a
+    material is not ``doubleSided``: a quad facing the eye is drawn, turned away it is not;
+    under a mirroring model matrix its front is its clockwise side (glTF's rule), and a
+    mirrored view (``front_face_cw``) turns it back. A quad uploaded as it was shows both."""
+    r = TileRenderer(W, H)
+    r.upload("one", *quad(), single_sided=True)
+    r.upload("both", *quad())
+    mirror = np.diag([1.0, 1.0, -1.0, 1.0]) if mirrored else np.eye(4)  # (its front to -z)
+    for turned in (False, True):
+        model = translation(0, 0, -3) @ (rotation([0, 1, 0], np.pi) if turned else np.eye(4))
+        model = model @ mirror
+        facing = turned == mirrored  # its front towards the eye
+        one = r.render([("one", model, 1)], np.eye(4), PROJ).ids
+        assert (one == 1).sum() > 100 if facing else not one.any()
+        both = r.render([("both", model, 1)], np.eye(4), PROJ).ids
+        assert (both == 1).sum() > 100
+        # a mirrored view (its winding flipped on the image, front_face_cw) sees the same
+        flip = np.diag([-1.0, 1.0, 1.0, 1.0])
+        seen = r.render([("one", model, 1)], flip, PROJ, front_face_cw=True).ids
+        np.testing.assert_array_equal(seen, one[:, ::-1])
+    r.release()

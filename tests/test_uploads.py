@@ -206,7 +206,8 @@ def test_the_child_gives_back_a_usable_scene_and_dies_on_a_deadline(tmp_path):
 def test_an_upload_keeps_which_materials_are_see_through_and_decodes_no_image(tmp_path):
     """A glass (BLEND) and an alpha-tested (MASK) mesh are known as see-through (they never
     occlude), a textured opaque one is not; its texture, a PNG that is no picture, is never
-    decoded."""
+    decoded. Which are single-sided (their material not ``doubleSided``: they occlude with
+    their front faces alone) is known too."""
     from PIL import Image
 
     s = trimesh.Scene()
@@ -216,7 +217,8 @@ def test_an_upload_keeps_which_materials_are_see_through_and_decodes_no_image(tm
         box.visual = trimesh.visual.TextureVisuals(
             uv=np.zeros((len(box.vertices), 2)),
             material=trimesh.visual.material.PBRMaterial(baseColorTexture=image,
-                                                         alphaMode=mode))
+                                                         alphaMode=mode,
+                                                         doubleSided=mode == "MASK"))
         m = np.eye(4)
         m[:3, 3] = [3 * k, 0, -10]
         s.add_geometry(box, node_name=mode.lower(), geom_name=mode.lower(), transform=m)
@@ -229,6 +231,8 @@ def test_an_upload_keeps_which_materials_are_see_through_and_decodes_no_image(tm
     scene = parse_sandboxed(path, "materials.glb", Limits())
     assert dict(zip(scene.meshes, scene.meshes.see_through.tolist())) == {
         "opaque": False, "blend": True, "mask": True}
+    assert dict(zip(scene.meshes, scene.meshes.single_sided.tolist())) == {
+        "opaque": True, "blend": True, "mask": False}
 
 
 def test_the_json_chunk_is_parsed_in_the_child_too():

@@ -57,7 +57,7 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     with a vertex that is not finite, a face that is no triangle or that names a vertex it has
     not, or a name that is not Unicode, is refused (:class:`InputError`, naming it): dropped,
     it would take its nodes with it in silence, and kept, it would be drawn and occlude wrong."""
-    meshes, see_through = {}, []
+    meshes, see_through, single_sided = {}, [], []
     for key, geom in scene.geometry.items():
         vertices = np.asarray(getattr(geom, "vertices", np.zeros((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(geom, "faces", np.zeros((0, 3))), dtype=np.int64)
@@ -65,6 +65,7 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
             _check_mesh(_text(key, "mesh"), vertices, faces)
             meshes[key] = (vertices.reshape(-1, 3), faces.reshape(-1, 3))
             see_through.append(_see_through(geom))
+            single_sided.append(_single_sided(geom))
     index = {k: i for i, k in enumerate(meshes)}
     forest = scene.graph.transforms
     edge_data, node_data, parents = forest.edge_data, forest.node_data, forest.parents
@@ -101,7 +102,7 @@ def read_trimesh(scene) -> tuple[NodeTable, MeshTable]:
     return (NodeTable(names, np.array(parent, dtype=np.int64),
                       np.array(local, dtype=np.float64).reshape(-1, 4, 4),
                       np.array(mesh, dtype=np.int64)),
-            MeshTable.from_meshes(meshes, see_through))
+            MeshTable.from_meshes(meshes, see_through, single_sided))
 
 
 def _text(name: str, what: str) -> str:
@@ -159,6 +160,18 @@ def _see_through(geom) -> bool:
                 or any(int(v) in _CLEAR_MODELS for v in numbers("illum")))
     except (TypeError, ValueError):
         return True
+
+
+def _single_sided(geom) -> bool:
+    """Whether a mesh is a glTF primitive whose material is not ``doubleSided`` (glTF's
+    default material, of a primitive that names none, is not): glTF asks renderers to cull
+    its back faces, so they hide nothing. trimesh marks what its glTF reader made with
+    ``from_gltf_primitive`` in the mesh's metadata. Other formats say nothing of sides: their
+    meshes are drawn, and occlude, with both faces."""
+    if "from_gltf_primitive" not in (getattr(geom, "metadata", None) or {}):
+        return False
+    material = getattr(getattr(geom, "visual", None), "material", None)
+    return getattr(material, "doubleSided", None) is not True
 
 
 def replicate(nodes: NodeTable, matrices: np.ndarray, roots: list[str]) -> NodeTable:

@@ -57,6 +57,8 @@ class MeshTable(Mapping):
     from its first face), under node ``cluster_start[i] + cluster_parent[c]`` (-1: on top). A
     template with no clusters is drawn whole. ``see_through[i]``: template ``i``'s material
     may show what lies behind it (glass, an alpha-tested leaf): it never occludes.
+    ``single_sided[i]``: template ``i`` is a glTF mesh whose material is not ``doubleSided``,
+    whose back faces a render node may cull: it occludes with its front faces alone.
     """
 
     keys_: list[str]
@@ -69,11 +71,14 @@ class MeshTable(Mapping):
     cluster_first: np.ndarray = None  # (C,) int, its first face in its template
     cluster_count: np.ndarray = None  # (C,) int, its faces
     see_through: np.ndarray = None  # (m,) bool; None: none is
+    single_sided: np.ndarray = None  # (m,) bool; None: none is
     _index: dict = field(default=None, repr=False)
 
     def __post_init__(self):
         if self.see_through is None:
             self.see_through = np.zeros(len(self.keys_), dtype=bool)
+        if self.single_sided is None:
+            self.single_sided = np.zeros(len(self.keys_), dtype=bool)
         if self.cluster_start is None:
             self.cluster_start = np.zeros(len(self.keys_) + 1, dtype=np.int64)
             self.cluster_parent = self.cluster_first = self.cluster_count = \
@@ -81,9 +86,9 @@ class MeshTable(Mapping):
 
     @classmethod
     def from_meshes(cls, meshes: Mapping[str, tuple[np.ndarray, np.ndarray]],
-                    see_through=None) -> "MeshTable":
+                    see_through=None, single_sided=None) -> "MeshTable":
         """From ``key -> (vertices (v, 3), faces (f, 3))``, in the mapping's order;
-        ``see_through``: per mesh, in that order (None: none)."""
+        ``see_through`` and ``single_sided``: per mesh, in that order (None: none)."""
         keys = list(meshes)
         vs = [np.asarray(meshes[k][0], dtype=np.float64).reshape(-1, 3) for k in keys]
         fs = [np.asarray(meshes[k][1], dtype=np.int64).reshape(-1, 3) for k in keys]
@@ -91,14 +96,15 @@ class MeshTable(Mapping):
                    np.concatenate(vs) if vs else np.zeros((0, 3)),
                    _starts([len(f) for f in fs]),
                    np.concatenate(fs) if fs else np.zeros((0, 3), dtype=np.int64),
-                   see_through=None if see_through is None else np.array(see_through, bool))
+                   see_through=None if see_through is None else np.array(see_through, bool),
+                   single_sided=None if single_sided is None else np.array(single_sided, bool))
 
     def subset(self, used: np.ndarray) -> "MeshTable":
         """The templates ``used`` (indices, in that order) alone, without clusters."""
         if np.array_equal(used, np.arange(len(self))) and not self.clusters:
             return self
         return MeshTable.from_meshes({self.keys_[i]: self.mesh(i) for i in used},
-                                     self.see_through[used])
+                                     self.see_through[used], self.single_sided[used])
 
     def clustered(self, size: int | None, branching: int) -> "MeshTable":
         """The same templates with those of more than ``size`` faces cut into clusters under
@@ -117,7 +123,7 @@ class MeshTable(Mapping):
         return MeshTable(self.keys_, self.vertex_start, self.vertices, self.face_start,
                          np.concatenate(faces), _starts([len(t[0]) for t in trees]),
                          *(np.concatenate([t[k] for t in trees]) for k in range(3)),
-                         see_through=self.see_through)
+                         see_through=self.see_through, single_sided=self.single_sided)
 
     @cached_property
     def face_neighbors(self) -> np.ndarray:

@@ -23,7 +23,8 @@ Conservative on both sides, so that dropping never removes a pixel:
   part in the texel): everything beyond it, over the whole texel, is hidden. Faces before the
   near plane are cut off; a closed mesh's back faces are skipped where its box lies clear of
   the eye and the near plane (its front faces hide them; from inside it they are what is
-  seen);
+  seen), and a single-sided glTF mesh's always (a render node may cull them, and show what
+  lies behind them: ``MeshTable.single_sided``);
   two faces across a side that make a convex quadrilateral are drawn as one polygon (a
   wall's, a pipe's sides), each keeping its own depths;
 * a node's bound is projected whole (its box's eight corners, grown by its ball): the texels
@@ -235,6 +236,7 @@ class Occluder:
         self.state, self.wall, self.options = state, wall, options
         scene = state.scene
         self._outward = _outward(scene.meshes)
+        self._single = scene.meshes.single_sided.astype(np.bool_)  # per mesh (see _setup)
         # per node: the share of its box its faces fill (see _solid); 0: it never occludes
         self._solid = _solid(scene, packed(state), self._outward) * _occluding(scene, exclude)
         self._stamp = np.zeros(len(scene), np.int64)  # frame stamps of nodes seen
@@ -353,7 +355,7 @@ class Occluder:
             self._canvas = _canvas(total)
         self._parts["setup"], self._parts["draw"] = _raster(
             units[order], owner[order], first, count, scene.mesh_of, state.world, box, m,
-            self._outward, views.affine, views.rect, views.size, self.wall.near, izlo,
+            self._outward, self._single, views.affine, views.rect, views.size, self.wall.near, izlo,
             offsets[:, 0], spans, self._scratch, self._canvas, threads)
         t0 = time.perf_counter()
         for a, b in spans:
@@ -623,8 +625,8 @@ def _pick(start, seeds, tile_view, box, child_start, child_count, children, soli
     return out[:n]
 
 
-def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, affine, rect,
-            size, near, buf, at, spans, scratch, canvas, threads):
+def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, single, affine,
+            rect, size, near, buf, at, spans, scratch, canvas, threads):
     """Write the occluders ``units`` (leaf ``owner[u]``'s faces ``first[u]:first[u] +
     count[u]`` of the mesh table ``meshes``; a leaf's units next to each other, the nearest
     leaves first) into level 0 of each view's buffer ``buf`` (view ``v``'s texels from
@@ -632,7 +634,8 @@ def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, af
     conservatively: their patches set up (:func:`_setup`) and drawn (:func:`_draw`). In
     ``threads`` threads: each sets up a run of whole leaves (of about equal triangles), and
     then draws every patch, in order, into its own run of rows (:func:`_bands`), so that the
-    buffer is the one a single thread draws. ``outward``: see :func:`_outward`; ``scratch``:
+    buffer is the one a single thread draws. ``outward``: see :func:`_outward`; ``single``:
+    per mesh, whether it is single-sided (see :func:`_setup`); ``scratch``:
     per thread, see :func:`_scratch`; ``canvas``: see :func:`_canvas` (grown here). Returns
     how long the set-up and the drawing took (ms)."""
     t0 = time.perf_counter()
@@ -650,8 +653,8 @@ def _raster(units, owner, first, count, mesh_of, world, box, meshes, outward, af
         start = int(before[k]) * views
         return start, *_setup(units[a:b], owner[a:b], first, count, mesh_of, world, box,
                               meshes.vertex_start, meshes.vertices, meshes.face_start,
-                              meshes.faces, meshes.face_neighbors, outward, affine, rect, size,
-                              near, *scratch[k], polys, info, patches, boxes, start)
+                              meshes.faces, meshes.face_neighbors, outward, single, affine, rect,
+                              size, near, *scratch[k], polys, info, patches, boxes, start)
 
     cuts = cuts.tolist()
     runs = workers.run(setup, list(zip(cuts[:-1], cuts[1:])))
@@ -790,7 +793,7 @@ def _clear_of_near(box, i, a, rect, cut):
 
 @njit(cache=True, nogil=True)
 def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertices, face_start,
-           faces, neighbors, outward, affine, rect, size, near, face_marks, vertex_marks,
+           faces, neighbors, outward, single, affine, rect, size, near, face_marks, vertex_marks,
            stamps, polys, info, patches, boxes, start):
     """The *patches* of the occluders ``units`` in each view (see :func:`_raster`): a leaf's
     chosen faces that face the same way, joined across edges whose two faces lie on either
@@ -802,8 +805,12 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
     when it is closed and its faces wind counter-clockwise (clockwise) seen from outside, 0
     when it is not closed: a closed mesh's back faces lie behind its front faces and are
     skipped where its box lies clear of the eye and the near plane (from inside it, or with
-    the near plane through it, they are what is seen). The rest: scratch kept between frames
-    (see :func:`_scratch`), marked with the ``stamps`` of leaves (updated).
+    the near plane through it, they are what is seen); ``single``: per mesh, whether it is a
+    glTF mesh whose material is not ``doubleSided``, whose back faces are always skipped (a
+    render node may cull them: from inside such a closed mesh wound outward nothing is
+    drawn). Front faces wind counter-clockwise, clockwise under a mirroring placement (glTF's
+    rule). The rest: scratch kept between frames (see :func:`_scratch`), marked with the
+    ``stamps`` of leaves (updated).
 
     Writes from row ``start`` on (room for every face in every view) the patches' polygons
     ``polys (P, 4, 3)`` (each face's part beyond the near plane, or two whole faces across a
@@ -889,6 +896,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
                - w[0, 1] * (w[1, 0] * w[2, 2] - w[1, 2] * w[2, 0])
                + w[0, 2] * (w[1, 0] * w[2, 1] - w[1, 1] * w[2, 0]))
         front = outward[m] * (1 if det > 0 else -1)
+        # a single-sided mesh's front: counter-clockwise, mirrored by a mirroring placement
+        sided = (1 if det > 0 else -1) if single[m] else 0
         for v in range(views):
             a = affine[v]
             if not _in_view(box, leaf, a, rect[v], size[v], cut):
@@ -921,6 +930,8 @@ def _setup(units, owner, first, count, mesh_of, world, box, vertex_start, vertic
                 t3 = _triple(vview[c0], vview[c1], vview[c2])
                 if skip != 0 and (t3 < 0) != (skip > 0):
                     continue  # a back face of a closed mesh seen from outside
+                if sided != 0 and (t3 < 0) != (sided > 0):
+                    continue  # a back face of a single-sided mesh: a render node may cull it
                 if vdepth[c0] > cut and vdepth[c1] > cut and vdepth[c2] > cut:
                     for c in range(3):
                         x = corner[s, c]

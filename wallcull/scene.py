@@ -892,7 +892,7 @@ def bounds_of(spec: str, kind: str) -> bnd.Bounds:
 # --------------------------------------------------------------------------- prepared scenes
 
 #: Version of what a prepared scene holds: part of its key.
-PREPARED_FORMAT = 2
+PREPARED_FORMAT = 3
 
 #: Code whose changes make prepared scenes stale: it decides what they hold (the readers of
 #: files included: what glTF is made plain, what a file may hold).
@@ -986,7 +986,7 @@ def _write_prepared(scene: Scene, path: Path, key: dict, quiet: bool = True) -> 
         "cluster_count": m.cluster_count,
         "mesh_key_bytes": keys, "mesh_key_offsets": key_offsets,
         "vertex_start": m.vertex_start, "face_start": m.face_start,
-        "see_through": m.see_through,
+        "see_through": m.see_through, "single_sided": m.single_sided,
         # the narrowest types that hold the meshes exactly
         "vertices": narrow if np.array_equal(narrow, vertices) else vertices,
         "faces": faces.astype(np.int32) if not faces.size or (
@@ -1015,7 +1015,8 @@ _LAYOUT = {
     "cluster_first": ("i", ("c",)),
     "cluster_count": ("i", ("c",)), "mesh_key_bytes": ("u", (None,)),
     "mesh_key_offsets": ("i", ("m+1",)), "vertex_start": ("i", ("m+1",)),
-    "face_start": ("i", ("m+1",)), "see_through": ("b", ("m",)), "vertices": ("f", (None, 3)),
+    "face_start": ("i", ("m+1",)), "see_through": ("b", ("m",)),
+    "single_sided": ("b", ("m",)), "vertices": ("f", (None, 3)),
     "faces": ("i", (None, 3)), "obb_center": ("f", ("n", 3)), "obb_axes": ("f", ("n", 3, 3)),
     "obb_half": ("f", ("n", 3)), "obb_radius": ("f", ("n",)), "box": ("f", (2, 3)),
 }
@@ -1039,7 +1040,7 @@ def _scene_from_arrays(arrays: dict, meta: dict, name: str, path: Path) -> Scene
         meshes = MeshTable(keys, arrays["vertex_start"], arrays["vertices"], arrays["face_start"],
                            arrays["faces"], arrays["cluster_start"], arrays["cluster_parent"],
                            arrays["cluster_first"], arrays["cluster_count"],
-                           arrays["see_through"])
+                           arrays["see_through"], arrays["single_sided"])
         scene = Scene(name=name, names=names, parent=arrays["parent"],
                       child_start=arrays["child_start"], child_count=arrays["child_count"],
                       children=arrays["children"], is_leaf=arrays["is_leaf"],

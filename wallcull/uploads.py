@@ -54,8 +54,9 @@ MAX_INT = 1 << 32
 
 def _without_images(doc: dict, binary: bytes) -> bytes:
     """A GLB of the checked document ``doc`` and its binary chunk, with no image, texture or
-    sampler, nor any material's reference to a texture: its materials keep their factors and
-    ``alphaMode`` (a see-through one never occludes), and no image is ever decoded."""
+    sampler, nor any material's reference to a texture: its materials keep their factors,
+    ``alphaMode`` (a see-through one never occludes) and ``doubleSided`` (a single-sided one
+    occludes with its front faces alone), and no image is ever decoded."""
     doc = {k: v for k, v in doc.items() if k not in ("images", "textures", "samplers")}
 
     def plain(value):
@@ -322,7 +323,7 @@ def parse_glb(path: str, name: str, limits: Limits):
 
     data = Path(path).read_bytes()
     doc, binary = check_glb(data, limits)
-    try:  # its materials without their images: what occludes needs their alphaMode alone
+    try:  # its materials without their images: what occludes needs their alphaMode and sides
         loaded = read_glb(_without_images(doc, binary))
     except MemoryError:
         raise

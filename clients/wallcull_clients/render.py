@@ -160,6 +160,7 @@ class _Mesh:
     ibo: object
     center: np.ndarray  # float64 local origin subtracted before the float32 conversion
     triangles: int
+    single_sided: bool = False  # its back faces culled when drawn
 
 
 def _ranges(rest: list) -> np.ndarray | None:
@@ -210,14 +211,17 @@ class TileRenderer:
         """GPU bytes of the cached meshes (float32 vertices + uint32 indices)."""
         return sum(m.vbo.size + m.ibo.size for m in self._meshes.values() if m.vao is not None)
 
-    def upload(self, key: Hashable, vertices: np.ndarray, faces: np.ndarray) -> None:
+    def upload(self, key: Hashable, vertices: np.ndarray, faces: np.ndarray, *,
+               single_sided: bool = False) -> None:
         """Cache a mesh under ``key``, replacing any mesh cached under it.
 
         ``vertices``: ``(n, 3)`` float, object space. ``faces``: ``(m, 3)`` int indices into them;
         a mesh of no faces (a glTF primitive of points) is cached and draws nothing.
         The vertices are stored as float32 relative to their bounding-box centre (subtracted in
         float64; the draw's model matrix gets it back), so a mesh baked far from the origin keeps
-        its float32 precision.
+        its float32 precision. ``single_sided``: its back faces are culled when it is drawn, as
+        glTF asks of a material that is not ``doubleSided`` (front faces wind counter-clockwise,
+        clockwise under a model matrix of negative determinant); other meshes show both faces.
         """
         vertices = np.asarray(vertices, dtype=np.float64)
         faces = np.asarray(faces)
@@ -230,14 +234,14 @@ class TileRenderer:
         center = (vertices.min(0) + vertices.max(0)) / 2 if len(vertices) else np.zeros(3)
         self.evict(key)
         if not len(faces):  # (a GL buffer cannot be empty)
-            self._meshes[key] = _Mesh(None, None, None, center, 0)
+            self._meshes[key] = _Mesh(None, None, None, center, 0, bool(single_sided))
             return
         with self._ctx as ctx:
             vbo = ctx.buffer((vertices - center).astype(np.float32).tobytes())
             ibo = ctx.buffer(faces.astype(np.uint32).tobytes())
             vao = ctx.vertex_array(self._program, [(vbo, "3f", "in_pos")],
                                    index_buffer=ibo, index_element_size=4)
-        self._meshes[key] = _Mesh(vao, vbo, ibo, center, len(faces))
+        self._meshes[key] = _Mesh(vao, vbo, ibo, center, len(faces), bool(single_sided))
 
     def evict(self, key: Hashable) -> None:
         """Free the mesh cached under ``key`` (no-op if none)."""
@@ -268,8 +272,9 @@ class TileRenderer:
         GREATER; pass a reversed projection (near -> 1, far -> 0).
         ``clip_plane``: world-space ``(a, b, c, d)``; points with ``a x + b y + c z + d < 0`` are
         clipped (``gl_ClipDistance[0]``), the inward-normal convention of ``wallcull.wall``.
-        ``front_face_cw``: clockwise front faces, for mirrored views; nothing is culled either way,
-        front faces are only shaded brighter than back faces.
+        ``front_face_cw``: clockwise front faces, for mirrored views; only the back faces of
+        meshes uploaded ``single_sided`` are culled, other meshes' front faces are only shaded
+        brighter than their back faces.
         ``triangle_ids``: each pixel's id is its triangle's, ``draw_id`` plus the triangle's
         index in its mesh (``gl_PrimitiveID``, counted from the range's first triangle), so a
         draw of ``k`` triangles uses the ids ``draw_id`` to ``draw_id + k - 1``.
@@ -325,6 +330,14 @@ class TileRenderer:
                 mesh = self._meshes[key]
                 if mesh.vao is None:
                     continue  # no triangles
+                if mesh.single_sided:  # its front winds the other way under a mirroring model
+                    ctx.enable(moderngl.CULL_FACE)
+                    ctx.cull_face = "back"
+                    mirrored = np.linalg.det(model[:3, :3]) < 0
+                    ctx.front_face = "cw" if front_face_cw != mirrored else "ccw"
+                else:
+                    ctx.disable(moderngl.CULL_FACE)
+                    ctx.front_face = "cw" if front_face_cw else "ccw"
                 world = to_world @ model @ _translation(mesh.center)
                 modelview = view @ world
                 program["mvp"].write(_gl(projection @ modelview))
