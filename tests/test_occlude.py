@@ -478,6 +478,41 @@ def test_an_occluder_keeps_nothing_of_a_frame_before():
     assert hidden > 0
 
 
+def test_auto_judges_the_eye_against_the_scene_as_its_nodes_lie():
+    """``auto`` occlusion-culls the frames whose eye is inside the scene's box as the frame's
+    updates have left it (grown by a tenth): a building moved by 1000 m, the eye inside it
+    there, is occlusion-culled as with ``on`` (it was judged from the box at rest: not
+    occlusion-culled at all), and an eye where the building stood is not."""
+    s = trimesh.Scene()
+    s.graph.update(frame_from=s.graph.base_frame, frame_to="building", matrix=np.eye(4))
+    m = trimesh.transformations.translation_matrix([0, 0, -3])
+    s.add_geometry(trimesh.creation.box(extents=[10, 10, 0.2]), node_name="wall",
+                   geom_name="wall", parent_node_name="building", transform=m)
+    for k in range(5):
+        m = trimesh.transformations.translation_matrix([k - 2, 0, -6])
+        s.add_geometry(trimesh.creation.icosphere(2, radius=0.5), node_name=f"behind{k}",
+                       geom_name=f"b{k}", parent_node_name="building", transform=m)
+    scene = Scene.from_trimesh(s, hierarchy="file", clusters=None)
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "distance": 1.0})
+    moved = {"building": {"position": [1000, 0, 0], "orientation": [1, 0, 0, 0]}}
+    seen = {}
+    for mode in ("on", "auto"):
+        session = Session(scene, wall, occlusion=OcclusionOptions(mode=mode))
+
+        def frame(x):
+            vis = session.frame({"position": [x, 0, -2.6], "orientation": [1, 0, 0, 0]}
+                                ).visibility
+            return vis.stats.get("occluded"), [vis.names(t, leaves=True)
+                                               for t in range(wall.tiles)]
+
+        at_rest = frame(0)
+        session.move(moved)
+        seen[mode] = at_rest, frame(1000), frame(0)
+    assert seen["on"][0] == seen["auto"][0] and seen["on"][0][0] >= 5
+    assert seen["on"][1] == seen["auto"][1] and seen["on"][1][0] >= 5
+    assert seen["auto"][2][0] is None and seen["on"][2][0] == 0  # (nothing there to hide)
+
+
 def render_or_skip(w, h):
     render = pytest.importorskip("wallcull_clients.render")
     try:

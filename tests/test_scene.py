@@ -450,3 +450,41 @@ def test_a_state_shares_its_scenes_arrays_until_something_moves():
     np.testing.assert_array_equal(scene.bounds("obb").center, rest_bounds.center)
     np.testing.assert_array_equal(scene.bounds("obb").half, rest_bounds.half)
     assert not np.array_equal(states[0].world, scene.world)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_states_box_follows_its_moves(seed):
+    """A state's box is its scene's box at rest, holds every vertex as its nodes now lie
+    after random moves (turns under scaled parents among them), is the box of the moved
+    vertices exactly after a translation of leaves placed without a turn, and is the rest box
+    again once the moved nodes are put back."""
+    rng = np.random.default_rng(seed)
+    scene = Scene.from_trimesh(random_scene(seed, leaves=25))
+    state = SceneState(scene, "obb")
+    np.testing.assert_array_equal(state.box(), scene.box)
+    rest = {n: scene.local[scene.index[n]].copy() for n in scene.names[1:]
+            if not scene.synthetic[scene.index[n]]}
+    for _ in range(3):
+        updates = random_moves(scene, rng, 4)
+        state.move(updates)
+        points = np.concatenate([scene.leaf_vertices(int(leaf), state.world[leaf])
+                                 for leaf in scene.leaves])
+        lo, hi = state.box()
+        assert (points >= lo - 1e-9 * np.abs(lo).max()).all()
+        assert (points <= hi + 1e-9 * np.abs(hi).max()).all()
+    state.move({n: m for n, m in rest.items()})
+    np.testing.assert_array_equal(state.box(), scene.box)
+    s = trimesh.Scene()  # leaves without a turn, moved by 1000 m: their box moves with them
+    for k in range(3):
+        m = np.eye(4)
+        m[:3, 3] = [3 * k, k, -k]
+        s.add_geometry(trimesh.creation.icosphere(1, radius=0.5 + k), node_name=f"s{k}",
+                       geom_name=f"s{k}", transform=m)
+    scene = Scene.from_trimesh(s, hierarchy="file", clusters=None)
+    state = SceneState(scene)
+    m = scene.local[scene.index["s2"]].copy()
+    m[:3, 3] += [1000, 0, 0]
+    state.move({"s2": m})
+    points = np.concatenate([scene.leaf_vertices(int(leaf), state.world[leaf])
+                             for leaf in scene.leaves])
+    np.testing.assert_allclose(state.box(), [points.min(axis=0), points.max(axis=0)])

@@ -188,6 +188,18 @@ class MeshTable(Mapping):
     def face_count(self) -> np.ndarray:
         return np.diff(self.face_start)
 
+    @cached_property
+    def boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo (m, 3), hi (m, 3))``: each template's box in its own coordinates (a template of
+        no vertex: lo inf, hi -inf)."""
+        lo, hi = np.full((len(self), 3), np.inf), np.full((len(self), 3), -np.inf)
+        has = np.flatnonzero(self.vertex_count > 0)
+        if len(has):
+            v = np.asarray(self.vertices, dtype=np.float64)
+            lo[has] = np.minimum.reduceat(v, self.vertex_start[has], axis=0)
+            hi[has] = np.maximum.reduceat(v, self.vertex_start[has], axis=0)
+        return lo, hi
+
     def mesh(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Template ``i`` as ``(vertices (v, 3) float64, faces (f, 3) int64)``, fresh copies."""
         a, b = self.vertex_start[i], self.vertex_start[i + 1]

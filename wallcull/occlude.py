@@ -66,8 +66,9 @@ from .scene import SceneState
 from .validate import MAX_OCCLUDER_TRIANGLES, MAX_TEXELS, MIN_TEXELS
 from .wall import Frame
 
-#: ``on``: every frame; ``auto``: the frames whose camera is inside the scene's box (grown by a
-#: tenth), where most of what a tile's frustum holds lies behind something (docs/occlusion.md).
+#: ``on``: every frame; ``auto``: the frames whose camera is inside the scene's box as its nodes
+#: lie (grown by a tenth), where most of what a tile's frustum holds lies behind something
+#: (docs/occlusion.md).
 MODES = ("on", "auto")
 #: The occlusion setting's words, ``off`` among them (no occlusion culling).
 SETTINGS = ("off", *MODES)
@@ -251,11 +252,12 @@ class Occluder:
         self._parts: dict = {}  # the last frame's time per part (see PARTS), ms
 
     def wanted(self, frame: Frame) -> bool:
-        """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene).
-        A frame that is not leaves choice ``visible`` no frame before to choose from."""
+        """Whether this frame is occlusion-culled (``auto``: its camera is inside the scene's
+        box as the frame's updates left it, :meth:`SceneState.box`). A frame that is not
+        leaves choice ``visible`` no frame before to choose from."""
         if self.options.mode == "on":
             return True
-        lo, hi = self.state.scene.box
+        lo, hi = self.state.box()
         grow = 0.1 * (hi - lo)
         eye = frame.eye_world
         inside = bool(((lo - grow <= eye) & (eye <= hi + grow)).all())

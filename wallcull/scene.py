@@ -225,6 +225,13 @@ class Scene:
         return np.stack([lo.min(axis=0), hi.max(axis=0)])
 
     @cached_property
+    def leaf_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo (L, 3), hi (L, 3))``: each leaf's box at rest, in the order of :attr:`leaves`
+        (their union is :attr:`box`); made when first asked for (by
+        :meth:`SceneState.box`, once a node moved)."""
+        return instance_extremes(self.meshes, self.mesh_of[self.leaves], self.world[self.leaves])
+
+    @cached_property
     def leaf_points(self) -> tuple[np.ndarray, np.ndarray]:
         """``(points (N, 3), starts (L + 1,))``: each leaf's vertices in world space, at rest.
         Every instance's vertices at once: for small scenes and tests (a million-node scene's
@@ -422,6 +429,34 @@ class SceneState:
             self._changed_count += len(rows)
             if self._changed_count > len(self.scene) // 2:
                 self._changed = None
+
+    def box(self) -> np.ndarray:
+        """``(2, 3)``: the lowest and highest world coordinates of the scene as its nodes now
+        lie: :attr:`Scene.box` until a node moved; then the leaves at rest by their boxes at
+        rest, and each leaf placed elsewhere by the corners of its mesh's own box where it now
+        lies (exact for a leaf placed without a turn, a bound otherwise). Kept until the next
+        move."""
+        if self.shared:
+            return self.scene.box
+        cache = self.__dict__.get("_box")
+        if cache is not None and cache[0] == self.version:
+            return cache[1]
+        scene = self.scene
+        leaves = scene.leaves
+        world = self.world[leaves]
+        moved = (world != scene.world[leaves]).reshape(len(leaves), 16).any(axis=1)
+        lo, hi = scene.leaf_boxes
+        lo, hi = lo[~moved], hi[~moved]
+        if moved.any():
+            at, mesh = world[moved], scene.mesh_of[leaves[moved]]
+            low, high = scene.meshes.boxes
+            corner = np.array([[i & 1, i >> 1 & 1, i >> 2 & 1] for i in range(8)], bool)
+            corners = np.where(corner, high[mesh][:, None], low[mesh][:, None])  # (k, 8, 3)
+            p = corners @ at[:, :3, :3].transpose(0, 2, 1) + at[:, None, :3, 3]
+            lo, hi = np.concatenate([lo, p.min(axis=1)]), np.concatenate([hi, p.max(axis=1)])
+        box = np.stack([lo.min(axis=0), hi.max(axis=0)])
+        self.__dict__["_box"] = (self.version, box)
+        return box
 
     def changed_rows(self) -> np.ndarray | None:
         """The sorted ids of the rows whose bounds changed since the last call (None: so many
