@@ -209,6 +209,30 @@ def test_light_surrounded_by_what_a_tile_shows_gets_a_cube_map():
         assert scene.index["ground"] in cube["casters"]
 
 
+def test_a_light_at_the_centre_of_a_receivers_box_gets_a_cube_map():
+    """A bulb at the exact centre of its lamp housing's box, a floor under it, both in view:
+    the housing's corners lie all around the light, so the tile gets a cube map listing both.
+    The frustum fit divided by the housing's distance from the light, zero: every frame of
+    such a scene failed (ZeroDivisionError)."""
+    s = trimesh.Scene()
+    for name, (extents, at) in {"housing": ([1, 1, 1], [0, 0.5, -5]),
+                                "floor": ([8, 0.1, 8], [0, -1, -6])}.items():
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(at)
+        s.add_geometry(m, node_name=name, geom_name=name)
+    scene = Scene.from_trimesh(s, hierarchy="file",
+                               settings={"lights": [{"name": "bulb", "position": [0, 0.5, -5]}]})
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+                           "resolution": [64, 36]})
+    frame = {"position": [0, 2, 2], "orientation": [0.9848078, -0.1736482, 0, 0]}
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    assert sorted(result.visibility.names(0)) == ["floor", "housing"]
+    (shadow,) = result.fits[0]["shadows"]
+    assert shadow["cube"] and 0 < shadow["near"] < shadow["far"]
+    assert np.isfinite(np.asarray(shadow["projection"])).all()
+    assert set(shadow["casters"]) == {scene.index["housing"], scene.index["floor"]}
+
+
 def test_spot_light_behind_everything_casts_nothing():
     scene = lit_scene()
     _, result = fitted(scene, {"lights": [{"name": "spot", "type": "spot", "position": [0, 50, 0],

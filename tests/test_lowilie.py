@@ -430,6 +430,32 @@ def test_fits_of_boxes_are_the_fits_of_their_corners(boxes, effort):
             assert out["coverage"][q] == pytest.approx(ref.coverage, abs=1e-12)
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e4])
+def test_a_box_centred_on_the_light_beside_others_surrounds_it(offset):
+    """A light at the exact centre of a receiver's box (a bulb in its lamp housing, a ball
+    around it, a light on a flat sheet at the sheet's centre), with another receiver beside
+    it: its corners lie all around the light, so no frustum holds them and the set gets a
+    cube map (``SURROUNDS``). The cone sample divided by the box's distance from the light,
+    zero: ZeroDivisionError in every frame. A point at the light coincides with it."""
+    from wallcull.bounds import Bounds
+    from wallcull.lowilie import COINCIDES, SURROUNDS, fit_boxes
+
+    light = np.array([0.0, 0.5, -5.0]) + offset
+    rows = [(light, [0.5, 0.5, 0.5], 0.0),  # the lamp housing
+            (light, [0.0, 0.0, 0.0], 0.2),  # a ball around the bulb
+            (light, [1.0, 1.5, 0.0], 0.0),  # a flat sheet, the light on it
+            (light, [0.0, 0.0, 0.0], 0.0),  # a point at the light
+            (light + [0.0, -1.5, -1.0], [4.0, 0.05, 4.0], 0.0)]  # the floor
+    bounds = Bounds("obb", np.array([c for c, _, _ in rows], float),
+                    np.tile(np.eye(3), (len(rows), 1, 1)), np.array([h for _, h, _ in rows]),
+                    np.array([r for _, _, r in rows]))
+    start = np.array([0, 2, 4, 6, 8])
+    nodes = np.array([0, 4, 1, 4, 2, 4, 3, 4])
+    for effort in ("sphere", "greedy", "refined"):
+        out = fit_boxes(light, bounds, start, nodes, 1024, 1024, effort)
+        assert out["status"].tolist() == [SURROUNDS, SURROUNDS, SURROUNDS, COINCIDES]
+
+
 def test_fit_boxes_splits_among_threads_without_changing_a_bit(monkeypatch):
     from wallcull.bounds import Bounds
     from wallcull.lowilie import fit_boxes

@@ -490,14 +490,17 @@ def _fit_core(eye, centers, g, width, height, near_in, far_in, effort, view, pro
         lowest = 0
         for i in range(n):
             length = math.sqrt(rel[i, 0] ** 2 + rel[i, 1] ** 2 + rel[i, 2] ** 2)
-            cos_a = max(-1.0, min(1.0, (rel[i, 0] * ax + rel[i, 1] * ay + rel[i, 2] * az)
-                                  / length))
-            sin_a, sin_s = math.sqrt(1 - cos_a * cos_a), reach[i] / length
-            cos_s = math.sqrt(max(0.0, 1 - sin_s * sin_s))
-            if sin_s >= 1.0 or sin_a * cos_s + cos_a * sin_s < 0:  # a + s beyond 180 degrees
+            if not length > reach[i]:  # the eye within the box's sphere (at its centre: 0)
                 bound[i] = -1.0
-            else:  # cos(a + s) = cos a cos s - sin a sin s
-                bound[i] = cos_a * cos_s - sin_a * sin_s
+            else:
+                cos_a = max(-1.0, min(1.0, (rel[i, 0] * ax + rel[i, 1] * ay + rel[i, 2] * az)
+                                      / length))
+                sin_a, sin_s = math.sqrt(1 - cos_a * cos_a), reach[i] / length
+                cos_s = math.sqrt(max(0.0, 1 - sin_s * sin_s))
+                if sin_s >= 1.0 or sin_a * cos_s + cos_a * sin_s < 0:  # a + s past 180 degrees
+                    bound[i] = -1.0
+                else:  # cos(a + s) = cos a cos s - sin a sin s
+                    bound[i] = cos_a * cos_s - sin_a * sin_s
             if bound[i] < bound[lowest]:
                 lowest = i
         cos_half = np.inf
@@ -507,6 +510,8 @@ def _fit_core(eye, centers, g, width, height, near_in, far_in, effort, view, pro
                 continue
             for q in range(_corners_of(rel, g, i, corner, 0)):
                 length = math.sqrt(corner[q, 0] ** 2 + corner[q, 1] ** 2 + corner[q, 2] ** 2)
+                if not length > 0:  # (a corner at the eye returned COINCIDES above)
+                    return COINCIDES
                 cos_half = min(cos_half, (corner[q, 0] * ax + corner[q, 1] * ay
                                           + corner[q, 2] * az) / length)
         if not cos_half >= math.cos(max_half):
@@ -524,6 +529,8 @@ def _fit_core(eye, centers, g, width, height, near_in, far_in, effort, view, pro
     for i in range(n):
         x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
         depth = axis[0] * x + axis[1] * y + axis[2] * z
+        if not depth > 0:  # every corner lies within 80 degrees of the axis: only by rounding
+            return SURROUNDS
         shallowest = min(shallowest, depth - _support(g, i, axis[0], axis[1], axis[2]))
         mean_depth += depth * (1 if reach[i] == 0.0 else 8) / points
         u[i, 0] = (rot_s[0, 0] * x + rot_s[0, 1] * y + rot_s[0, 2] * z) / depth
