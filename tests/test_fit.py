@@ -534,7 +534,9 @@ def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
     caster worked out as each node is listed) gives what the ``oh`` kernel's pairs, expanded
     to leaves (``cull._expand``) and their depths taken (``cull._depth_ranges``), give: the
     same leaves in the same order, the same nearest depths to the bit, NaN for a region that
-    lists nothing; and -1 when its output cannot hold them."""
+    lists nothing; and -1 when its output cannot hold them. A cube map's region gets instead
+    a lower bound of its casters' least Chebyshev distance from the light, between their
+    leaves' boxes' and their vertices'."""
     from wallcull.cull import _depth_ranges, _expand, _oh, packed, stack_depth
     from wallcull.projection import frustum, look_at
 
@@ -572,15 +574,60 @@ def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
     first, leaves = _expand(culled, out_n[:pairs], *lists)
     lo, _ = _depth_ranges(culled, out_n[:pairs], box, forward, light[None], np.nan, np.nan)
 
-    out, nearest, starts = np.empty(1 << 16, np.int64), np.full(count, np.nan), \
+    cubes = kind == fitmod.CUBE
+    faces = fitmod._faces(state)
+    out, nearest, starts = np.empty(1 << 16, np.int64), np.where(cubes, np.inf, np.nan), \
         np.zeros(count + 1, np.int64)
-    written = fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, light, *lists,
-                                   np.empty(stack, np.int64), np.empty(stack, np.int64), out,
-                                   nearest, starts)
+    written = fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, cubes, faces,
+                                   light, *lists, np.empty(stack, np.int64),
+                                   np.empty(stack, np.int64), out, nearest, starts)
     assert written == len(leaves) > 0
     assert np.array_equal(out[:written], leaves) and np.array_equal(starts, first)
-    assert np.array_equal(nearest, lo, equal_nan=True)
+    assert np.array_equal(nearest[~cubes], lo[~cubes], equal_nan=True)
     assert np.isnan(nearest[0]) and not np.isnan(nearest).all()  # none behind the light
-    assert fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, light, *lists,
-                                np.empty(stack, np.int64), np.empty(stack, np.int64),
-                                out[:written - 1], nearest, starts) == -1
+    (q,) = np.flatnonzero(cubes)
+    listed = leaves[first[q]:first[q + 1]]
+    if len(listed):
+        boxes = (np.abs(box[listed, :3] - light)
+                 - np.abs(box[listed, 4:13].reshape(-1, 3, 3)).sum(axis=1)
+                 - box[listed, 3:4]).max(axis=1).min()
+        points = min(np.abs(scene.leaf_vertices(leaf) - light).max(axis=1).min()
+                     for leaf in listed)
+        assert boxes <= nearest[q] <= points + 1e-12 * np.abs(light).max()
+    else:
+        assert nearest[q] == np.inf
+    assert fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, cubes, faces,
+                                light, *lists, np.empty(stack, np.int64),
+                                np.empty(stack, np.int64), out[:written - 1], nearest,
+                                starts) == -1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_triangles_chebyshev_distance_is_its_samples_least(seed):
+    """``fit._triangle_chebyshev`` (how near a cube map's near plane may come to a caster's
+    triangle: a face's near plane bounds a point's largest coordinate from the light) against
+    dense samples of each triangle: never above their least largest coordinate, and below it
+    by no more than the samples' spacing; the same for triangles with coincident or collinear
+    corners (no division by zero), and for a triangle in a plane of the world's axes that
+    faces the light, the plane's distance."""
+    rng = np.random.default_rng(seed)
+    g = np.linspace(0, 1, 121)
+    u, v = np.meshgrid(g, g)
+    keep = u + v <= 1
+    u, v = u[keep], v[keep]
+    for k in range(300):
+        scale = 10.0 ** rng.uniform(-3, 3)
+        t = rng.normal(size=(3, 3)) * scale + rng.normal(size=3) * scale * rng.uniform(0, 3)
+        if k % 10 == 1:
+            t[1] = t[0]  # coincident corners
+        elif k % 10 == 2:
+            t[2] = t[0] + 0.3 * (t[1] - t[0])  # collinear
+        elif k % 10 == 3:  # in a plane x = const
+            t[:, 0] = t[0, 0]
+        samples = t[0] + u[:, None] * (t[1] - t[0]) + v[:, None] * (t[2] - t[0])
+        least = np.abs(samples).max(axis=1).min()
+        step = np.abs(t - t[0]).max() / 120 * 2  # the samples' spacing, at most
+        got = fitmod._triangle_chebyshev(*t.ravel())
+        assert least - step <= max(got, 0.0) <= least * (1 + 1e-12), (k, got, least)
+        if k % 10 == 3 and (np.abs(samples[:, 1:]).max(axis=1) <= abs(t[0, 0])).any():
+            assert got == pytest.approx(abs(t[0, 0]), rel=1e-12)  # facing the light

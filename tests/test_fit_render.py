@@ -227,6 +227,100 @@ def test_mirror_view_clips_what_lies_behind_the_mirror():
     assert set(entry["visible"]) >= {i - 1 for i in np.unique(img.ids) if i}
 
 
+@pytest.mark.parametrize("housing", [False, True])
+def test_a_cube_maps_faces_keep_a_caster_right_by_the_light(housing):
+    """A lamp 3 m over a 1 km ground, seen with the ground all around it (a cube map, its far
+    plane 710 m out), with a caster 4 cm from the bulb: a flat shade under it, or an open
+    housing around it (its box holds the bulb). Each face drawn with the fitted matrices
+    shows the casters as the same face with a near plane at 0.1 mm does, pixel for pixel.
+    The cube map's near plane stayed at a ten-thousandth of its far distance (7 cm), and
+    clipped the caster from every face: its shadow was lost."""
+    from wallcull.projection import frustum
+
+    s = trimesh.Scene()
+    ground = trimesh.creation.box(extents=[1000, 0.2, 1000])
+    ground.apply_translation([0, -0.1, -10])
+    s.add_geometry(ground, node_name="ground", geom_name="ground")
+    if housing:  # a cube of half-width 4 cm around the bulb, open below
+        cup = trimesh.creation.box(extents=[0.08, 0.08, 0.08])
+        cup.update_faces(cup.face_normals[:, 1] > -0.5)
+        cup.apply_translation([0, 3, -10])
+    else:  # a shade, its top 4 cm under the bulb
+        cup = trimesh.creation.box(extents=[0.3, 0.02, 0.3])
+        cup.apply_translation([0, 2.95, -10])
+    s.add_geometry(cup, node_name="cup", geom_name="cup")
+    scene = Scene.from_trimesh(s, hierarchy="file",
+                               settings={"lights": [{"name": "lamp", "position": [0, 3, -10]}]})
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+                           "far": 1e5, "resolution": [160, 90]})
+    frame = Frame.from_dict({"position": [0, 1.7, -6],
+                             "orientation": [0.9659258, -0.2588190, 0, 0]}, wall)
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    (shadow,) = result.fits[0]["shadows"]
+    assert shadow["cube"] and shadow["far"] > 700
+    assert set(shadow["casters"]) == {scene.index["ground"], scene.index["cup"]}
+    r = renderer_for(64, 64, scene)
+    casters = r.draws.leaves(shadow["casters"])
+    near = 1e-4
+    reference = frustum(-near, near, -near, near, near, shadow["far"])
+    cup_pixels = 0
+    for view in shadow["views"]:
+        got = r.render(casters, np.asarray(view), np.asarray(shadow["projection"])).ids
+        ref = r.render(casters, np.asarray(view), reference).ids
+        np.testing.assert_array_equal(got, ref)
+        cup_pixels += int((ref == scene.index["cup"] + 1).sum())
+    assert cup_pixels >= (5 * 64 * 64 if housing else 1000)  # the housing: five whole faces
+
+
+def test_a_shadow_maps_near_floor_keeps_far_casters_in_a_24_bit_map():
+    """Why a shadow map's near plane stops at a millionth of its far distance (``fit.NEAR_FLOOR``)
+    though a caster lies nearer the light. A lamp lights a wall 50 km away (the map's far
+    plane, 52.8 km with the fit's margin) past a 400 m slab at 45 km; a 2 mm fitting hangs
+    3 mm before the bulb, off to the side. At the floor (5.3 cm) the fitting is clipped, but
+    the slab lies three steps of the 24-bit depth buffer before the far plane: every pixel of
+    it is in the map, in front of the wall. With the near plane pulled in to the fitting,
+    2 mm, the map keeps the fitting and loses the slab: its depth rounds to the cleared 1.
+    (A map's window depth at distance ``d`` is ``1 - near (far - d) / (far d)``, about.)"""
+    f = 50000.0
+    s = trimesh.Scene()
+    wall_mesh = trimesh.Trimesh([[-2000, -1990, -f], [2000, -1990, -f], [2000, 2010, -f],
+                                 [-2000, 2010, -f]], [[0, 1, 2], [0, 2, 3]], process=False)
+    slab = trimesh.creation.box(extents=[400, 400, 10])
+    slab.apply_translation([0, 10, -0.9 * f])
+    fitting = trimesh.creation.box(extents=[0.002, 0.002, 0.002])
+    fitting.apply_translation([0.0005, 10.0005, -0.003])
+    for name, mesh in (("wall", wall_mesh), ("slab", slab), ("fitting", fitting)):
+        s.add_geometry(mesh, node_name=name, geom_name=name)
+    scene = Scene.from_trimesh(s, hierarchy="file",
+                               settings={"lights": [{"name": "lamp", "position": [0, 10, 0]}]})
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+                           "far": 1e6, "resolution": [160, 90]})
+    frame = Frame.from_dict({"position": [0, 10, 1000 - f], "orientation": [1, 0, 0, 0]}, wall)
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    (shadow,) = result.fits[0]["shadows"]
+    far, near = shadow["far"], shadow["near"]
+    assert near == pytest.approx(far * 1e-6, rel=1e-12)  # the fitting lies nearer
+    assert {scene.names[i] for i in shadow["casters"]} == {"wall", "slab", "fitting"}
+    r = renderer_for(128, 128, scene)
+    view, projection = np.asarray(shadow["view"]), np.asarray(shadow["projection"])
+
+    def near_at(n):
+        out = projection.copy()
+        out[2, 2:] = -(far + n) / (far - n), -2 * far * n / (far - n)
+        return out
+
+    slab_id, fitting_id = scene.index["slab"] + 1, scene.index["fitting"] + 1
+    footprint = r.render(r.draws.leaves([slab_id - 1]), view, near_at(0.5 * f)).ids > 0
+    assert footprint.sum() > 100
+    for proj, kept in ((projection, True), (near_at(0.002), False)):
+        shown = r.render(r.draws.leaves(shadow["casters"]), view, proj).ids
+        assert (shown == fitting_id).any() != kept
+        if kept:  # the slab's whole footprint, in front of the wall
+            np.testing.assert_array_equal(shown == slab_id, footprint)
+        else:
+            assert not (shown == slab_id).any()
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_low_ilie_frustum_clips_no_pixel_and_covers_more(seed, capsys):
     rng = np.random.default_rng(seed)

@@ -12,7 +12,10 @@ Per tile and frame:
 * ``shadows`` (only if the scene declares shadow-casting lights): per light, a Low-Ilie frustum
   from the light, fitted around the tile's visible set (:mod:`wallcull.lowilie`). Its near
   plane is pulled in to the nearest caster. It comes with the shadow casters culled against it.
-  A light that the tile's visible set surrounds gets a cube map instead: six 90 degree faces.
+  A light that the tile's visible set surrounds gets a cube map instead: six 90 degree faces,
+  whose near plane is pulled in to the nearest caster's triangles where they come nearer than
+  a ten-thousandth of its far distance. No map's near plane comes nearer than a millionth of
+  its far distance (:data:`NEAR_FLOOR`).
 * ``mirrors`` (only if the scene declares mirrors): per mirror the eye can see, the reflected
   view (det -1: the client flips its front faces), the tile's projection with Lengyel's oblique
   near plane at the mirror, and the leaves culled against the reflected frustum (bounded by the
@@ -258,7 +261,8 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     light and the receivers shade them: they are culled against the frustum's side and far
     planes (not its near plane), and the near plane is then pulled in to the nearest caster.
     A tile whose receivers no single frustum from the light holds (the light is among them)
-    gets a cube map, with the casters in the cube around the light.
+    gets a cube map, with the casters in the cube around the light, its near plane pulled in
+    to the nearest of their triangles.
 
     Each tile's shadow is independent of the others', so it is one pass over every light's
     tiles, split among threads once (:mod:`wallcull.workers`, by receivers): in each part one
@@ -280,6 +284,7 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     work = np.append((start[:-1] - start[0] + total * np.arange(count)[:, None]).ravel(),
                      total * count)
     stack = stack_depth(state)
+    faces = _faces(state)
     ranges = workers.chunks(count * tiles, work, per_thread=workers.SPLIT)
     pool = state.__dict__.setdefault("_shadow_buffers", [])  # kept: outputs grow once
     pool.extend(_Buffers() for _ in range(len(ranges) - len(pool)))
@@ -298,7 +303,7 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
                     math.cos(math.radians(light.angle)) if spot else 1.0,
                     b.center, b.axes, b.half, b.radius, start[lo:hi + 1], nodes, box,
                     scene.child_start, scene.leaf_child_count, scene.children, leaf_start,
-                    leaf_count, scene.leaves, scene.cluster_leaf, view[j, lo:hi],
+                    leaf_count, scene.leaves, scene.cluster_leaf, faces, view[j, lo:hi],
                     projection[j, lo:hi], near[j, lo:hi], far[j, lo:hi], coverage[j, lo:hi],
                     status[j, lo:hi], kind[j, lo:hi], casters[j, lo:hi],
                     buf.get("stack_n", stack), buf.get("stack_m", stack),
@@ -326,6 +331,30 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
     return out
 
 
+def _faces(state: SceneState) -> tuple:
+    """The state's hierarchy with its clusters, and its triangles, as
+    :func:`_chebyshev_below` reads them."""
+    scene, m = state.scene, state.scene.meshes
+    return (scene.child_count, scene.cluster_leaf, *scene.cluster_faces, scene.mesh_of,
+            state.world, m.vertex_start, m.vertices, m.face_start, m.faces)
+
+
+#: A cube map's near distance, as a fraction of its far distance, unless a caster lies nearer
+#: (each face's near plane bounds a point's largest coordinate from the light, so the
+#: casters' least Chebyshev distance from it: :func:`_chebyshev_below`).
+CUBE_NEAR = 1e-4
+
+#: No shadow map's near plane is pulled in nearer the light than this fraction of its far
+#: distance: a caster nearer than that (5 cm from a light whose map reaches 50 km), or one
+#: whose bounds reach behind a frustum's light, is clipped where it lies before it. A map's
+#: window depth at distance ``d`` is about ``1 - near (far - d) / (far d)``, and a caster is
+#: kept only where that lies a step of the depth buffer below the cleared 1 (``2 ** -24``: a
+#: 24-bit buffer, and a float32 one just below 1). At this floor that holds out to 94% of the
+#: far distance; at a floor four times nearer, to 80%; at ``2 ** -24``, to half. What a depth
+#: buffer holds is a ratio of the near to the far distance: a floor that is not a fraction of
+#: the far distance drops the far casters of some map (``tests/test_fit_render.py``).
+NEAR_FLOOR = 1e-6
+
 #: Caster leaves a part of :func:`shadow_sets` has room for at first: doubled while they
 #: overflow, and kept from frame to frame.
 CASTERS = 4096
@@ -339,13 +368,13 @@ _KIND_OF_STATUS[[lowilie.OK, lowilie.EMPTY, lowilie.UNLIT]] = FRUSTUM, NONE, NON
 @njit(cache=True, nogil=True)
 def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center, axes, half,
                  radius, start, nodes, box, child_start, child_count, children, leaf_start,
-                 leaf_count, leaves, cluster_leaf, view, projection, near, far, coverage,
+                 leaf_count, leaves, cluster_leaf, faces, view, projection, near, far, coverage,
                  status, kind, casters, stack_n, stack_m, out):
     """One light's shadows for a run of tiles (receivers ``nodes[start[t]:start[t + 1]]``),
     written into its rows of the frame's arrays: the Low-Ilie fits, a cube map where none
-    holds the receivers, the caster culls (:func:`_cull_casters`), each frustum's near plane
-    pulled in to its nearest caster, and ``casters[t]``, how many leaves each tile's casters
-    are. Returns those leaves, tile after tile (sorted in each): the start of ``out``, or None
+    holds the receivers, the caster culls (:func:`_cull_casters`), each map's near plane
+    pulled in to its nearest caster (:func:`_pull_near`), and ``casters[t]``, how many leaves
+    each tile's casters are. Returns those leaves, tile after tile (sorted in each): the start of ``out``, or None
     when they did not fit in it (nothing is then complete)."""
     n = start.shape[0] - 1
     lowilie._fit_boxes(light, center, axes, half, radius, start, nodes, width, height, effort,
@@ -362,7 +391,7 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
             shaded += 1
         if kind[t] == CUBE:  # the light among the receivers: a cube map
             far[t] = _farthest(start[t:t + 2], nodes, box, light)[0] * (1 + 1e-6)
-            near[t] = far[t] * 1e-4
+            near[t] = far[t] * CUBE_NEAR  # pulled in to the nearest caster (_pull_near)
             projection[t] = 0.0
             projection[t, 0, 0] = projection[t, 1, 1] = 1.0
             projection[t, 3, 2] = -1.0
@@ -383,9 +412,14 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
     planes, regions, sizes = _caster_regions(pv, kind, lit, far, light)
     lo = np.full(shaded, np.nan)  # each region's nearest caster (none: NaN)
     first = np.zeros(shaded + 1, np.int64)
+    cubes = np.empty(shaded, np.bool_)
+    for k in range(shaded):
+        cubes[k] = kind[lit[k]] == CUBE
+        if cubes[k]:  # casters this far out leave its near plane as it is
+            lo[k] = 2 * near[lit[k]]
     if _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
-                     light, leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
-                     lo, first) < 0:
+                     cubes, faces, light, leaf_start, leaf_count, leaves, cluster_leaf, stack_n,
+                     stack_m, out, lo, first) < 0:
         return None
     _pull_near(lo, kind, lit, near, far, projection)
     casters[:] = 0
@@ -396,23 +430,29 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
 
 @njit(cache=True, nogil=True)
 def _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
-                  origin, leaf_start, leaf_count, leaves, cluster_leaf, stack_n, stack_m, out,
-                  nearest, first):
+                  cubes, faces, origin, leaf_start, leaf_count, leaves, cluster_leaf, stack_n,
+                  stack_m, out, nearest, first):
     """The caster regions of :func:`_caster_regions` (region ``q``: the planes
     ``regions[q, :sizes[q]]``) culled as the ``oh`` kernel culls them (:func:`wallcull.cull._oh`:
     the same tests, in the same order), each listed node's leaves written out as it is
     listed, as :func:`wallcull.cull._expand` writes them from the kernel's pairs: region ``q``'s
     leaves are ``out[first[q]:first[q + 1]]``. ``nearest[q]`` gets the region's least depth
     along ``forward[q]`` from ``origin`` that its listed bounds reach, the sums of
-    :func:`wallcull.cull._depth_ranges` (left as it is when it lists nothing). Both are worked
-    out while the node's record is at hand, not in passes over the pairs afterwards. Returns
-    the leaves written, or -1 when ``out`` cannot hold them."""
+    :func:`wallcull.cull._depth_ranges` (left as it is when it lists nothing). For a cube
+    map's region (``cubes[q]``) it gets a lower bound of the least Chebyshev distance from
+    ``origin`` (a point's largest distance along one of the world's axes: what a face's near
+    plane bounds) of the listed leaves' triangles, where below the ``nearest[q]`` given (and
+    that otherwise): :func:`_chebyshev_below`, on ``faces``, the scene's hierarchy with its
+    clusters and its meshes. Both are worked out while the node's record is at hand, not in
+    passes over the pairs afterwards. Returns the leaves written, or -1 when ``out`` cannot
+    hold them."""
     w = 0
     cap = out.shape[0]
     for q in range(sizes.shape[0]):
         size, ids = sizes[q], regions[q]
         fx, fy, fz = forward[q, 0], forward[q, 1], forward[q, 2]
-        least = np.inf
+        cube = cubes[q]
+        least = nearest[q] if cube else np.inf
         last = -1  # the cluster's leaf written last (a leaf's clusters come one after another)
         listed = False
         stack_n[0] = 0
@@ -439,8 +479,12 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
                     out[w] = c
                     w += 1
                     last = c
-                depth, r = _along(box, i, fx, fy, fz, origin[0], origin[1], origin[2])
-                least = min(least, depth - r)
+                if cube:
+                    least = _chebyshev_below(box, child_start, children, faces, i, origin,
+                                             least, stack_n, sp)
+                else:
+                    depth, r = _along(box, i, fx, fy, fz, origin[0], origin[1], origin[2])
+                    least = min(least, depth - r)
                 continue
             for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
                 stack_n[sp] = children[c]
@@ -450,6 +494,108 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
             nearest[q] = least
         first[q + 1] = w
     return w
+
+
+@njit(cache=True, inline="always")
+def _chebyshev(box, i, origin):
+    """A lower bound of the least Chebyshev distance from ``origin`` of bound ``i``: that of
+    its box along the world's axes (not positive when that box holds ``origin``)."""
+    out = -np.inf
+    for a in range(3):
+        depth, r = _along(box, i, 1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0,
+                          1.0 if a == 2 else 0.0, origin[0], origin[1], origin[2])
+        out = max(out, abs(depth) - r)
+    return out
+
+
+@njit(cache=True, _nrt=False)
+def _chebyshev_below(box, child_start, children, faces, i, origin, least, stack, base):
+    """A lower bound of the least Chebyshev distance from ``origin`` of the triangles under
+    node ``i``, where below ``least`` (``least`` otherwise). Its subtree is opened depth-first,
+    through the leaves' clusters (``faces``: the scene's ``child_count``, ``cluster_leaf``,
+    ``cluster_faces``, ``mesh_of``, the state's ``world`` and the mesh table's arrays), where
+    a node's box (:func:`_chebyshev`) comes nearer than the least so far, on ``stack`` above
+    ``base`` (a traversal that went on into ``i`` would reach as deep); the triangles of a
+    node without children are taken one by one (:func:`_triangle_chebyshev`) where its box
+    does. A box that holds the light (a lamp's housing, a room around it) says nothing of
+    how near its surfaces come."""
+    child_count, cluster_leaf, first, count, mesh_of, world, vertex_start, vertices, \
+        face_start, tris = faces
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    stack[base] = i
+    sp = base + 1
+    while sp > base:
+        sp -= 1
+        j = stack[sp]
+        if not _chebyshev(box, j, origin) < least:
+            continue
+        if child_count[j] > 0:
+            for c in range(child_start[j], child_start[j] + child_count[j]):
+                stack[sp] = children[c]
+                sp += 1
+            continue
+        leaf = cluster_leaf[j] if cluster_leaf[j] >= 0 else j
+        mesh = mesh_of[leaf]
+        if mesh < 0:
+            continue
+        m = world[leaf]
+        v0 = vertex_start[mesh]
+        for f in range(face_start[mesh] + first[j], face_start[mesh] + first[j] + count[j]):
+            a, b, c = v0 + tris[f, 0], v0 + tris[f, 1], v0 + tris[f, 2]
+            least = min(least, _triangle_chebyshev(
+                _moved(m, 0, vertices, a) - ox, _moved(m, 1, vertices, a) - oy,
+                _moved(m, 2, vertices, a) - oz, _moved(m, 0, vertices, b) - ox,
+                _moved(m, 1, vertices, b) - oy, _moved(m, 2, vertices, b) - oz,
+                _moved(m, 0, vertices, c) - ox, _moved(m, 1, vertices, c) - oy,
+                _moved(m, 2, vertices, c) - oz))
+    return least
+
+
+@njit(cache=True, inline="always")
+def _moved(m, a, vertices, v):
+    """Coordinate ``a`` of vertex ``v`` placed by the affine ``m (4, 4)``."""
+    return m[a, 0] * vertices[v, 0] + m[a, 1] * vertices[v, 1] + m[a, 2] * vertices[v, 2] \
+        + m[a, 3]
+
+
+@njit(cache=True, inline="always")
+def _triangle_chebyshev(ax, ay, az, bx, by, bz, cx, cy, cz):
+    """The least Chebyshev distance from the origin of the triangle ``a, b, c``: the half-width
+    of the smallest cube around the origin that meets it, by the separating axis theorem
+    (Akenine-Moller's triangle-box test): the triangle lies beyond a cube of half-width ``h``
+    along an axis ``d`` when its span along ``d`` starts past ``h |d|_1``; of the 13 axes
+    (the world's, the triangle's normal, each edge across each of the world's), the one that
+    keeps it out the longest. Each axis alone gives a lower bound, however its rounding turns
+    it (an axis of no length is left out: a triangle of no area keeps its edges' axes)."""
+    out = max(min(ax, bx, cx), -max(ax, bx, cx), min(ay, by, cy), -max(ay, by, cy),
+              min(az, bz, cz), -max(az, bz, cz))
+    ux, uy, uz, vx, vy, vz = bx - ax, by - ay, bz - az, cx - ax, cy - ay, cz - az
+    out = max(out, _apart(uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx,
+                          ax, ay, az, bx, by, bz, cx, cy, cz))
+    for k in range(3):
+        if k == 0:
+            ex, ey, ez = ux, uy, uz
+        elif k == 1:
+            ex, ey, ez = cx - bx, cy - by, cz - bz
+        else:
+            ex, ey, ez = vx, vy, vz
+        out = max(out, _apart(0.0, -ez, ey, ax, ay, az, bx, by, bz, cx, cy, cz),
+                  _apart(ez, 0.0, -ex, ax, ay, az, bx, by, bz, cx, cy, cz),
+                  _apart(-ey, ex, 0.0, ax, ay, az, bx, by, bz, cx, cy, cz))
+    return out
+
+
+@njit(cache=True, inline="always")
+def _apart(dx, dy, dz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """How far the triangle ``a, b, c`` lies from the origin along ``d``, over ``|d|_1``: the
+    half-width of the cube around the origin that it clears along ``d`` (-inf for a ``d`` of
+    no length)."""
+    length = abs(dx) + abs(dy) + abs(dz)
+    if not length > 0:
+        return -np.inf
+    pa, pb, pc = dx * ax + dy * ay + dz * az, dx * bx + dy * by + dz * bz, \
+        dx * cx + dy * cy + dz * cz
+    return max(min(pa, pb, pc), -max(pa, pb, pc)) / length
 
 
 @njit(cache=True)
@@ -487,13 +633,18 @@ def _caster_regions(pv, kind, shaded, far, light):
 @njit(cache=True)
 def _pull_near(lo, kind, shaded, near, far, projection):
     """Each shadow frustum's near plane pulled in to ``lo``, the nearest of its casters (half
-    its far distance without any), and every shaded tile's depth rows from its near and far."""
+    its far distance without any); a cube map's (``far`` * :data:`CUBE_NEAR` until then) to
+    the Chebyshev distance of its nearest caster, when that is nearer; neither below
+    :data:`NEAR_FLOOR` of the far distance. Then every shaded tile's depth rows from its near
+    and far."""
     for k in range(shaded.shape[0]):
         t = shaded[k]
         f = far[t]
         if kind[t] == FRUSTUM:
             nearest = f * 0.5 if math.isnan(lo[k]) else lo[k]
-            near[t] = max(nearest * (1 - 1e-6), f * 1e-6)
+            near[t] = max(nearest * (1 - 1e-6), f * NEAR_FLOOR)
+        else:  # a cube map (lo: twice its near distance when no caster comes nearer)
+            near[t] = min(near[t], max(lo[k] * (1 - 1e-6), f * NEAR_FLOOR))
         n = near[t]
         projection[t, 2, 2] = -(f + n) / (f - n)
         projection[t, 2, 3] = -2 * f * n / (f - n)
