@@ -496,6 +496,32 @@ def test_eye_behind_mirror_sees_nothing_in_it():
     assert not any("mirrors" in t for t in result.fits)
 
 
+def test_an_eye_sees_a_mirror_by_one_rule_however_near_it_stands():
+    """An eye just before an unbounded side mirror, which fills the right half of the view,
+    the wall's near distance 0.1: farther than a millionth of it (1e-7 m) the tiles looking at
+    the mirror show it; nearer, none does (an oblique near plane that near the eye leaves the
+    depth buffer nothing to resolve) and the mirror is not culled for at all. Between 3e-9 m
+    and 1e-7 m the mirror was culled for every tile, its lists made, and then every tile's
+    oblique near plane refused: the frame carried a mirror no tile showed."""
+    s = trimesh.Scene()
+    for name, (extents, at) in {"floor": ([12, 0.2, 12], [0, -1.1, -6]),
+                                "cube": ([1, 1, 1], [0.5, 0, -5]),
+                                "side": ([1, 1, 1], [-4, 0.5, -2])}.items():
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(at)
+        s.add_geometry(m, node_name=name, geom_name=name)
+    scene = Scene.from_trimesh(s, hierarchy="file", settings={
+        "mirrors": [{"name": "m", "point": [3, 0, 0], "normal": [-1, 0, 0]}]})
+    wall = Wall.from_dict({"cols": 2, "rows": 2, "tile_size": [0.8, 0.45], "distance": 1.0,
+                           "near": 0.1, "far": 1000})
+    session = Session(scene, wall, fit=FitOptions())
+    for away in (3e-9, 3e-8, 9e-8, 1.1e-7, 3e-7, 1e-6):
+        fits = session.frame({"position": [3 - away, 0.5, 0], "orientation": [1, 0, 0, 0]}).fits
+        showing = [t for t in range(wall.tiles) if "mirrors" in fits[t]]
+        assert showing == ([1, 3] if away > 1e-7 else []), away  # the right-hand tiles
+        assert len(fits.mirrors) == (away > 1e-7), away
+
+
 def test_a_mirror_between_the_eyes_is_seen_by_the_eye_before_it():
     """A mirror whose plane passes between a stereo frame's eyes (the centre eye 4 mm behind
     it) shows the right eye a reflection: that eye's record carries the mirror, with its own

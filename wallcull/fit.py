@@ -45,7 +45,7 @@ from . import lowilie, workers
 from . import settings as cfg
 from .cull import (Culler, Visibility, _Buffers, _along, _farthest, _masked,
                    depth_ranges as node_depths, packed, stack_depth)
-from .projection import as_reversed_z, look_at, mirrored_views, view_matrix
+from .projection import THROUGH_CAMERA, as_reversed_z, look_at, mirrored_views, view_matrix
 from .scene import SceneState
 from .wall import Frame, Frusta, matrix_quaternions
 
@@ -701,18 +701,20 @@ class MirrorSight:
     outline: np.ndarray  # (k, 4) world planes: in front of the mirror, within its outline
 
     @classmethod
-    def of(cls, mirror: cfg.Mirror, frame: Frame) -> "MirrorSight | None":
-        """None when no eye can see the mirror's reflective side."""
+    def of(cls, mirror: cfg.Mirror, frame: Frame, near: float) -> "MirrorSight | None":
+        """None when no eye can see the mirror's reflective side: none lies farther in front
+        of its plane than :data:`wallcull.projection.THROUGH_CAMERA` times ``near`` (the
+        mirror pass's near distance, the wall's), which its oblique near plane needs."""
         eyes = frame.to_world(frame.eyes)
         plane = mirror.plane
-        scale = max(float(np.abs(eyes).max()), 1.0)
-        if not (eyes @ plane[:3] + plane[3] > 1e-9 * scale).any():
+        sees = eyes @ plane[:3] + plane[3] > THROUGH_CAMERA * near
+        if not sees.any():
             return None
         outline = [plane[None]]
         if mirror.polygon is not None:
             # the pyramid through the outline from each reflected eye that sees the mirror
             # (a stereo frame's eye behind its plane sees nothing in it)
-            seeing = eyes[eyes @ plane[:3] + plane[3] > 0] if len(eyes) > 1 else eyes
+            seeing = eyes[sees] if len(eyes) > 1 else eyes
             outline.append(_pyramid([mirror.reflection @ np.append(e, 1.0) for e in seeing],
                                     mirror.polygon))
         return cls(mirror, np.concatenate(outline))
@@ -942,7 +944,8 @@ def fit_frame(wall, frame: Frame, visibility: Visibility | None = None,
                 tile_projections(wall, frame, near, far, options.reversed_z, eye), near, far)
 
     declared = not (scene_settings is None or scene_settings.empty or visibility is None)
-    sights = [MirrorSight.of(m, frame) for m in scene_settings.mirrors] if declared else []
+    sights = [MirrorSight.of(m, frame, wall.near) for m in scene_settings.mirrors] \
+        if declared else []
     sights = [s for s in sights if s is not None]  # None: no eye sees the reflective side
     out = Fits(*for_eye(frame.eye), reversed_z=options.reversed_z)
     if frame.stereo is not None:

@@ -45,6 +45,13 @@ __all__ = [
 ]
 
 
+#: An oblique near plane is refused when the camera lies within this fraction of the
+#: projection's near distance of it (``through_camera``): the depth buffer would resolve no
+#: better than with a near plane that near. A mirror is seen only by an eye farther than this
+#: in front of it (:meth:`wallcull.fit.MirrorSight.of`, with the wall's near distance).
+THROUGH_CAMERA = 1e-6
+
+
 class ClipPlaneError(ValueError):
     """:func:`oblique_near` cannot use the plane: see ``reason``.
 
@@ -308,7 +315,7 @@ def frustum_planes(m: np.ndarray, reversed_z: bool = False) -> np.ndarray:
 # -------------------------------------------------------------------------- oblique near plane
 
 
-def oblique_near(projection: np.ndarray, clip_plane, rtol: float = 1e-6) -> np.ndarray:
+def oblique_near(projection: np.ndarray, clip_plane, rtol: float = THROUGH_CAMERA) -> np.ndarray:
     """Replace the near plane of a perspective projection by an eye-space plane (Lengyel 5.6).
 
     ``projection``: any ``[-1, 1]`` perspective matrix whose fourth row is ``(0, 0, -1, 0)``,
@@ -330,9 +337,10 @@ def oblique_near(projection: np.ndarray, clip_plane, rtol: float = 1e-6) -> np.n
     Raises :class:`ClipPlaneError` when the plane cannot be a near plane:
 
     * the camera is within ``rtol * near`` of the plane (``near``: distance from the camera to
-      the projection's own near plane, the only length scale a projection knows). A plane
-      through the camera would make rows 3 and 4 proportional at the eye, and one just beside
-      it leaves the depth buffer no precision; a mirror seen that close to edge-on shows nothing.
+      the projection's own near plane, the only length scale a projection knows;
+      :data:`THROUGH_CAMERA` by default). A plane through the camera would make rows 3 and 4
+      proportional at the eye, and one just beside it leaves the depth buffer no precision; a
+      mirror seen from that close shows nothing.
     * the camera is on the positive side: the plane would have to clip the camera's own
       neighbourhood while keeping what is behind it, which a perspective matrix cannot do.
     * ``C . Q <= 0``: the plane clips the whole frustum.
@@ -358,7 +366,7 @@ _CLIP_REFUSALS = {
 }
 
 
-def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
+def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = THROUGH_CAMERA
                       ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`oblique_near` for many projections ``(k, 4, 4)`` and one eye-space plane ``(4,)``
     (a mirror seen by every tile of a grid wall) or one each ``(k, 4)`` (each tile's own eye
@@ -379,7 +387,7 @@ def oblique_near_many(projections: np.ndarray, clip_plane, rtol: float = 1e-6
 
 
 def mirrored_views(views: np.ndarray, projections: np.ndarray, reflection: np.ndarray,
-                   plane: np.ndarray, rtol: float = 1e-6
+                   plane: np.ndarray, rtol: float = THROUGH_CAMERA
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What each of many cameras (rigid ``views``, ``(k, 4, 4)`` or one ``(4, 4)`` for all;
     ``projections (k, 4, 4)``) needs to draw the reflection in a mirror (``reflection (4,
