@@ -4,6 +4,8 @@ cases (hulls of 3 and 4 points, collinear and coincident points, nearly parallel
 eye or a light inside the bounding sphere, reversed-Z float32 precision) are in
 test_quad.py, test_lowilie.py and test_projection.py."""
 
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -107,6 +109,25 @@ def test_infinite_far_plane():
     np.testing.assert_allclose(planes[5], [0, 0, 0, 1])
     far_point = frame.to_world(np.array([[0, 0, -1e12]]))
     assert -1 < homog(proj[1] @ view_matrix(frame), far_point)[0, 2] < 1
+
+
+def test_only_the_matrices_take_an_infinite_far_plane():
+    """A wall document with an infinite far distance is refused in one line, as every infinity
+    is: the infinite projection comes from the matrix functions alone, and the concepts page,
+    wherever it gives a far distance of infinity, says a wall's must be finite (it said a far
+    distance of infinity gave the infinite projection, and a wall made with one was
+    refused)."""
+    from pathlib import Path
+
+    with pytest.raises(InputError, match="wall far must be finite"):
+        Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1, 1], "distance": 1.0,
+                        "far": float("inf")})
+    page = (Path(__file__).resolve().parent.parent / "docs" / "concepts.md").read_text()
+    items = re.split(r"\n(?=- |\| |\n)", page)  # list items, table rows, paragraphs
+    infinite = [i for i in items if re.search(r"far distance of infinity|infinite far", i)]
+    assert infinite
+    for item in infinite:
+        assert "must be finite" in item, item
 
 
 def test_scene_offset_by_1e7():
