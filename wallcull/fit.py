@@ -374,8 +374,8 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
     written into its rows of the frame's arrays: the Low-Ilie fits, a cube map where none
     holds the receivers, the caster culls (:func:`_cull_casters`), each map's near plane
     pulled in to its nearest caster (:func:`_pull_near`), and ``casters[t]``, how many leaves
-    each tile's casters are. Returns those leaves, tile after tile (sorted in each): the start of ``out``, or None
-    when they did not fit in it (nothing is then complete)."""
+    each tile's casters are. Returns those leaves, tile after tile (sorted in each): the start
+    of ``out``, or None when they did not fit in it (nothing is then complete)."""
     n = start.shape[0] - 1
     lowilie._fit_boxes(light, center, axes, half, radius, start, nodes, width, height, effort,
                        spot, spot_dir, spot_cos, view, projection, near, far, coverage, status)
@@ -442,10 +442,10 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
     map's region (``cubes[q]``) it gets a lower bound of the least Chebyshev distance from
     ``origin`` (a point's largest distance along one of the world's axes: what a face's near
     plane bounds) of the listed leaves' triangles, where below the ``nearest[q]`` given (and
-    that otherwise): :func:`_chebyshev_below`, on ``faces``, the scene's hierarchy with its
-    clusters and its meshes. Both are worked out while the node's record is at hand, not in
-    passes over the pairs afterwards. Returns the leaves written, or -1 when ``out`` cannot
-    hold them."""
+    that otherwise; only these are worth opening): :func:`_chebyshev_below`, on ``faces``,
+    the scene's hierarchy with its clusters and its meshes. Both are worked out while the
+    node's record is at hand, not in passes over the pairs afterwards. Returns the leaves
+    written, or -1 when ``out`` cannot hold them."""
     w = 0
     cap = out.shape[0]
     for q in range(sizes.shape[0]):
