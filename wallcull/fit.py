@@ -480,8 +480,9 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
                     w += 1
                     last = c
                 if cube:
-                    least = _chebyshev_below(box, child_start, children, faces, i, origin,
-                                             least, stack_n, sp)
+                    if _chebyshev(box, i, origin) < least:  # (seldom: open it)
+                        least = _chebyshev_below(box, child_start, children, faces, i, origin,
+                                                 least, stack_n, sp)
                 else:
                     depth, r = _along(box, i, fx, fy, fz, origin[0], origin[1], origin[2])
                     least = min(least, depth - r)
