@@ -117,6 +117,16 @@ def lit_scene():
     return Scene.from_trimesh(s, hierarchy="file")
 
 
+def boxes(spec: dict) -> trimesh.Scene:
+    """A scene of boxes, ``name: (extents, centre)``, each its own node and mesh."""
+    s = trimesh.Scene()
+    for name, (extents, at) in spec.items():
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(at)
+        s.add_geometry(m, node_name=name, geom_name=name)
+    return s
+
+
 WALL = {"cols": 3, "rows": 2, "tile_size": [0.6, 0.34], "gap": [0.01, 0.01], "distance": 1.0}
 FRAME = {"position": [0, 12, 30], "orientation": [0.9762960, -0.2164396, 0, 0]}
 
@@ -214,12 +224,7 @@ def test_a_light_at_the_centre_of_a_receivers_box_gets_a_cube_map():
     the housing's corners lie all around the light, so the tile gets a cube map listing both.
     The frustum fit divided by the housing's distance from the light, zero: every frame of
     such a scene failed (ZeroDivisionError)."""
-    s = trimesh.Scene()
-    for name, (extents, at) in {"housing": ([1, 1, 1], [0, 0.5, -5]),
-                                "floor": ([8, 0.1, 8], [0, -1, -6])}.items():
-        m = trimesh.creation.box(extents=extents)
-        m.apply_translation(at)
-        s.add_geometry(m, node_name=name, geom_name=name)
+    s = boxes({"housing": ([1, 1, 1], [0, 0.5, -5]), "floor": ([8, 0.1, 8], [0, -1, -6])})
     scene = Scene.from_trimesh(s, hierarchy="file",
                                settings={"lights": [{"name": "bulb", "position": [0, 0.5, -5]}]})
     wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
@@ -528,12 +533,8 @@ def test_a_mirror_between_the_eyes_is_seen_by_the_eye_before_it():
     oblique near plane at the mirror, and the tile the leaves seen in it (seen nearly edge-on,
     the mirror shows a thin sliver beside its plane, out to the box). No record did, the
     tile's showing being decided by the centre eye alone."""
-    s = trimesh.Scene()
-    for name, (extents, at) in {"reflected": ([1.0, 1.0, 1.0], [0.6, 0.0, -20.0]),
-                                "floor": ([6, 0.1, 10], [0, -1.0, -5])}.items():
-        m = trimesh.creation.box(extents=extents)
-        m.apply_translation(at)
-        s.add_geometry(m, node_name=name, geom_name=name)
+    s = boxes({"reflected": ([1.0, 1.0, 1.0], [0.6, 0.0, -20.0]),
+               "floor": ([6, 0.1, 10], [0, -1.0, -5])})
     settings = {"mirrors": [{"name": "side", "point": [0.004, 0, -3], "normal": [1, 0, 0],
                              "polygon": [[0.004, -1, -1.5], [0.004, -1, -8], [0.004, 1, -8],
                                          [0.004, 1, -1.5]]}]}
