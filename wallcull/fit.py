@@ -715,8 +715,7 @@ class MirrorSight:
         if mirror.polygon is not None:
             # the pyramid through the outline from each reflected eye that sees the mirror
             # (a stereo frame's eye behind its plane sees nothing in it)
-            seeing = eyes[sees] if len(eyes) > 1 else eyes
-            outline.append(_pyramid([mirror.reflection @ np.append(e, 1.0) for e in seeing],
+            outline.append(_pyramid([mirror.reflection @ np.append(e, 1.0) for e in eyes[sees]],
                                     mirror.polygon))
         return cls(mirror, np.concatenate(outline))
 
