@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from _cli import count  # beside this file
+from wallcull_clients.driver import ipd
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -90,12 +91,8 @@ def main() -> None:
     p.add_argument("--occlusion", choices=("on", "auto"))
     p.add_argument("--wall", default=str(ROOT / "examples" / "wall-8x8.json"))
     p.add_argument("--scene", default="powerplant")
-    p.add_argument("--stereo", type=float, help="interpupillary distance, m: stereo frames")
+    p.add_argument("--stereo", type=ipd, help="interpupillary distance, m: stereo frames")
     args = p.parse_args()
-    from wallcull.documents import MAX_IPD
-
-    if args.stereo is not None and not 0 < args.stereo <= MAX_IPD:
-        p.error(f"--stereo is an interpupillary distance over 0 and at most {MAX_IPD:g} m")
     if args.stage == "occlude" and not args.occlusion:
         p.error("--stage occlude needs --occlusion on or auto (without it nothing is timed)")
     settings = None
@@ -122,8 +119,7 @@ def main() -> None:
             times[which].append(sum(v for n, v in timings.items() if n.endswith("_ms"))
                                 if args.stage == "total" else timings.get(key, 0.0))
             if args.stage == "fit":
-                mirrored[which] += sum(len(m["visible"]) for t in range(len(result.fits))
-                                       for m in result.fits[t].get("mirrors", []))
+                mirrored[which] += sum(len(m.visible) for m in result.fits.mirrors)
     base, new = np.array(times[0]), np.array(times[1])
     ran = (base > 0) & (new > 0)  # a stage skipped on a frame (occlusion's auto) is no pair
     if not ran.any():

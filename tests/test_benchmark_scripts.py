@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
     ("numpy_frontier.py", ["nosuchscene"], "unknown scene 'nosuchscene'"),
     ("paired.py", ["HEAD", "--stage", "occlude"], "--stage occlude needs --occlusion"),
     ("paired.py", ["nosuchrev", "--frames", "5"], "unknown revision 'nosuchrev'"),
-    ("paired.py", ["HEAD", "--stereo", "2"], "--stereo is an interpupillary distance"),
+    ("paired.py", ["HEAD", "--stereo", "2"], "an interpupillary distance is over 0 and at most"),
     ("nats_fanout.py", ["examples/wall-4x4.json", "abc"], "not a whole number: 'abc'"),
     ("nats_fanout.py", ["examples/wall-4x4.json", "0", "10"], "must be at least 1, got 0"),
     ("nats_fanout.py", ["examples/wall-4x4.json", "4", "0"], "must be 1 to 600, got 0"),
