@@ -450,8 +450,11 @@ def _blob_bytes(blob: MeshBlob) -> int:
 
 
 def mesh_blob(scene: Scene, key: str) -> MeshBlob:
-    """Mesh ``key`` of a scene as typed arrays (little-endian float32 vertices, uint32 faces),
-    its ETag the hash of those bytes. Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
+    """Mesh ``key`` of a scene as typed arrays (little-endian float32 vertices, uint32 faces)
+    and ``double_sided``: false for a glTF mesh whose material is not ``doubleSided``
+    (:attr:`MeshTable.single_sided <wallcull.instances.MeshTable>`), whose back faces a render
+    node may cull; its ETag the hash of those bytes and the flag (an answer is cached for a
+    year: one that changes sides must change its ETag). Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
     per scene, least recently served dropped first: a scene of many distinct meshes is never
     held in memory whole."""
     cache = _mesh_cache(scene)
@@ -462,11 +465,14 @@ def mesh_blob(scene: Scene, key: str) -> MeshBlob:
             return found
     if key not in scene.meshes:
         raise NotFound(f"no mesh {key!r} in scene {scene.name!r}")
-    v, f = scene.meshes[key]
+    number = scene.meshes.index[key]
+    v, f = scene.meshes.mesh(number)
+    double = not bool(scene.meshes.single_sided[number])
     vb = np.ascontiguousarray(v, dtype="<f4").tobytes()
     fb = np.ascontiguousarray(f, dtype="<u4").tobytes()
-    etag = '"' + hashlib.sha256(vb + b"|" + fb).hexdigest()[:32] + '"'
-    blob = MeshBlob({"mesh": key,
+    sides = b"|double" if double else b"|single"
+    etag = '"' + hashlib.sha256(vb + b"|" + fb + sides).hexdigest()[:32] + '"'
+    blob = MeshBlob({"mesh": key, "double_sided": double,
                      "vertices": {"dtype": "<f4", "shape": [len(v), 3], "data": vb},
                      "faces": {"dtype": "<u4", "shape": [len(f), 3], "data": fb}}, etag)
     with cache.lock:

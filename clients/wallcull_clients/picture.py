@@ -41,7 +41,8 @@ def wall_picture(scene_spec: str, wall: Wall, frame_index: int = 30, path: str =
         for leaf in result.visibility.tile_leaves(t):
             key = scene.geometry[leaf]
             if key not in uploaded:
-                renderer.upload(key, *scene.leaf_mesh(leaf))
+                renderer.upload(key, *scene.leaf_mesh(leaf),  # (glTF's sides, as a node)
+                                single_sided=bool(scene.meshes.single_sided[scene.mesh_of[leaf]]))
                 uploaded.add(key)
             draws.append((key, scene.world[leaf], int(leaf) + 1, ranges.get(int(leaf))))
         fit = result.fits[t]

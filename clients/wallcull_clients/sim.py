@@ -15,7 +15,8 @@ A :class:`TileClient` plays one render node of the wall. Every frame it
    gone, sends ``{"full": true}`` so its next packet is full);
 3. "draws": makes sure every mesh its leaves use is in its cache (fetching the missing ones),
    then counts the triangles, or with ``renderer`` draws them with
-   :class:`clients.render.TileRenderer` using the packet's view and projection;
+   :class:`clients.render.TileRenderer` using the packet's view and projection (the back faces
+   of the meshes the mesh route says are not ``double_sided`` culled, as glTF asks);
 4. acknowledges the frame (``{"ack": n}`` on the stream, ``POST .../ack`` when pulling).
 
 Geometry: the scene description (``GET /scenes/{name}?nodes=true``: every leaf's id, mesh key
@@ -171,6 +172,9 @@ class Mesh:
     etag: str | None
     vertices: np.ndarray  # (v, 3) float32
     faces: np.ndarray  # (f, 3) uint32
+    #: False: a single-sided glTF mesh, drawn with its back faces culled (the mesh route's
+    #: ``double_sided``; a server that does not send it means both faces)
+    double_sided: bool = True
 
     @property
     def nbytes(self) -> int:
@@ -190,7 +194,8 @@ def decode_mesh(body: dict, etag: str | None) -> Mesh:
             data = base64.b64decode(data)
         return np.frombuffer(data, dtype=part["dtype"]).reshape(part["shape"])
 
-    return Mesh(body["mesh"], etag, array(body["vertices"]), array(body["faces"]))
+    return Mesh(body["mesh"], etag, array(body["vertices"]), array(body["faces"]),
+                bool(body.get("double_sided", True)))
 
 
 class MeshCache:
@@ -563,7 +568,7 @@ class TileClient:
         self.cache.put(mesh)
         self.triangles_of[number] = mesh.triangles
         for renderer in self.renderers.values():
-            renderer.upload(key, mesh.vertices, mesh.faces)
+            renderer.upload(key, mesh.vertices, mesh.faces, single_sided=not mesh.double_sided)
         return mesh
 
     # ------------------------------------------------------------------ acknowledging

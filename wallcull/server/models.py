@@ -196,6 +196,33 @@ class Barrier(BaseModel):
     complete: bool
 
 
+class TypedArray(BaseModel):
+    """A little-endian typed array: its bytes, base64 in JSON, binary in msgpack."""
+
+    dtype: Literal["<f4", "<u4"]
+    shape: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=2, max_length=2)]
+    data: Annotated[str, Field(description="the array's bytes, row by row: base64 in JSON, "
+                                           "binary (bin) in msgpack")]
+
+
+class MeshAnswer(BaseModel):
+    """A mesh as the mesh routes serve it, in its own local coordinates: float32 vertices
+    ``(v, 3)``, uint32 faces ``(f, 3)``, each face's corners counter-clockwise seen from its
+    front, and which faces a render node draws. Cached a year by its ETag, which covers the
+    arrays and ``double_sided``."""
+
+    mesh: Annotated[str, Field(description="the mesh's key (the node table's `mesh`)")]
+    double_sided: Annotated[bool, Field(description=(
+        "false for a glTF mesh whose material is not `doubleSided` (glTF's default, and a "
+        "primitive of no material): a render node may cull its back faces, as glTF asks "
+        "(front faces wind counter-clockwise; clockwise where the leaf's world transform "
+        "mirrors, determinant < 0). True for every other mesh (OBJ and the other formats say "
+        "nothing of sides): draw both faces. An answer without it (a server before it was "
+        "served) means true"))]
+    vertices: TypedArray
+    faces: TypedArray
+
+
 class Detail(BaseModel):
     """Every refusal: a status and one line saying what is wrong."""
 

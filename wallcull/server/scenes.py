@@ -20,7 +20,7 @@ from ..service import NotFound, describe, mesh_blob
 from .access import needs
 from .deps import State
 from .http import Refused, encode_in_pieces, holds, mesh_reply, reply
-from .models import BUSY, SCENE_NAME, UNWRITABLE, refusals, worded
+from .models import BUSY, SCENE_NAME, UNWRITABLE, MeshAnswer, refusals, worded
 
 router = APIRouter(tags=["scenes"])
 
@@ -128,17 +128,18 @@ def _encode_table(scene, binary: bool) -> tuple[bytes, str]:
     return body, '"' + hashlib.blake2b(body, digest_size=16).hexdigest() + '"'
 
 
-@router.get("/scenes/{name}/meshes/{key}", operation_id="getMesh",
+@router.get("/scenes/{name}/meshes/{key}", operation_id="getMesh", response_model=MeshAnswer,
             responses=refusals(304, 404, UNWRITABLE))
 async def mesh(request: Request, state: State, name: SceneName,
                key: Annotated[str, Path(max_length=1024)]):
-    """A mesh as typed arrays (little-endian float32 vertices, uint32 faces); cache it by
-    its ETag."""
+    """A mesh as typed arrays (little-endian float32 vertices, uint32 faces) and whether a
+    render node draws both its faces (``double_sided``: false for a single-sided glTF mesh,
+    whose back faces it may cull); cache it by its ETag, which covers both."""
     return mesh_reply(request, mesh_blob(await state.store.get(name), key))
 
 
 @router.get("/scenes/{name}/nodes/{node}/mesh", operation_id="getNodeMesh",
-            responses=refusals(304, 404, UNWRITABLE))
+            response_model=MeshAnswer, responses=refusals(304, 404, UNWRITABLE))
 async def node_mesh(request: Request, state: State, name: SceneName,
                     node: Annotated[int, Path(ge=0, le=2**31)]):
     """The mesh of a leaf node, in the node's local coordinates (see ``nodes=true``)."""

@@ -271,9 +271,12 @@ function dropScene(s) {  // its meshes off the GPU
 }
 
 async function fetchMesh(s, m) {  // a mesh by number, as float32 about its centre (as render.py)
+  // and whether its back faces are culled (single: the server says it is not double_sided, a
+  // single-sided glTF mesh; a server that does not say means both faces)
   const key = s.keys[m];
   const url = `${cfg.root}/scenes/${encodeURIComponent(s.name)}/meshes/${encodeURIComponent(key)}`;
   const body = await getJSON(url, s.cache);
+  const single = body.double_sided === false;
   const v = new Float32Array(bytes(body.vertices.data)), faces = new Uint32Array(bytes(body.faces.data));
   const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
   for (let i = 0; i < v.length; i++) {
@@ -282,10 +285,10 @@ async function fetchMesh(s, m) {  // a mesh by number, as float32 about its cent
   }
   const center = v.length ? lo.map((x, k) => (x + hi[k]) / 2) : [0, 0, 0];
   for (let i = 0; i < v.length; i++) v[i] -= center[i % 3];
-  return { v, faces, center };
+  return { v, faces, center, single };
 }
 
-function upload({ v, faces, center }) {
+function upload({ v, faces, center, single }) {
   const vao = gl.createVertexArray(), buffers = [gl.createBuffer(), gl.createBuffer()];
   gl.bindVertexArray(vao);
   gl.bindBuffer(gl.ARRAY_BUFFER, buffers[0]);
@@ -298,7 +301,12 @@ function upload({ v, faces, center }) {
   const shift = new Float64Array(16);
   shift[0] = shift[5] = shift[10] = shift[15] = 1;
   [shift[3], shift[7], shift[11]] = center;
-  return { vao, buffers, count: faces.length, shift };
+  return { vao, buffers, count: faces.length, shift, single };
+}
+
+function det3(m) {  // the determinant of a row-major 4x4 matrix's upper 3x3
+  return m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) +
+    m[2] * (m[4] * m[9] - m[5] * m[8]);
 }
 
 async function load() {
@@ -403,6 +411,13 @@ function drawTile(prog, frame, entry, x, y, w, h) {
       const g = s.ready.get(m);
       if (!g.count) continue;
       const mv = mul(eye.view, mul(s.world.subarray(16 * leaf, 16 * leaf + 16), g.shift));
+      if (g.single) {  // back faces culled; its front winds clockwise where its placement mirrors
+        gl.enable(gl.CULL_FACE);
+        gl.cullFace(gl.BACK);
+        gl.frontFace(det3(mv) < 0 ? gl.CW : gl.CCW);
+      } else {
+        gl.disable(gl.CULL_FACE);
+      }
       gl.uniformMatrix4fv(prog.u.mvp, true, Float32Array.from(mul(projection, mv)));
       if (prog.u.mv) gl.uniformMatrix4fv(prog.u.mv, true, Float32Array.from(mv));
       if (prog.u.color) gl.uniform3fv(prog.u.color, drawColor(leaf + 1));
@@ -446,6 +461,7 @@ function draw(frame) {
   }
   gl.bindFramebuffer(gl.FRAMEBUFFER, null);
   gl.bindVertexArray(null);
+  gl.disable(gl.CULL_FACE);
 }
 
 function readIds(tile, base64 = false) {
