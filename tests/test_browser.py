@@ -190,7 +190,8 @@ def browser_ids(page, tile: int) -> np.ndarray:
 class Reference:
     """``clients.render`` drawing what the server says a tile shows: its full packet's list and
     matrices (``GET .../packets/{n}?full=true``, which acknowledges nothing), the scene's
-    meshes as the mesh route serves them, leaf ``i`` drawn with id ``i + 1``."""
+    meshes as the mesh route serves them (those not ``double_sided`` with their back faces
+    culled), leaf ``i`` drawn with id ``i + 1``."""
 
     def __init__(self, http, scene: str):
         from wallcull_clients.render import TileRenderer
@@ -218,7 +219,8 @@ class Reference:
         if (width, height) not in self.renderers:
             renderer = self.renderers[width, height] = self.TileRenderer(width, height)
             for key, mesh in self.meshes.items():
-                renderer.upload(key, mesh.vertices, mesh.faces)
+                renderer.upload(key, mesh.vertices, mesh.faces,
+                                single_sided=not mesh.double_sided)
         part = pkt if eye is None else pkt[eye]
         world = self.world.copy()
         moved = pkt.get("transforms")  # a full packet's: every moved leaf it lists
@@ -538,6 +540,66 @@ def test_tiles_apart_on_the_grid_are_drawn_side_by_side(server, http, browser, b
             for (let i = 0; i < px.length; i += 4) if (!px[i] && !px[i + 1] && !px[i + 2]) n++;
             return n / (c.width * c.height); }""")
         assert black == 0, f"{black:.1%} of the canvas is black"
+        assert page.wallcull_errors == []
+    finally:
+        page.close()
+        http.delete(f"/walls/{wid}", headers=AUTH)
+
+
+def quads_glb() -> bytes:
+    """Three 2 x 2 quads 6 m before the viewer, a sphere 3 m behind each (as seen): ``away`` single-sided
+    and turned away, ``both`` double-sided and turned away, ``mirrored`` single-sided, placed
+    by a mirroring matrix (x flipped: its front, wound clockwise on the image, faces the
+    viewer, as glTF reads a placement of negative determinant)."""
+    import trimesh
+
+    def quad(double):
+        return trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]],
+                               [[0, 1, 2], [0, 2, 3]], process=False, visual=
+                               trimesh.visual.TextureVisuals(material=trimesh.visual.material
+                                                             .PBRMaterial(doubleSided=double)))
+
+    scene = trimesh.Scene()
+    turned = np.diag([-1.0, 1.0, -1.0, 1.0])  # half a turn about y
+    for name, x, double, m in (("away", -3, False, turned), ("both", 0, True, turned),
+                               ("mirrored", 3, False, np.diag([-1.0, 1.0, 1.0, 1.0]))):
+        m = m.copy()
+        m[:3, 3] = [x, 0, -6]
+        scene.add_geometry(quad(double), node_name=name, geom_name=name, transform=m)
+        at = np.eye(4)
+        at[:3, 3] = [1.5 * x, 0, -9]  # (behind the quad as the viewer sees it)
+        scene.add_geometry(trimesh.creation.icosphere(2, 0.8), node_name=f"{name}-behind",
+                           geom_name="sphere", transform=at)
+    return scene.export(file_type="glb")
+
+
+def test_single_sided_meshes_are_drawn_with_their_front_faces_alone(server, http, browser,
+                                                                     references):
+    """The page culls the back faces of the meshes the mesh route says are not
+    ``double_sided``, the front by the placement's determinant, as ``clients.render`` does:
+    the single-sided quad turned away is not drawn and its sphere shows; the double-sided one
+    hides its sphere; the mirrored single-sided quad faces the viewer and hides its sphere."""
+    r = http.post("/scenes?name=quads", content=quads_glb(),
+                  headers={**AUTH, "Content-Type": "model/gltf-binary"})
+    assert r.status_code == 201, r.text
+    scene = r.json()["name"]
+    ref = references(scene)
+    assert {k: ref.meshes[k].double_sided for k in ("away", "both", "mirrored")} == {
+        "away": False, "both": True, "mirrored": False}
+    one = {"cols": 1, "rows": 1, "tile_size": [1.6, 0.9], "distance": 1.0,
+           "resolution": [320, 180]}
+    info = create_wall(http, one, scene=scene)
+    wid, token = info["id"], info["credentials"]["nodes"][0]["token"]
+    page = open_page(browser, f"{server}/walls/{wid}/view?token={token}&ids=1&size=320x180")
+    try:
+        number = post(http, wid, {"position": [0, 0, 0], "orientation": [1, 0, 0, 0]})
+        wait_acked(page, number)
+        ids = browser_ids(page, 0)
+        want = ref.ids(ref.packet(wid, 0, number), 320, 180)
+        assert agreement(ids, want) >= AGREE
+        for drawn in (ids, want):
+            seen = {ref.names[i - 1] for i in np.unique(drawn) if i}
+            assert seen == {"away-behind", "both", "mirrored"}, seen
         assert page.wallcull_errors == []
     finally:
         page.close()
