@@ -454,9 +454,9 @@ def mesh_blob(scene: Scene, key: str) -> MeshBlob:
     and ``double_sided``: false for a glTF mesh whose material is not ``doubleSided``
     (:attr:`MeshTable.single_sided <wallcull.instances.MeshTable>`), whose back faces a render
     node may cull; its ETag the hash of those bytes and the flag (an answer is cached for a
-    year: one that changes sides must change its ETag). Encoded meshes are kept up to :data:`MESH_CACHE_BYTES`
-    per scene, least recently served dropped first: a scene of many distinct meshes is never
-    held in memory whole."""
+    year: one that changes sides must change its ETag). Encoded meshes are kept up to
+    :data:`MESH_CACHE_BYTES` per scene, least recently served dropped first: a scene of many
+    distinct meshes is never held in memory whole."""
     cache = _mesh_cache(scene)
     with cache.lock:
         found = cache.blobs.get(key)
