@@ -110,6 +110,22 @@ def clip_triangles(tris: np.ndarray, planes: np.ndarray) -> np.ndarray:
     Sutherland-Hodgman, vectorized over triangles: polygons are padded to a fixed vertex count.
     A part that survives is non-empty: a polygon with at least one vertex inside every plane.
     """
+    return _clipped(tris, planes)[1] > 0
+
+
+def clipped_depths(tris: np.ndarray, planes: np.ndarray, axis: np.ndarray,
+                   origin: np.ndarray) -> np.ndarray:
+    """Per triangle ``(k, 3, 3)``, the least depth along ``axis`` from ``origin`` of its part
+    within ``planes`` (the polygon :func:`clip_triangles` clips; ``inf`` where none is left)."""
+    poly, count = _clipped(tris, planes)
+    depth = (poly - origin) @ np.asarray(axis, float)
+    depth[np.arange(poly.shape[1])[None, :] >= count[:, None]] = np.inf
+    return depth.min(axis=1) if len(depth) else np.zeros(0)
+
+
+def _clipped(tris: np.ndarray, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The polygons ``(k, 3 + p, 3)`` left of the triangles by the ``p`` planes, and their
+    vertex counts."""
     k = len(tris)
     cap = 3 + len(planes)
     poly = np.zeros((k, cap, 3))
@@ -134,7 +150,7 @@ def clip_triangles(tris: np.ndarray, planes: np.ndarray) -> np.ndarray:
         out = np.take_along_axis(out, order[:, :, None], axis=1)[:, :cap]
         count = np.minimum(keep.sum(axis=1), cap)
         poly = out
-    return count > 0
+    return poly, count
 
 
 def triangles_meet(tris: np.ndarray, planes: np.ndarray) -> bool:
