@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings as hsettings, strategies as 
 from wallcull import fit as fitmod
 from wallcull.fit import FitOptions, tile_projections
 from wallcull.projection import view_matrix
-from wallcull.oracle import clip_triangles, tile_frusta
+from wallcull.oracle import clip_triangles, clipped_depths, tile_frusta
 from wallcull.pipeline import Session
 from wallcull.projection import frustum_planes, tile_view_projection
 from wallcull.scene import Scene
@@ -559,11 +559,12 @@ def test_a_mirror_between_the_eyes_is_seen_by_the_eye_before_it():
 def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
     """The shadow pass's caster cull (``fit._cull_casters``: each region's leaves and nearest
     caster worked out as each node is listed) gives what the ``oh`` kernel's pairs, expanded
-    to leaves (``cull._expand``) and their depths taken (``cull._depth_ranges``), give: the
-    same leaves in the same order, the same nearest depths to the bit, NaN for a region that
-    lists nothing; and -1 when its output cannot hold them. A cube map's region gets instead
-    a lower bound of its casters' least Chebyshev distance from the light, between their
-    leaves' boxes' and their vertices'."""
+    to leaves (``cull._expand``), give: the same leaves in the same order, and -1 when its
+    output cannot hold them. A frustum's region gets the least depth along its axis of its
+    listed leaves' triangles clipped to it (``oracle.clipped_depths``), at or past the least
+    its listed bounds reach (``cull._depth_ranges``), NaN for a region that lists nothing.
+    A cube map's region gets instead a lower bound of its casters' least Chebyshev distance
+    from the light, between their leaves' boxes' and their vertices'."""
     from wallcull.cull import _depth_ranges, _expand, _oh, packed, stack_depth
     from wallcull.projection import frustum, look_at
 
@@ -578,15 +579,18 @@ def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
     kind = np.full(count, fitmod.FRUSTUM)
     kind[rng.integers(1, count)] = fitmod.CUBE  # the cube around the light
     pv, far = np.zeros((count, 4, 4)), rng.uniform(1, 4 * reach + 2, count)
+    forward = rng.normal(size=(count, 3))  # (a cube map's: any)
+    forward /= np.linalg.norm(forward, axis=1, keepdims=True)
     for k in range(count):  # region 0 looks away from the scene: it lists nothing
         target = box[rng.integers(len(box)), :3] + rng.normal(size=3) if k \
             else 2 * light - box[0, :3]
         w, h = rng.uniform(0.05, 1.5, 2) if k else (0.1, 0.1)
-        pv[k] = frustum(-w, w, -h, h, 0.1, far[k]) @ look_at(light, target)
+        view = look_at(light, target)
+        pv[k] = frustum(-w, w, -h, h, 0.1, far[k]) @ view
+        if kind[k] == fitmod.FRUSTUM:
+            forward[k] = -view[2, :3]
     lit = np.arange(count)
     planes, regions, sizes = fitmod._caster_regions(pv, kind, lit, far, light)
-    forward = rng.normal(size=(count, 3))
-    forward /= np.linalg.norm(forward, axis=1, keepdims=True)
     stack = stack_depth(state)
     leaf_start, leaf_count = scene.leaf_range
     tree = (scene.child_start, scene.leaf_child_count, scene.children)
@@ -603,15 +607,28 @@ def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
 
     cubes = kind == fitmod.CUBE
     faces = fitmod._faces(state)
+    work = (*fitmod._region_shapes(planes, regions, sizes, forward, cubes, light),
+            np.empty(stack), np.empty(len(box), np.int64), np.empty(len(box)),
+            np.empty((2, fitmod._POLYGON, 3)))
     out, nearest, starts = np.empty(1 << 16, np.int64), np.where(cubes, np.inf, np.nan), \
         np.zeros(count + 1, np.int64)
     written = fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, cubes, faces,
-                                   light, *lists, np.empty(stack, np.int64),
+                                   work, light, *lists, np.empty(stack, np.int64),
                                    np.empty(stack, np.int64), out, nearest, starts)
     assert written == len(leaves) > 0
     assert np.array_equal(out[:written], leaves) and np.array_equal(starts, first)
-    assert np.array_equal(nearest[~cubes], lo[~cubes], equal_nan=True)
-    assert np.isnan(nearest[0]) and not np.isnan(nearest).all()  # none behind the light
+    assert np.isnan(nearest[0]) and np.isnan(lo[0])  # none behind the light
+    for q in np.flatnonzero(~cubes):
+        listed = leaves[first[q]:first[q + 1]]
+        tris = np.concatenate([np.zeros((0, 3, 3))]
+                              + [scene.leaf_triangles(leaf) for leaf in listed])
+        least = clipped_depths(tris, planes[regions[q, :sizes[q]]], forward[q], light).min() \
+            if len(tris) else np.inf
+        if least == np.inf:
+            assert np.isnan(nearest[q])
+        else:
+            assert lo[q] <= nearest[q] == pytest.approx(least, rel=1e-12, abs=1e-12)
+    assert not np.isnan(nearest[~cubes]).all()
     (q,) = np.flatnonzero(cubes)
     listed = leaves[first[q]:first[q + 1]]
     if len(listed):
@@ -624,7 +641,7 @@ def test_caster_cull_lists_what_the_oh_kernel_its_leaves_and_depths_give(seed):
     else:
         assert nearest[q] == np.inf
     assert fitmod._cull_casters(*tree, box, planes, regions, sizes, forward, cubes, faces,
-                                light, *lists, np.empty(stack, np.int64),
+                                work, light, *lists, np.empty(stack, np.int64),
                                 np.empty(stack, np.int64), out[:written - 1], nearest,
                                 starts) == -1
 
@@ -658,3 +675,242 @@ def test_a_triangles_chebyshev_distance_is_its_samples_least(seed):
         assert least - step <= max(got, 0.0) <= least * (1 + 1e-12), (k, got, least)
         if k % 10 == 3 and (np.abs(samples[:, 1:]).max(axis=1) <= abs(t[0, 0])).any():
             assert got == pytest.approx(abs(t[0, 0]), rel=1e-12)  # facing the light
+
+
+def _frustum_regions(rng, light, count, far=50.0):
+    """``count`` random frustum caster regions from ``light`` (off-axis, some skewed, as a
+    Low-Ilie projection is): ``(planes, regions, sizes, forward, rel, corners, spread)``."""
+    from wallcull.projection import frustum, look_at
+
+    pv, forward = np.zeros((count, 4, 4)), np.zeros((count, 3))
+    for k in range(count):
+        view = look_at(light, light + rng.normal(size=3), rng.normal(size=3))
+        w, h = rng.uniform(0.05, 2.5, 2)
+        x, y = rng.uniform(-1, 1, 2) * (w, h)
+        proj = frustum(x - w, x + w, y - h, y + h, 0.1, far)
+        if k % 2:
+            proj[0, 1] = rng.normal() * 0.5  # skew
+        pv[k] = proj @ view
+        forward[k] = -view[2, :3]
+    kind, lit = np.full(count, fitmod.FRUSTUM), np.arange(count)
+    planes, regions, sizes = fitmod._caster_regions(pv, kind, lit, np.full(count, far), light)
+    shapes = fitmod._region_shapes(planes, regions, sizes, forward, np.zeros(count, bool),
+                                   light)
+    return (planes, regions, sizes, forward, *shapes)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_triangles_clipped_depth_is_its_clipped_polygons_least(seed):
+    """``fit._clipped_below`` (how near a frustum's near plane may come to a caster's
+    triangle) against the least depth of the triangle clipped to the region by numpy
+    (``oracle.clipped_depths``, Sutherland-Hodgman) and against dense samples of it: random
+    triangles around the light, wholly within a region, crossing its side or far planes,
+    reaching behind the light's plane outside the frustum, or wholly outside one plane. Equal
+    to the clipped polygon's least depth to rounding, never above the least of the samples
+    within the region, the least given when that is nearer, and nothing for a triangle that
+    keeps no part."""
+    rng = np.random.default_rng(seed)
+    light = rng.normal(size=3) * 100
+    planes, regions, sizes, forward, rel, corners, spread = _frustum_regions(rng, light, 6)
+    assert (spread > 0).all()
+    poly = np.empty((2, fitmod._POLYGON, 3))
+    g = np.linspace(0, 1, 81)
+    u, v = np.meshgrid(g, g)
+    keep = u + v <= 1
+    u, v = u[keep], v[keep]
+    seen = {"inside": 0, "cut": 0, "none": 0, "behind": 0}
+    for k in range(600):
+        q = k % 6
+        ids = regions[q, :sizes[q]]
+        scale = 10.0 ** rng.uniform(-1, 1.5)
+        if k % 4 == 0:  # within the region: corners along random rays inside it
+            w = rng.dirichlet(np.ones(4), size=3)
+            t = light + (w @ corners[q]) * rng.uniform(0.1, 40, (3, 1))
+        elif k % 4 == 1:  # across the light's plane, beside the frustum
+            side = np.cross(forward[q], rng.normal(size=3))
+            t = light + side / np.linalg.norm(side) * rng.uniform(1, 3) * scale \
+                + np.outer([-1, 0.5, 2], forward[q]) * scale + rng.normal(size=(3, 3)) * scale
+        else:
+            t = light + forward[q] * rng.uniform(-5, 60) + rng.normal(size=(3, 3)) * scale
+        ref = clipped_depths(t[None], planes[ids], forward[q], light)[0]
+        got = fitmod._clipped_below(*(t - light).ravel(), *forward[q], rel, regions[q],
+                                    sizes[q], np.inf, poly)
+        dist = t @ planes[ids, :3].T + planes[ids, 3]
+        if not np.isfinite(ref):
+            assert got == np.inf, (k, got)
+            seen["none"] += 1
+            continue
+        span = np.abs(t - light).max() + 1
+        assert got == pytest.approx(ref, abs=1e-12 * span), (k, got, ref)
+        seen["inside" if (dist >= 0).all() else "cut"] += 1
+        seen["behind"] += bool(((t - light) @ forward[q] < 0).any())
+        samples = t[0] + u[:, None] * (t[1] - t[0]) + v[:, None] * (t[2] - t[0])
+        within = (samples @ planes[ids, :3].T + planes[ids, 3] >= 0).all(axis=1)
+        if within.any():
+            assert got <= ((samples[within] - light) @ forward[q]).min() + 1e-12 * span
+        assert fitmod._clipped_below(*(t - light).ravel(), *forward[q], rel, regions[q],
+                                     sizes[q], got - 1, poly) == got - 1
+        assert fitmod._clipped_below(*(t - light).ravel(), *forward[q], rel, regions[q],
+                                     sizes[q], got + 1, poly) == got
+    assert min(seen.values()) >= 20, seen
+
+
+def _packed_boxes(rng, count, around, scale):
+    """``count`` random bound records (``cull.pack``'s layout: centre, ball, three half-axis
+    vectors, sphere) of oriented boxes near ``around``, some swept by a ball, some flat."""
+    from scipy.spatial.transform import Rotation
+
+    box = np.zeros((count, 14))
+    box[:, :3] = around + rng.normal(size=(count, 3)) * scale
+    half = rng.uniform(0.01, 1, (count, 3)) * scale * rng.uniform(0.1, 3, (count, 1))
+    half[::7, 2] = 0  # flat
+    axes = Rotation.random(count, random_state=rng).as_matrix().transpose(0, 2, 1) \
+        * half[:, :, None]
+    axes[::3] = np.eye(3) * half[::3, :, None]  # along the world's axes
+    box[:, 4:13] = axes.reshape(count, 9)
+    box[1::4, 3] = rng.uniform(0, 0.3, len(box[1::4])) * scale
+    box[:, 13] = np.linalg.norm(half, axis=1) + box[:, 3]
+    return box, axes
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_boxs_depth_floor_in_a_region_is_below_its_points_there(seed):
+    """``fit._region_floor`` (a node is opened for its triangles only where it comes below
+    the nearest so far) never lies above the depth of a point of the box within the region
+    (dense samples of each random box, swept or flat, within a random frustum region), and
+    for a tall slab beside a frustum, reaching past the light's plane, it comes far above the
+    box's depth less its reach (which is below zero): its part within the region lies where
+    the region has grown to meet it."""
+    rng = np.random.default_rng(seed)
+    light = rng.normal(size=3) * 50
+    planes, regions, sizes, forward, rel, corners, spread = _frustum_regions(rng, light, 6)
+    box, axes = _packed_boxes(rng, 400, light, 8.0)
+    unit = rng.uniform(-1, 1, (4000, 3))
+    ball = rng.normal(size=(4000, 3))
+    ball *= (rng.uniform(0, 1, (4000, 1)) ** (1 / 3)) / np.linalg.norm(ball, axis=1)[:, None]
+    met = 0
+    for i in range(len(box)):
+        points = box[i, :3] + unit @ axes[i] + ball * box[i, 3]
+        for q in range(6):
+            ids = regions[q, :sizes[q]]
+            floor = fitmod._region_floor(box, i, light, *forward[q], corners, q, spread[q])
+            depth, r = fitmod._along(box, i, *forward[q], *light)
+            assert floor >= depth - r
+            within = (points @ planes[ids, :3].T + planes[ids, 3] >= 0).all(axis=1)
+            if within.any():
+                met += 1
+                least = ((points[within] - light) @ forward[q]).min()
+                assert floor <= least + 1e-9 * (1 + abs(least)), (i, q, floor, least)
+    assert met > 100
+    # a wide thin slab beside region 0, from behind the light's plane to 30 deep, meeting the
+    # region only about 20 deep: the floor is within a hundredth of its points' there
+    q, f = 0, forward[0]
+    side = corners[0, 0] - f  # toward the left and bottom corner (at right angles to f)
+    reach = np.linalg.norm(side)
+    side /= reach
+    slab = np.zeros((1, 14))
+    slab[0, :3] = light + f * 12 + side * reach * 20
+    slab[0, 4:7], slab[0, 7:10], slab[0, 10:13] = f * 18, side * 0.01, np.cross(f, side) * 50
+    floor = fitmod._region_floor(slab, 0, light, *f, corners, q, spread[q])
+    depth, r = fitmod._along(slab, 0, *f, *light)
+    shape = np.eye(4)
+    shape[:3, :3], shape[:3, 3] = slab[0, 4:13].reshape(3, 3).T * 2, slab[0, :3]
+    tris = trimesh.creation.box(extents=[1, 1, 1], transform=shape).triangles
+    least = clipped_depths(tris, planes[regions[q, :sizes[q]]], f, light).min()
+    assert depth - r < 0 < 0.99 * least <= floor <= least * (1 + 1e-12)
+
+
+def test_a_frustums_near_plane_comes_to_its_nearest_casters_part_within_it():
+    """A lamp 20 m over a ground patch that a tile sees from above (a Low-Ilie frustum), a
+    crate hanging 8 m under the lamp within that frustum, and a tall thin pole beside the
+    patch, reaching 5 m over the lamp: only the foot of the pole lies within the frustum, 17 m
+    under the lamp. The frustum's near plane comes just under the crate's nearest corner (a
+    millionth nearer), not to the floor (a millionth of its far distance): the pole's bound
+    reaches behind the lamp's plane, and the near plane came from the casters' bounds. No
+    caster's triangle keeps a part within the frustum nearer than its near plane."""
+    s = boxes({"patch": ([6, 0.1, 6], [0, -0.05, -10]), "crate": ([1, 1, 1], [0, 12, -4]),
+               "pole": ([0.2, 25, 2], [2.5, 12.5, -10])})
+    lamp = np.array([0.0, 20.0, 0.0])
+    scene = Scene.from_trimesh(s, hierarchy="file",
+                               settings={"lights": [{"name": "lamp", "position": list(lamp)}]})
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [0.4, 0.4], "distance": 1.0,
+                           "resolution": [64, 64]})
+    frame = {"position": [0, 6, -10], "orientation": [0.7071068, -0.7071068, 0, 0]}
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    assert result.visibility.names(0) == ["patch"]
+    (shadow,) = result.fits[0]["shadows"]
+    assert not shadow.get("cube")
+    assert {scene.names[i] for i in shadow["casters"]} == {"patch", "crate", "pole"}
+    view, projection = np.asarray(shadow["view"]), np.asarray(shadow["projection"])
+    pv = projection @ view
+    planes = np.array([pv[3] + pv[0], pv[3] - pv[0], pv[3] + pv[1], pv[3] - pv[1],
+                       pv[3] - pv[2]])
+    forward = -view[2, :3]
+    crate = scene.leaf_vertices(scene.index["crate"])
+    assert (crate @ planes[:, :3].T + planes[:, 3] > 0).all()  # wholly within the frustum
+    nearest = ((crate - lamp) @ forward).min()
+    near, far = shadow["near"], shadow["far"]
+    assert near == pytest.approx(nearest * (1 - 1e-6), rel=1e-12)
+    assert near > 1000 * far * fitmod.NEAR_FLOOR
+    for leaf in shadow["casters"]:
+        least = clipped_depths(scene.leaf_triangles(leaf), planes, forward, lamp).min()
+        assert near <= least, scene.names[leaf]
+    pole = clipped_depths(scene.leaf_triangles(scene.index["pole"]), planes, forward, lamp)
+    assert 15 < pole.min() < np.inf
+
+
+@pytest.mark.parametrize("lights", ["powerplant-lights.json", "powerplant-lights3.json"])
+def test_frustums_near_planes_come_to_their_casters_clipped_triangles(lights):
+    """Over frames of the power plant (orbit and fly, its example lamp and its three lights),
+    every Low-Ilie frustum's near plane lies at the least depth of its casters' triangles
+    clipped to the frustum (``oracle.clipped_depths``, numpy), a millionth nearer; at the
+    floor (a millionth of its far distance) only where that least depth lies under it, and
+    half its far distance where no caster keeps a part within it. Its near plane came from
+    its casters' bounds, which reach the light's plane (or behind it) for half the frusta."""
+    import json
+    from pathlib import Path
+
+    from wallcull.paths import scene_path
+    from wallcull.scene import load
+
+    root = Path(__file__).resolve().parent.parent
+    scene = load("powerplant", settings=json.loads((root / "scenes" / lights).read_text()))
+    wall = Wall.from_dict(json.loads((root / "examples" / "wall-4x4.json").read_text()))
+    tris = [scene.leaf_triangles(int(leaf)) for leaf in scene.leaves]
+    at = np.zeros(len(scene), np.int64)
+    at[scene.leaves] = np.arange(len(scene.leaves))
+    ends = np.cumsum([len(t) for t in tris])
+    starts = ends - [len(t) for t in tris]
+    tris = np.concatenate(tris)
+    frusta = tight = 0
+    for path in ("orbit", "fly"):
+        session = Session(scene, wall, fit=FitOptions())
+        frames = scene_path(scene, wall, path, 40)
+        for frame in (frames[7], frames[29]):
+            for shadow in session.frame(frame).fits.shadows:
+                light = np.asarray(shadow.light.position, float)
+                for t in np.flatnonzero(shadow.kind == fitmod.FRUSTUM):
+                    view, pv = shadow.view[t], shadow.projection[t] @ shadow.view[t]
+                    planes = np.array([pv[3] + pv[0], pv[3] - pv[0], pv[3] + pv[1],
+                                       pv[3] - pv[1], pv[3] - pv[2]])
+                    forward = -view[2, :3]
+                    near, far = shadow.near[t], shadow.far[t]
+                    leaves = at[shadow.casters[shadow.casters_start[t]:
+                                               shadow.casters_start[t + 1]]]
+                    own = tris[np.concatenate([np.arange(starts[k], ends[k]) for k in leaves])]
+                    # only a triangle with a corner nearer than near / (1 - 1e-6) can matter
+                    close = ((own - light) @ forward).min(axis=1) \
+                        < max(near / (1 - 1e-6), far * fitmod.NEAR_FLOOR) * (1 + 1e-9)
+                    least = clipped_depths(own[close], planes, forward, light).min() \
+                        if close.any() else np.inf
+                    frusta += 1
+                    assert near <= least, (path, shadow.light.name, t)
+                    if near > far * fitmod.NEAR_FLOOR * (1 + 1e-12):
+                        if least == np.inf:  # no caster within it
+                            assert near == far * 0.5 * (1 - 1e-6)
+                        else:
+                            assert near == pytest.approx(least * (1 - 1e-6), rel=1e-9)
+                            tight += 1
+                    else:
+                        assert least * (1 - 1e-6) <= far * fitmod.NEAR_FLOOR * (1 + 1e-9)
+    assert frusta > 20 and tight > frusta / 2

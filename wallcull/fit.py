@@ -307,6 +307,8 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
                     projection[j, lo:hi], near[j, lo:hi], far[j, lo:hi], coverage[j, lo:hi],
                     status[j, lo:hi], kind[j, lo:hi], casters[j, lo:hi],
                     buf.get("stack_n", stack), buf.get("stack_m", stack),
+                    buf.get("stack_b", stack, np.float64), buf.get("listed_n", len(box)),
+                    buf.get("listed_b", len(box), np.float64),
                     buf.get("out_n", CASTERS)[used:])
                 if got is not None:
                     break
@@ -369,7 +371,7 @@ _KIND_OF_STATUS[[lowilie.OK, lowilie.EMPTY, lowilie.UNLIT]] = FRUSTUM, NONE, NON
 def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center, axes, half,
                  radius, start, nodes, box, child_start, child_count, children, leaf_start,
                  leaf_count, leaves, cluster_leaf, faces, view, projection, near, far, coverage,
-                 status, kind, casters, stack_n, stack_m, out):
+                 status, kind, casters, stack_n, stack_m, stack_b, listed_n, listed_b, out):
     """One light's shadows for a run of tiles (receivers ``nodes[start[t]:start[t + 1]]``),
     written into its rows of the frame's arrays: the Low-Ilie fits, a cube map where none
     holds the receivers, the caster culls (:func:`_cull_casters`), each map's near plane
@@ -417,9 +419,11 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
         cubes[k] = kind[lit[k]] == CUBE
         if cubes[k]:  # casters this far out leave its near plane as it is
             lo[k] = 2 * near[lit[k]]
+    near_work = (*_region_shapes(planes, regions, sizes, forward, cubes, light), stack_b,
+                 listed_n, listed_b, np.empty((2, _POLYGON, 3)))
     if _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
-                     cubes, faces, light, leaf_start, leaf_count, leaves, cluster_leaf, stack_n,
-                     stack_m, out, lo, first) < 0:
+                     cubes, faces, near_work, light, leaf_start, leaf_count, leaves,
+                     cluster_leaf, stack_n, stack_m, out, lo, first) < 0:
         return None
     _pull_near(lo, kind, lit, near, far, projection)
     casters[:] = 0
@@ -430,22 +434,26 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
 
 @njit(cache=True, nogil=True)
 def _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
-                  cubes, faces, origin, leaf_start, leaf_count, leaves, cluster_leaf, stack_n,
-                  stack_m, out, nearest, first):
+                  cubes, faces, near_work, origin, leaf_start, leaf_count, leaves, cluster_leaf,
+                  stack_n, stack_m, out, nearest, first):
     """The caster regions of :func:`_caster_regions` (region ``q``: the planes
     ``regions[q, :sizes[q]]``) culled as the ``oh`` kernel culls them (:func:`wallcull.cull._oh`:
     the same tests, in the same order), each listed node's leaves written out as it is
     listed, as :func:`wallcull.cull._expand` writes them from the kernel's pairs: region ``q``'s
-    leaves are ``out[first[q]:first[q + 1]]``. ``nearest[q]`` gets the region's least depth
-    along ``forward[q]`` from ``origin`` that its listed bounds reach, the sums of
-    :func:`wallcull.cull._depth_ranges` (left as it is when it lists nothing). For a cube
-    map's region (``cubes[q]``) it gets a lower bound of the least Chebyshev distance from
-    ``origin`` (a point's largest distance along one of the world's axes: what a face's near
-    plane bounds) of the listed leaves' triangles, where below the ``nearest[q]`` given (and
-    that otherwise; only these are worth opening): :func:`_chebyshev_below`, on ``faces``,
-    the scene's hierarchy with its clusters and its meshes. Both are worked out while the
-    node's record is at hand, not in passes over the pairs afterwards. Returns the leaves
-    written, or -1 when ``out`` cannot hold them."""
+    leaves are ``out[first[q]:first[q + 1]]``. ``nearest[q]`` gets how near the light
+    ``origin`` its casters' triangles come, opened through ``faces`` (the scene's hierarchy
+    with its clusters and its meshes) only where a node's bound comes nearer than the nearest
+    so far (:func:`_nearest_below`). For a frustum's region, the least depth along
+    ``forward[q]`` of the listed nodes' triangles clipped to the region (NaN when none lies
+    in it, or when it lists nothing): its listed nodes are opened once the region is culled,
+    the nearest bound first (:func:`_open_nearest`). For a cube map's region (``cubes[q]``), a
+    lower bound of the least Chebyshev distance from ``origin`` (a point's largest distance
+    along one of the world's axes: what a face's near plane bounds) of the listed leaves'
+    triangles, where below the ``nearest[q]`` given (and that otherwise): each listed node is
+    opened as it is listed, where its box comes nearer. ``near_work``: the regions' shapes
+    (:func:`_region_shapes`) and the buffers the opening uses. Returns the leaves written, or
+    -1 when ``out`` cannot hold them."""
+    rel, corners, spread, stack_b, listed_n, listed_b, poly = near_work
     w = 0
     cap = out.shape[0]
     for q in range(sizes.shape[0]):
@@ -454,7 +462,7 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
         cube = cubes[q]
         least = nearest[q] if cube else np.inf
         last = -1  # the cluster's leaf written last (a leaf's clusters come one after another)
-        listed = False
+        listed = 0
         stack_n[0] = 0
         stack_m[0] = (np.int64(1) << size) - 1
         sp = 1
@@ -465,7 +473,6 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
             if outside:
                 continue
             if m == 0 or child_count[i] == 0:
-                listed = True
                 c = cluster_leaf[i]
                 if c < 0:
                     if w + leaf_count[i] > cap:
@@ -480,21 +487,57 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
                     w += 1
                     last = c
                 if cube:
-                    if _chebyshev(box, i, origin) < least:  # (seldom: open it)
-                        least = _chebyshev_below(box, child_start, children, faces, i, origin,
-                                                 least, stack_n, sp)
-                else:
-                    depth, r = _along(box, i, fx, fy, fz, origin[0], origin[1], origin[2])
-                    least = min(least, depth - r)
+                    bound = _chebyshev(box, i, origin)
+                    if bound < least:  # (seldom: open it)
+                        least = _nearest_below(box, child_start, children, faces, i, bound,
+                                               least, origin, q, True, fx, fy, fz, rel, ids,
+                                               size, corners, spread, stack_n, stack_b, sp,
+                                               poly)
+                else:  # opened once the region is culled, the nearest first
+                    listed_n[listed] = i
+                    listed_b[listed] = _region_floor(box, i, origin, fx, fy, fz, corners, q,
+                                                     spread[q])
+                listed += 1
                 continue
             for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
                 stack_n[sp] = children[c]
                 stack_m[sp] = m
                 sp += 1
-        if listed:
+        if listed and not cube:
+            least = _open_nearest(box, child_start, children, faces, listed, least, origin, q,
+                                  fx, fy, fz, rel, ids, size, corners, spread, listed_n,
+                                  listed_b, stack_n, stack_b, poly)
+            nearest[q] = least if least < np.inf else np.nan
+        elif listed:
             nearest[q] = least
         first[q + 1] = w
     return w
+
+
+@njit(cache=True, _nrt=False)
+def _open_nearest(box, child_start, children, faces, count, least, origin, q, fx, fy, fz, rel,
+                  ids, size, corners, spread, listed_n, listed_b, stack, bounds, poly):
+    """The least of ``least`` and the depths within frustum region ``q`` of the triangles
+    under the listed nodes ``listed_n[:count]`` (their bounds, :func:`_region_floor`, in
+    ``listed_b``): each opened (:func:`_nearest_below`) the nearest bound first, and only
+    while its bound comes nearer than the least so far. The lists are reordered."""
+    while count > 0:
+        kept, best = 0, -1  # those that may still come nearer; the nearest of them
+        for j in range(count):
+            if listed_b[j] < least:
+                listed_n[kept], listed_b[kept] = listed_n[j], listed_b[j]
+                if best < 0 or listed_b[kept] < listed_b[best]:
+                    best = kept
+                kept += 1
+        if kept == 0:
+            break
+        i, bound = listed_n[best], listed_b[best]
+        count = kept - 1
+        listed_n[best], listed_b[best] = listed_n[count], listed_b[count]
+        least = _nearest_below(box, child_start, children, faces, i, bound, least, origin, q,
+                               False, fx, fy, fz, rel, ids, size, corners, spread, stack, bounds,
+                               0, poly)
+    return least
 
 
 @njit(cache=True, inline="always")
@@ -509,31 +552,94 @@ def _chebyshev(box, i, origin):
     return out
 
 
+@njit(cache=True, inline="always")
+def _region_floor(box, i, origin, fx, fy, fz, corners, q, spread):
+    """A lower bound of the depth along unit ``(fx, fy, fz)`` from ``origin`` (the light) of
+    the part of bound ``i`` within frustum region ``q``, whose side planes meet at ``origin``
+    along the corner rays ``corners[q]`` (each of depth 1; ``spread``: their largest length,
+    not positive when they are not to be trusted). Its depth less its reach along the axis;
+    and, where more, along each of its box's axes ``u`` (a separating axis): the part of the
+    region nearer than depth ``d`` lies within the pyramid from ``origin`` through the
+    corners at depth ``d``, whose span along ``u`` grows from the light's as ``d`` times
+    the corners' least and largest; a box wholly past one end of it along ``u`` meets it only
+    from the depth where that end reaches the box (never: infinite). Beside a frustum, a tall
+    box whose reach along the axis comes up to the light's plane (or behind it) has its part
+    within the region far below the light, where the region has grown to meet it."""
+    ox, oy, oz = origin[0], origin[1], origin[2]
+    depth, r = _along(box, i, fx, fy, fz, ox, oy, oz)
+    out = depth - r
+    if not spread > 0:
+        return out
+    tiny = 1e-12 * spread
+    for a in range(3):
+        ex, ey, ez = box[i, 4 + 3 * a], box[i, 5 + 3 * a], box[i, 6 + 3 * a]
+        length = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if not length > 0:
+            continue
+        ux, uy, uz = ex / length, ey / length, ez / length
+        c, r = _along(box, i, ux, uy, uz, ox, oy, oz)
+        if -r <= c <= r:  # the box spans the light along u
+            continue
+        top, bottom = -np.inf, np.inf
+        for k in range(4):
+            s = ux * corners[q, k, 0] + uy * corners[q, k, 1] + uz * corners[q, k, 2]
+            top, bottom = max(top, s), min(bottom, s)
+        if c > r:  # the box lies wholly on u's side of the light
+            if top > tiny:
+                out = max(out, (c - r) / top)
+            elif top < -tiny:
+                return np.inf
+        else:
+            if bottom < -tiny:
+                out = max(out, (c + r) / bottom)
+            elif bottom > tiny:
+                return np.inf
+    return out
+
+
 @njit(cache=True, _nrt=False)
-def _chebyshev_below(box, child_start, children, faces, i, origin, least, stack, base):
-    """A lower bound of the least Chebyshev distance from ``origin`` of the triangles under
-    node ``i``, where below ``least`` (``least`` otherwise). Its subtree is opened depth-first,
-    through the leaves' clusters (``faces``: the scene's ``child_count``, ``cluster_leaf``,
-    ``cluster_faces``, ``mesh_of``, the state's ``world`` and the mesh table's arrays), where
-    a node's box (:func:`_chebyshev`) comes nearer than the least so far, on ``stack`` above
-    ``base`` (a traversal that went on into ``i`` would reach as deep); the triangles of a
-    node without children are taken one by one (:func:`_triangle_chebyshev`) where its box
-    does. A box that holds the light (a lamp's housing, a room around it) says nothing of
-    how near its surfaces come."""
+def _nearest_below(box, child_start, children, faces, i, bound, least, origin, q, cube, fx, fy,
+                   fz, rel, ids, size, corners, spread, stack, bounds, base, poly):
+    """How near ``origin`` (the light) the triangles under node ``i`` (its bound ``bound``)
+    come, where nearer than ``least`` (``least`` otherwise): in a frustum's region ``q``, the
+    least depth along its axis ``(fx, fy, fz)`` of their parts within the region (:func:`_clipped_below`, the
+    region's planes ``rel[ids[:size]]`` taken from the light); in a cube map's (``cube``), a
+    lower bound of their least Chebyshev distance (:func:`_triangle_chebyshev`). Its subtree
+    is opened depth-first, through the leaves' clusters (``faces``: the scene's
+    ``child_count``, ``cluster_leaf``, ``cluster_faces``, ``mesh_of``, the state's ``world``
+    and the mesh table's arrays), only where a node's bound (:func:`_region_floor`,
+    :func:`_chebyshev`) comes nearer than the least so far, the nearest child first, on
+    ``stack`` and ``bounds`` above ``base`` (a traversal that went on into ``i`` would reach
+    as deep); the triangles of a node without children are taken one by one. A box that
+    holds the light (a lamp's housing, a room around it) says nothing of how near its
+    surfaces come."""
     child_count, cluster_leaf, first, count, mesh_of, world, vertex_start, vertices, \
         face_start, tris = faces
     ox, oy, oz = origin[0], origin[1], origin[2]
-    stack[base] = i
+    stack[base], bounds[base] = i, bound
     sp = base + 1
     while sp > base:
         sp -= 1
         j = stack[sp]
-        if not _chebyshev(box, j, origin) < least:
+        if not bounds[sp] < least:
             continue
         if child_count[j] > 0:
+            top = sp
             for c in range(child_start[j], child_start[j] + child_count[j]):
-                stack[sp] = children[c]
-                sp += 1
+                k = children[c]
+                b = _chebyshev(box, k, origin) if cube else \
+                    _region_floor(box, k, origin, fx, fy, fz, corners, q, spread[q])
+                if b < least:
+                    stack[sp], bounds[sp] = k, b
+                    sp += 1
+            if sp - top > 1:  # the nearest on top
+                best = top
+                for s in range(top + 1, sp):
+                    if bounds[s] < bounds[best]:
+                        best = s
+                s = sp - 1
+                stack[best], stack[s] = stack[s], stack[best]
+                bounds[best], bounds[s] = bounds[s], bounds[best]
             continue
         leaf = cluster_leaf[j] if cluster_leaf[j] >= 0 else j
         mesh = mesh_of[leaf]
@@ -543,12 +649,86 @@ def _chebyshev_below(box, child_start, children, faces, i, origin, least, stack,
         v0 = vertex_start[mesh]
         for f in range(face_start[mesh] + first[j], face_start[mesh] + first[j] + count[j]):
             a, b, c = v0 + tris[f, 0], v0 + tris[f, 1], v0 + tris[f, 2]
-            least = min(least, _triangle_chebyshev(
-                _moved(m, 0, vertices, a) - ox, _moved(m, 1, vertices, a) - oy,
-                _moved(m, 2, vertices, a) - oz, _moved(m, 0, vertices, b) - ox,
-                _moved(m, 1, vertices, b) - oy, _moved(m, 2, vertices, b) - oz,
-                _moved(m, 0, vertices, c) - ox, _moved(m, 1, vertices, c) - oy,
-                _moved(m, 2, vertices, c) - oz))
+            ax, ay, az = (_moved(m, 0, vertices, a) - ox, _moved(m, 1, vertices, a) - oy,
+                          _moved(m, 2, vertices, a) - oz)
+            bx, by, bz = (_moved(m, 0, vertices, b) - ox, _moved(m, 1, vertices, b) - oy,
+                          _moved(m, 2, vertices, b) - oz)
+            cx, cy, cz = (_moved(m, 0, vertices, c) - ox, _moved(m, 1, vertices, c) - oy,
+                          _moved(m, 2, vertices, c) - oz)
+            if cube:
+                least = min(least, _triangle_chebyshev(ax, ay, az, bx, by, bz, cx, cy, cz))
+            else:
+                least = _clipped_below(ax, ay, az, bx, by, bz, cx, cy, cz, fx, fy, fz, rel,
+                                       ids, size, least, poly)
+    return least
+
+
+#: Room for a triangle clipped by a region's planes (3 corners and one more per plane, five;
+#: rounding can add a few, and a polygon that would outgrow this is taken whole).
+_POLYGON = 16
+
+
+@njit(cache=True, _nrt=False)
+def _clipped_below(ax, ay, az, bx, by, bz, cx, cy, cz, fx, fy, fz, planes, ids, size, least,
+                   poly):
+    """The least of ``least`` and the least depth along ``(fx, fy, fz)`` of the part of the
+    triangle ``a, b, c`` within the planes ``planes[ids[:size]]`` (the triangle, the planes and
+    the depth all taken from the light): its least corner's when all its corners lie within
+    them, none when all lie outside one plane, and otherwise that of the polygon left by
+    clipping it (Sutherland-Hodgman) against the planes it crosses, in ``poly (2, k, 3)``.
+    A corner on a plane lies within it. A triangle whose least corner lies no nearer than
+    ``least`` is left at once: its clipped part lies no nearer."""
+    low = min(fx * ax + fy * ay + fz * az, fx * bx + fy * by + fz * bz,
+              fx * cx + fy * cy + fz * cz)
+    if not low < least:
+        return least
+    cut = 0
+    for p in range(size):
+        nx, ny, nz, d = planes[ids[p], 0], planes[ids[p], 1], planes[ids[p], 2], \
+            planes[ids[p], 3]
+        sa = nx * ax + ny * ay + nz * az + d
+        sb = nx * bx + ny * by + nz * bz + d
+        sc = nx * cx + ny * cy + nz * cz + d
+        if sa < 0 and sb < 0 and sc < 0:
+            return least
+        if sa < 0 or sb < 0 or sc < 0:
+            cut |= 1 << p
+    if cut == 0:
+        return low
+    poly[0, 0, 0], poly[0, 0, 1], poly[0, 0, 2] = ax, ay, az
+    poly[0, 1, 0], poly[0, 1, 1], poly[0, 1, 2] = bx, by, bz
+    poly[0, 2, 0], poly[0, 2, 1], poly[0, 2, 2] = cx, cy, cz
+    n, src, room = 3, 0, poly.shape[1]
+    for p in range(size):
+        if not cut & (1 << p):
+            continue  # all the polygon lies within it (it lies within the triangle)
+        nx, ny, nz, d = planes[ids[p], 0], planes[ids[p], 1], planes[ids[p], 2], \
+            planes[ids[p], 3]
+        dst = 1 - src
+        k = 0
+        s1 = nx * poly[src, 0, 0] + ny * poly[src, 0, 1] + nz * poly[src, 0, 2] + d
+        for v in range(n):
+            s0 = s1
+            u = v + 1 if v + 1 < n else 0
+            s1 = nx * poly[src, u, 0] + ny * poly[src, u, 1] + nz * poly[src, u, 2] + d
+            if k + 2 > room:  # (rounding only) the polygon before this plane, whole
+                dst = src
+                k = n
+                break
+            if s0 >= 0:
+                for e in range(3):
+                    poly[dst, k, e] = poly[src, v, e]
+                k += 1
+            if (s0 >= 0) != (s1 >= 0):
+                t = s0 / (s0 - s1)
+                for e in range(3):
+                    poly[dst, k, e] = poly[src, v, e] + t * (poly[src, u, e] - poly[src, v, e])
+                k += 1
+        n, src = k, dst
+        if n == 0:
+            return least
+    for v in range(n):
+        least = min(least, fx * poly[src, v, 0] + fy * poly[src, v, 1] + fz * poly[src, v, 2])
     return least
 
 
@@ -629,6 +809,55 @@ def _caster_regions(pv, kind, shaded, far, light):
             for j in range(4):
                 rows[p, j] /= norm
     return planes, regions, sizes
+
+
+@njit(cache=True)
+def _region_shapes(planes, regions, sizes, forward, cubes, light):
+    """What the near planes' search (:func:`_nearest_below`) needs of the caster regions:
+    ``rel``, the planes taken from ``light`` (the same normals, each offset by its value at
+    the light: a point's distance is then that of its offset from the light), and per
+    frustum region ``q``, ``corners[q]``, its four corner rays (where its side planes meet,
+    in turn: left and bottom, bottom and right, right and top, top and left), each scaled to
+    depth 1 along ``forward[q]``, and ``spread[q]``, their largest length. A cube map's
+    region, or one whose rays come out edge-on or outside its other side planes (a frustum
+    of nearly 180 degrees), gets no rays (``spread`` 0): its nodes are bounded by their
+    depth alone."""
+    rel = planes.copy()
+    for p in range(planes.shape[0]):
+        rel[p, 3] += planes[p, 0] * light[0] + planes[p, 1] * light[1] + planes[p, 2] * light[2]
+    n = sizes.shape[0]
+    corners = np.zeros((n, 4, 3))
+    spread = np.zeros(n)
+    for q in range(n):
+        if cubes[q]:
+            continue
+        ids = regions[q]
+        good, longest = True, 0.0
+        for k in range(4):
+            a, b = ids[_CORNER_SIDES[k, 0]], ids[_CORNER_SIDES[k, 1]]
+            cx = planes[a, 1] * planes[b, 2] - planes[a, 2] * planes[b, 1]
+            cy = planes[a, 2] * planes[b, 0] - planes[a, 0] * planes[b, 2]
+            cz = planes[a, 0] * planes[b, 1] - planes[a, 1] * planes[b, 0]
+            length = math.sqrt(cx * cx + cy * cy + cz * cz)
+            depth = cx * forward[q, 0] + cy * forward[q, 1] + cz * forward[q, 2]
+            if not abs(depth) > 1e-9 * length:
+                good = False
+                break
+            cx, cy, cz = cx / depth, cy / depth, cz / depth
+            longest = max(longest, length / abs(depth))
+            corners[q, k, 0], corners[q, k, 1], corners[q, k, 2] = cx, cy, cz
+            for p in range(4):  # within the other side planes
+                if planes[ids[p], 0] * cx + planes[ids[p], 1] * cy + planes[ids[p], 2] * cz \
+                        < -1e-9 * length / abs(depth):
+                    good = False
+        if good:
+            spread[q] = longest
+    return rel, corners, spread
+
+
+#: The side planes (rows of :func:`_caster_regions`: left, right, bottom, top) that meet in
+#: each corner ray of a frustum's region, around it.
+_CORNER_SIDES = np.array([[0, 2], [2, 1], [1, 3], [3, 0]])
 
 
 @njit(cache=True)
