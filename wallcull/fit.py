@@ -494,9 +494,8 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
                                                size, corners, spread, stack_n, stack_b, sp,
                                                poly)
                 else:  # opened once the region is culled, the nearest first
-                    listed_n[listed] = i
-                    listed_b[listed] = _region_floor(box, i, origin, fx, fy, fz, corners, q,
-                                                     spread[q])
+                    depth, r = _along(box, i, fx, fy, fz, origin[0], origin[1], origin[2])
+                    listed_n[listed], listed_b[listed] = -1 - i, depth - r  # (not refined)
                 listed += 1
                 continue
             for c in range(child_start[i] + child_count[i] - 1, child_start[i] - 1, -1):
@@ -518,26 +517,45 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
 def _open_nearest(box, child_start, children, faces, count, least, origin, q, fx, fy, fz, rel,
                   ids, size, corners, spread, listed_n, listed_b, stack, bounds, poly):
     """The least of ``least`` and the depths within frustum region ``q`` of the triangles
-    under the listed nodes ``listed_n[:count]`` (their bounds, :func:`_region_floor`, in
-    ``listed_b``): each opened (:func:`_nearest_below`) the nearest bound first, and only
-    while its bound comes nearer than the least so far. The lists are reordered."""
-    while count > 0:
-        kept, best = 0, -1  # those that may still come nearer; the nearest of them
-        for j in range(count):
-            if listed_b[j] < least:
-                listed_n[kept], listed_b[kept] = listed_n[j], listed_b[j]
-                if best < 0 or listed_b[kept] < listed_b[best]:
-                    best = kept
-                kept += 1
-        if kept == 0:
-            break
-        i, bound = listed_n[best], listed_b[best]
-        count = kept - 1
-        listed_n[best], listed_b[best] = listed_n[count], listed_b[count]
+    under the listed nodes ``listed_n[:count]``, each opened (:func:`_nearest_below`) the
+    nearest bound first, and only while its bound comes nearer than the least so far. A
+    node's bound is its depth less its reach (``listed_b``, the node's id given as
+    ``-1 - id``) until it is the nearest, then the tighter :func:`_region_floor`: a heap
+    (the lists are reordered)."""
+    for j in range(count // 2 - 1, -1, -1):
+        _sift_down(listed_n, listed_b, j, count)
+    while count > 0 and listed_b[0] < least:
+        i, bound = listed_n[0], listed_b[0]
+        if i < 0:  # bounded by its depth alone so far
+            i = -1 - i
+            listed_n[0] = i
+            listed_b[0] = max(bound, _region_floor(box, i, origin, fx, fy, fz, corners, q,
+                                                   spread[q]))
+            _sift_down(listed_n, listed_b, 0, count)
+            continue
+        count -= 1
+        listed_n[0], listed_b[0] = listed_n[count], listed_b[count]
+        _sift_down(listed_n, listed_b, 0, count)
         least = _nearest_below(box, child_start, children, faces, i, bound, least, origin, q,
                                False, fx, fy, fz, rel, ids, size, corners, spread, stack, bounds,
                                0, poly)
     return least
+
+
+@njit(cache=True, inline="always")
+def _sift_down(ids, keys, j, count):
+    """Entry ``j`` of the binary min-heap ``keys[:count]`` (with ``ids``) sifted down."""
+    while True:
+        k = 2 * j + 1
+        if k >= count:
+            return
+        if k + 1 < count and keys[k + 1] < keys[k]:
+            k += 1
+        if not keys[k] < keys[j]:
+            return
+        ids[j], ids[k] = ids[k], ids[j]
+        keys[j], keys[k] = keys[k], keys[j]
+        j = k
 
 
 @njit(cache=True, inline="always")
@@ -607,10 +625,12 @@ def _nearest_below(box, child_start, children, faces, i, bound, least, origin, q
     lower bound of their least Chebyshev distance (:func:`_triangle_chebyshev`). Its subtree
     is opened depth-first, through the leaves' clusters (``faces``: the scene's
     ``child_count``, ``cluster_leaf``, ``cluster_faces``, ``mesh_of``, the state's ``world``
-    and the mesh table's arrays), only where a node's bound (:func:`_region_floor`,
-    :func:`_chebyshev`) comes nearer than the least so far, the nearest child first, on
-    ``stack`` and ``bounds`` above ``base`` (a traversal that went on into ``i`` would reach
-    as deep); the triangles of a node without children are taken one by one. A box that
+    and the mesh table's arrays), only where a node's bound comes nearer than the least so
+    far (:func:`_chebyshev`; in a frustum's region its depth less its reach, then, as it is
+    taken, :func:`_region_floor`), the nearest child first, on ``stack`` and ``bounds`` above
+    ``base`` (a traversal that went on into ``i`` would reach as deep); the triangles of a
+    node without children are taken one by one (in a frustum's region only those with a
+    corner nearer than the least so far are placed in the world and clipped). A box that
     holds the light (a lamp's housing, a room around it) says nothing of how near its
     surfaces come."""
     child_count, cluster_leaf, first, count, mesh_of, world, vertex_start, vertices, \
@@ -623,12 +643,18 @@ def _nearest_below(box, child_start, children, faces, i, bound, least, origin, q
         j = stack[sp]
         if not bounds[sp] < least:
             continue
+        if not cube and j != i and not _region_floor(box, j, origin, fx, fy, fz, corners, q,
+                                                     spread[q]) < least:
+            continue  # (its depth brought it here: within the region it lies farther)
         if child_count[j] > 0:
             top = sp
             for c in range(child_start[j], child_start[j] + child_count[j]):
                 k = children[c]
-                b = _chebyshev(box, k, origin) if cube else \
-                    _region_floor(box, k, origin, fx, fy, fz, corners, q, spread[q])
+                if cube:
+                    b = _chebyshev(box, k, origin)
+                else:
+                    depth, r = _along(box, k, fx, fy, fz, ox, oy, oz)
+                    b = depth - r
                 if b < least:
                     stack[sp], bounds[sp] = k, b
                     sp += 1
@@ -647,8 +673,18 @@ def _nearest_below(box, child_start, children, faces, i, bound, least, origin, q
             continue
         m = world[leaf]
         v0 = vertex_start[mesh]
+        # a vertex's depth along the region's axis: g . v + g0 (the axis into the mesh)
+        gx = fx * m[0, 0] + fy * m[1, 0] + fz * m[2, 0]
+        gy = fx * m[0, 1] + fy * m[1, 1] + fz * m[2, 1]
+        gz = fx * m[0, 2] + fy * m[1, 2] + fz * m[2, 2]
+        g0 = fx * (m[0, 3] - ox) + fy * (m[1, 3] - oy) + fz * (m[2, 3] - oz)
         for f in range(face_start[mesh] + first[j], face_start[mesh] + first[j] + count[j]):
             a, b, c = v0 + tris[f, 0], v0 + tris[f, 1], v0 + tris[f, 2]
+            if not cube and not min(
+                    gx * vertices[a, 0] + gy * vertices[a, 1] + gz * vertices[a, 2],
+                    gx * vertices[b, 0] + gy * vertices[b, 1] + gz * vertices[b, 2],
+                    gx * vertices[c, 0] + gy * vertices[c, 1] + gz * vertices[c, 2]) + g0 < least:
+                continue  # no corner nearer than the least so far
             ax, ay, az = (_moved(m, 0, vertices, a) - ox, _moved(m, 1, vertices, a) - oy,
                           _moved(m, 2, vertices, a) - oz)
             bx, by, bz = (_moved(m, 0, vertices, b) - ox, _moved(m, 1, vertices, b) - oy,
