@@ -829,7 +829,7 @@ def test_a_frustums_near_plane_comes_to_its_nearest_casters_part_within_it():
     reaches behind the lamp's plane, and the near plane came from the casters' bounds. No
     caster's triangle keeps a part within the frustum nearer than its near plane."""
     s = boxes({"patch": ([6, 0.1, 6], [0, -0.05, -10]), "crate": ([1, 1, 1], [0, 12, -4]),
-               "pole": ([0.2, 25, 2], [2.5, 12.5, -10])})
+               "pole": ([0.2, 25, 2], [2.5, 13, -10])})
     lamp = np.array([0.0, 20.0, 0.0])
     scene = Scene.from_trimesh(s, hierarchy="file",
                                settings={"lights": [{"name": "lamp", "position": list(lamp)}]})

@@ -272,6 +272,43 @@ def test_a_cube_maps_faces_keep_a_caster_right_by_the_light(housing):
     assert cup_pixels >= (5 * 64 * 64 if housing else 1000)  # the housing: five whole faces
 
 
+def test_a_shadow_frustums_near_plane_keeps_every_caster_pixel():
+    """A lamp 20 m over a ground patch a tile sees from above (a Low-Ilie frustum), a crate
+    8 m under the lamp within it, and a pole beside the patch reaching 5.5 m over the lamp, only
+    its foot within the frustum (clear of the patch: no two faces share a depth). The shadow map drawn with the fitted matrices (its near plane
+    pulled in to the crate, not to the floor where the pole's bound put it) shows the casters
+    as the same map with a near plane at 0.1 mm does, pixel for pixel: the crate, the pole's
+    foot and the patch around them."""
+    s = trimesh.Scene()
+    for name, extents, at in (("patch", [6, 0.1, 6], [0, -0.05, -10]),
+                              ("crate", [1, 1, 1], [0, 12, -4]),
+                              ("pole", [0.2, 25, 2], [2.5, 13, -10])):
+        m = trimesh.creation.box(extents=extents)
+        m.apply_translation(at)
+        s.add_geometry(m, node_name=name, geom_name=name)
+    scene = Scene.from_trimesh(s, hierarchy="file",
+                               settings={"lights": [{"name": "lamp", "position": [0, 20, 0]}]})
+    wall = Wall.from_dict({"cols": 1, "rows": 1, "tile_size": [0.4, 0.4], "distance": 1.0,
+                           "resolution": [64, 64]})
+    frame = Frame.from_dict({"position": [0, 6, -10],
+                             "orientation": [0.7071068, -0.7071068, 0, 0]}, wall)
+    result = Session(scene, wall, fit=FitOptions()).frame(frame)
+    (shadow,) = result.fits[0]["shadows"]
+    far, near = shadow["far"], shadow["near"]
+    assert not shadow.get("cube") and near > 1e3 * far * 1e-6
+    r = renderer_for(128, 128, scene)
+    view, projection = np.asarray(shadow["view"]), np.asarray(shadow["projection"])
+    reference = projection.copy()
+    n = 1e-4
+    reference[2, 2:] = -(far + n) / (far - n), -2 * far * n / (far - n)
+    casters = r.draws.leaves(shadow["casters"])
+    got = r.render(casters, view, projection).ids
+    ref = r.render(casters, view, reference).ids
+    np.testing.assert_array_equal(got, ref)
+    for name in ("crate", "pole", "patch"):
+        assert (ref == scene.index[name] + 1).sum() > 20, name
+
+
 def test_a_shadow_maps_near_floor_keeps_far_casters_in_a_24_bit_map():
     """Why a shadow map's near plane stops at a millionth of its far distance (``fit.NEAR_FLOOR``)
     though a caster lies nearer the light. A lamp lights a wall 50 km away (the map's far
