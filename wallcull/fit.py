@@ -11,7 +11,8 @@ Per tile and frame:
   clears depth to 0 and tests GREATER).
 * ``shadows`` (only if the scene declares shadow-casting lights): per light, a Low-Ilie frustum
   from the light, fitted around the tile's visible set (:mod:`wallcull.lowilie`). Its near
-  plane is pulled in to the nearest caster. It comes with the shadow casters culled against it.
+  plane is pulled in to the nearest caster: the least depth of the casters' triangles clipped
+  to the frustum. It comes with the shadow casters culled against it.
   A light that the tile's visible set surrounds gets a cube map instead: six 90 degree faces,
   whose near plane is pulled in to the nearest caster's triangles where they come nearer than
   a ten-thousandth of its far distance. No map's near plane comes nearer than a millionth of
