@@ -12,7 +12,8 @@ Per tile and frame:
 * ``shadows`` (only if the scene declares shadow-casting lights): per light, a Low-Ilie frustum
   from the light, fitted around the tile's visible set (:mod:`wallcull.lowilie`). Its near
   plane is pulled in to the nearest caster: the least depth of the casters' triangles clipped
-  to the frustum. It comes with the shadow casters culled against it.
+  to the frustum, where nearer than :data:`NEAR_ENOUGH` of its far distance. It comes with the
+  shadow casters culled against it.
   A light that the tile's visible set surrounds gets a cube map instead: six 90 degree faces,
   whose near plane is pulled in to the nearest caster's triangles where they come nearer than
   a ten-thousandth of its far distance. No map's near plane comes nearer than a millionth of
@@ -358,6 +359,13 @@ CUBE_NEAR = 1e-4
 #: the far distance drops the far casters of some map (``tests/test_fit_render.py``).
 NEAR_FLOOR = 1e-6
 
+#: A shadow frustum's near plane is pulled in to its nearest caster's triangles clipped to it,
+#: but only as far as needed: once every listed node's bound lies beyond this fraction of the
+#: far distance, the least bound is its near plane and no node is opened. A map whose near
+#: plane is a 1,024th of its far distance resolves its far end in a 24-bit buffer to 6e-5 of
+#: it (at the floor, to 6%); the opening that would bring it nearer costs more than it buys.
+NEAR_ENOUGH = 2.0 ** -10
+
 #: Caster leaves a part of :func:`shadow_sets` has room for at first: doubled while they
 #: overflow, and kept from frame to frame.
 CASTERS = 4096
@@ -420,6 +428,8 @@ def _shadow_part(light, width, height, effort, spot, spot_dir, spot_cos, center,
         cubes[k] = kind[lit[k]] == CUBE
         if cubes[k]:  # casters this far out leave its near plane as it is
             lo[k] = 2 * near[lit[k]]
+        else:  # nodes bounded beyond this are not opened
+            lo[k] = far[lit[k]] * NEAR_ENOUGH
     near_work = (*_region_shapes(planes, regions, sizes, forward, cubes, light), stack_b,
                  listed_n, listed_b, np.empty((2, _POLYGON, 3)))
     if _cull_casters(child_start, child_count, children, box, planes, regions, sizes, forward,
@@ -447,7 +457,9 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
     so far (:func:`_nearest_below`). For a frustum's region, the least depth along
     ``forward[q]`` of the listed nodes' triangles clipped to the region (NaN when none lies
     in it, or when it lists nothing): its listed nodes are opened once the region is culled,
-    the nearest bound first (:func:`_open_nearest`). For a cube map's region (``cubes[q]``), a
+    the nearest bound first (:func:`_open_nearest`), while their bounds come nearer than the
+    ``nearest[q]`` given (none given, NaN: to the least depth itself); past it, the least
+    bound. For a cube map's region (``cubes[q]``), a
     lower bound of the least Chebyshev distance from ``origin`` (a point's largest distance
     along one of the world's axes: what a face's near plane bounds) of the listed leaves'
     triangles, where below the ``nearest[q]`` given (and that otherwise): each listed node is
@@ -462,6 +474,7 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
         fx, fy, fz = forward[q, 0], forward[q, 1], forward[q, 2]
         cube = cubes[q]
         least = nearest[q] if cube else np.inf
+        enough = np.inf if cube or not nearest[q] > 0 else nearest[q]
         last = -1  # the cluster's leaf written last (a leaf's clusters come one after another)
         listed = 0
         stack_n[0] = 0
@@ -504,9 +517,9 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
                 stack_m[sp] = m
                 sp += 1
         if listed and not cube:
-            least = _open_nearest(box, child_start, children, faces, listed, least, origin, q,
-                                  fx, fy, fz, rel, ids, size, corners, spread, listed_n,
-                                  listed_b, stack_n, stack_b, poly)
+            least = _open_nearest(box, child_start, children, faces, listed, least, enough,
+                                  origin, q, fx, fy, fz, rel, ids, size, corners, spread,
+                                  listed_n, listed_b, stack_n, stack_b, poly)
             nearest[q] = least if least < np.inf else np.nan
         elif listed:
             nearest[q] = least
@@ -515,17 +528,20 @@ def _cull_casters(child_start, child_count, children, box, planes, regions, size
 
 
 @njit(cache=True, _nrt=False)
-def _open_nearest(box, child_start, children, faces, count, least, origin, q, fx, fy, fz, rel,
-                  ids, size, corners, spread, listed_n, listed_b, stack, bounds, poly):
+def _open_nearest(box, child_start, children, faces, count, least, enough, origin, q, fx, fy,
+                  fz, rel, ids, size, corners, spread, listed_n, listed_b, stack, bounds, poly):
     """The least of ``least`` and the depths within frustum region ``q`` of the triangles
     under the listed nodes ``listed_n[:count]``, each opened (:func:`_nearest_below`) the
-    nearest bound first, and only while its bound comes nearer than the least so far. A
+    nearest bound first, and only while its bound comes nearer than the least so far and
+    than ``enough`` (past that, the least bound is returned: near enough). A
     node's bound is its depth less its reach (``listed_b``, the node's id given as
     ``-1 - id``) until it is the nearest, then the tighter :func:`_region_floor`: a heap
     (the lists are reordered)."""
     for j in range(count // 2 - 1, -1, -1):
         _sift_down(listed_n, listed_b, j, count)
     while count > 0 and listed_b[0] < least:
+        if not listed_b[0] < enough:  # near enough: the least bound
+            return listed_b[0]
         i, bound = listed_n[0], listed_b[0]
         if i < 0:  # bounded by its depth alone so far
             i = -1 - i
