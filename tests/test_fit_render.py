@@ -275,8 +275,9 @@ def test_a_cube_maps_faces_keep_a_caster_right_by_the_light(housing):
 def test_a_shadow_frustums_near_plane_keeps_every_caster_pixel():
     """A lamp 20 m over a ground patch a tile sees from above (a Low-Ilie frustum), a crate
     8 m under the lamp within it, and a pole beside the patch reaching 5.5 m over the lamp, only
-    its foot within the frustum (clear of the patch: no two faces share a depth). The shadow map drawn with the fitted matrices (its near plane
-    pulled in to the crate, not to the floor where the pole's bound put it) shows the casters
+    its foot within the frustum (clear of the patch: no two faces share a depth). The shadow
+    map drawn with the fitted matrices (its near plane pulled in to the crate, not to the
+    floor where the pole's bound put it) shows the casters
     as the same map with a near plane at 0.1 mm does, pixel for pixel: the crate, the pole's
     foot and the patch around them."""
     s = trimesh.Scene()

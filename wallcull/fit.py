@@ -637,8 +637,9 @@ def _nearest_below(box, child_start, children, faces, i, bound, least, origin, q
                    fz, rel, ids, size, corners, spread, stack, bounds, base, poly):
     """How near ``origin`` (the light) the triangles under node ``i`` (its bound ``bound``)
     come, where nearer than ``least`` (``least`` otherwise): in a frustum's region ``q``, the
-    least depth along its axis ``(fx, fy, fz)`` of their parts within the region (:func:`_clipped_below`, the
-    region's planes ``rel[ids[:size]]`` taken from the light); in a cube map's (``cube``), a
+    least depth along its axis ``(fx, fy, fz)`` of their parts within the region
+    (:func:`_clipped_below`, the region's planes ``rel[ids[:size]]`` taken from the light); in
+    a cube map's (``cube``), a
     lower bound of their least Chebyshev distance (:func:`_triangle_chebyshev`). Its subtree
     is opened depth-first, through the leaves' clusters (``faces``: the scene's
     ``child_count``, ``cluster_leaf``, ``cluster_faces``, ``mesh_of``, the state's ``world``
