@@ -337,7 +337,7 @@ def shadow_sets(state: SceneState, lights: Sequence[cfg.Light], visibility: Visi
 
 def _faces(state: SceneState) -> tuple:
     """The state's hierarchy with its clusters, and its triangles, as
-    :func:`_chebyshev_below` reads them."""
+    :func:`_nearest_below` reads them."""
     scene, m = state.scene, state.scene.meshes
     return (scene.child_count, scene.cluster_leaf, *scene.cluster_faces, scene.mesh_of,
             state.world, m.vertex_start, m.vertices, m.face_start, m.faces)
@@ -345,7 +345,7 @@ def _faces(state: SceneState) -> tuple:
 
 #: A cube map's near distance, as a fraction of its far distance, unless a caster lies nearer
 #: (each face's near plane bounds a point's largest coordinate from the light, so the
-#: casters' least Chebyshev distance from it: :func:`_chebyshev_below`).
+#: casters' least Chebyshev distance from it: :func:`_nearest_below`).
 CUBE_NEAR = 1e-4
 
 #: No shadow map's near plane is pulled in nearer the light than this fraction of its far
